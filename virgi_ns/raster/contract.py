@@ -1,0 +1,200 @@
+"""The rasterizer contract shared by every backend.
+
+With geometry frozen, a rendered pixel is a fixed weighted sum of Gaussian colours::
+
+    pixel(p) = sum_k w_pk * C[g_pk] + T_p * background,     w = T * alpha
+
+so a backend's only job is to say who contributes to which pixel with which weight
+(:class:`Contributions`). :func:`composite` then turns colours into pixels with plain torch
+autograd, on any device. Nothing here knows of nerfstudio.
+
+Conventions (gsplat 1.4.0, classic mode): cameras are pinhole with OpenCV axes (x right,
+y down, z forward); ``viewmats`` are world-to-camera; pixel centres at (x + 0.5, y + 0.5).
+
+A :class:`Request` is a list of equally sized rectangles ("items"), each on one view: whole
+images (origin 0, the image's size) or tiles (16, 32 or 64 px, any position; pixels that fall
+outside the image are marked invalid and get no contributions). The output pixel of item ``i``
+at row ``r``, column ``c`` has the flat index ``p = (i * height + r) * width + c``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+@dataclass
+class Cameras:
+    """V pinhole cameras. ``Ks`` [V,3,3], ``viewmats`` [V,4,4] world-to-camera (OpenCV axes),
+    ``widths`` / ``heights`` [V] integer image sizes."""
+
+    Ks: Tensor
+    viewmats: Tensor
+    widths: Tensor
+    heights: Tensor
+
+    def __post_init__(self) -> None:
+        v = self.Ks.shape[0]
+        if self.Ks.shape != (v, 3, 3) or self.viewmats.shape != (v, 4, 4):
+            raise ValueError(f"Cameras: Ks {tuple(self.Ks.shape)} / viewmats {tuple(self.viewmats.shape)}")
+        self.widths = torch.as_tensor(self.widths, dtype=torch.long).reshape(-1).expand(v).cpu().clone()
+        self.heights = torch.as_tensor(self.heights, dtype=torch.long).reshape(-1).expand(v).cpu().clone()
+
+    def __len__(self) -> int:
+        return int(self.Ks.shape[0])
+
+    @staticmethod
+    def from_params(fx, fy, cx, cy, viewmats: Tensor, width, height) -> "Cameras":
+        """Cameras from intrinsics (scalars or [V] tensors) and [V,4,4] world-to-camera matrices."""
+        v = viewmats.shape[0]
+        K = torch.zeros(v, 3, 3, dtype=viewmats.dtype, device=viewmats.device)
+        K[:, 0, 0] = torch.as_tensor(fx, dtype=viewmats.dtype)
+        K[:, 1, 1] = torch.as_tensor(fy, dtype=viewmats.dtype)
+        K[:, 0, 2] = torch.as_tensor(cx, dtype=viewmats.dtype)
+        K[:, 1, 2] = torch.as_tensor(cy, dtype=viewmats.dtype)
+        K[:, 2, 2] = 1
+        return Cameras(K, viewmats, width, height)
+
+    def to(self, device=None, dtype=None) -> "Cameras":
+        return Cameras(self.Ks.to(device, dtype), self.viewmats.to(device, dtype), self.widths, self.heights)
+
+    def index(self, idx) -> "Cameras":
+        idx = torch.as_tensor(idx, dtype=torch.long).reshape(-1)
+        return Cameras(self.Ks[idx.to(self.Ks.device)], self.viewmats[idx.to(self.Ks.device)],
+                       self.widths[idx], self.heights[idx])
+
+    def camera_centers(self) -> Tensor:
+        """[V,3] camera centres in world coordinates."""
+        R = self.viewmats[:, :3, :3]
+        t = self.viewmats[:, :3, 3]
+        return -(R.transpose(1, 2) @ t[:, :, None])[:, :, 0]
+
+
+@dataclass
+class Request:
+    """Equally sized rectangles on views: item i covers pixels [x0, x0+width) x [y0, y0+height)
+    of view ``views[i]``."""
+
+    views: Tensor  # [T] long
+    x0: Tensor  # [T] long
+    y0: Tensor  # [T] long
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        self.views = torch.as_tensor(self.views, dtype=torch.long).reshape(-1).cpu()
+        self.x0 = torch.as_tensor(self.x0, dtype=torch.long).reshape(-1).cpu().expand(len(self.views)).clone()
+        self.y0 = torch.as_tensor(self.y0, dtype=torch.long).reshape(-1).cpu().expand(len(self.views)).clone()
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"Request: size {self.width}x{self.height}")
+
+    def __len__(self) -> int:
+        return int(self.views.shape[0])
+
+    @property
+    def num_pixels(self) -> int:
+        return len(self) * self.width * self.height
+
+    @staticmethod
+    def whole_images(cameras: Cameras, views=None) -> "Request":
+        """Whole images of ``views`` (all of them by default); they must share one size."""
+        views = torch.arange(len(cameras)) if views is None else torch.as_tensor(views, dtype=torch.long).reshape(-1)
+        w = cameras.widths[views].unique()
+        h = cameras.heights[views].unique()
+        if len(w) != 1 or len(h) != 1:
+            raise ValueError("Request.whole_images: the requested views differ in size; request them separately")
+        return Request(views, 0, 0, int(w[0]), int(h[0]))
+
+    @staticmethod
+    def tiles(views, x0, y0, size: int) -> "Request":
+        return Request(views, x0, y0, size, size)
+
+    def pixel_coords(self) -> tuple[Tensor, Tensor, Tensor]:
+        """(view, x, y) of every output pixel, each [P] long, in output order."""
+        t = len(self)
+        r = torch.arange(self.height).view(1, -1, 1)
+        c = torch.arange(self.width).view(1, 1, -1)
+        x = (self.x0.view(-1, 1, 1) + c).expand(t, self.height, self.width)
+        y = (self.y0.view(-1, 1, 1) + r).expand(t, self.height, self.width)
+        v = self.views.view(-1, 1, 1).expand(t, self.height, self.width)
+        return v.reshape(-1), x.reshape(-1), y.reshape(-1)
+
+    def valid_mask(self, cameras: Cameras) -> Tensor:
+        """[P] bool: the output pixel lies inside its view's image."""
+        v, x, y = self.pixel_coords()
+        return (x >= 0) & (y >= 0) & (x < cameras.widths[v]) & (y < cameras.heights[v])
+
+
+@dataclass
+class Contributions:
+    """Who contributes to which pixel, for one :class:`Request`.
+
+    ``pair_view`` / ``pair_gaussian`` [U]: the distinct (view, Gaussian) pairs that contribute
+    anywhere in the request (sorted by ``view * N + gaussian``); colours are given per pair, so
+    a caller evaluates its colour model only for these. ``pair_depth`` [U]: camera-space z.
+
+    ``pixel`` [M], ``pair`` [M], ``weight`` [M]: one entry per (pixel, contributing Gaussian),
+    ``weight = T * alpha``; entries are grouped by pixel (ascending) and, within a pixel, in
+    front-to-back compositing order. ``transmittance`` [P]: each pixel's final T (1 for invalid
+    pixels). ``valid`` [P]: the pixel lies inside its image.
+
+    ``weight`` carries autograd history to the geometry when the backend supports it (the
+    reference does); everything else is integer bookkeeping.
+    """
+
+    request: Request
+    num_gaussians: int
+    pair_view: Tensor
+    pair_gaussian: Tensor
+    pair_depth: Tensor
+    pixel: Tensor
+    pair: Tensor
+    weight: Tensor
+    transmittance: Tensor
+    valid: Tensor
+
+    @property
+    def num_pixels(self) -> int:
+        return self.request.num_pixels
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return len(self.request), self.request.height, self.request.width
+
+    def gaussian(self) -> Tensor:
+        """[M] Gaussian index of each entry."""
+        return self.pair_gaussian[self.pair]
+
+    def gather(self, per_gaussian: Tensor) -> Tensor:
+        """Per-Gaussian values [N, ...] -> per-pair values [U, ...]."""
+        return per_gaussian[self.pair_gaussian]
+
+    def accumulation(self) -> Tensor:
+        """[T,h,w] opacity (1 - final transmittance)."""
+        return (1.0 - self.transmittance).reshape(self.shape)
+
+
+def composite(colors: Tensor, contrib: Contributions, background: Tensor | float | None = None) -> Tensor:
+    """Per-pair colours [U, D] -> images [T, h, w, D]. Differentiable in ``colors`` (and in the
+    weights, where they carry history). ``background`` is a [D] vector, a scalar, or None (0)."""
+    if colors.shape[0] != contrib.pair_view.shape[0]:
+        raise ValueError(f"composite: {colors.shape[0]} colours for {contrib.pair_view.shape[0]} pairs")
+    d = colors.shape[1]
+    w = contrib.weight.to(colors.dtype)
+    vals = colors.index_select(0, contrib.pair) * w[:, None]
+    out = colors.new_zeros(contrib.num_pixels, d).index_add(0, contrib.pixel, vals)
+    if background is not None:
+        bg = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(1, -1)
+        out = out + contrib.transmittance.to(colors.dtype)[:, None] * bg
+    t, h, wd = contrib.shape
+    return out.reshape(t, h, wd, d)
+
+
+def composite_depth(contrib: Contributions, eps: float = 1e-10) -> Tensor:
+    """Expected depth [T,h,w,1]: sum(w z) / sum(w), 0 where nothing contributes."""
+    z = contrib.pair_depth[:, None]
+    num = composite(z, contrib)
+    acc = contrib.accumulation()[..., None].to(num.dtype)
+    return torch.where(acc > eps, num / acc.clamp_min(eps), torch.zeros_like(num))
