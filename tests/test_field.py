@@ -1,0 +1,158 @@
+"""DecoupledColorField: shapes, the one-way residual links, the baseline switch, the box mapping."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from virgi_ns.field import ColorFieldConfig, DecoupledColorField, view_directions
+
+AABB = torch.tensor([[-1.0, -2.0, 0.0], [1.0, 2.0, 4.0]])
+
+
+def small(**kw) -> ColorFieldConfig:
+    return ColorFieldConfig(log2_hashmap_size=12, **kw)
+
+
+def rand_inputs(n: int = 64, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    pos = AABB[0] + (AABB[1] - AABB[0]) * torch.rand(n, 3, generator=g)
+    dirs = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    return pos, dirs
+
+
+def test_default_config_matches_compact3dgs_grid():
+    cfg = ColorFieldConfig()
+    assert (cfg.levels, cfg.features_per_level, cfg.log2_hashmap_size, cfg.base_res) == (16, 2, 19, 16)
+    assert cfg.max_res == round(16 * 1.447**15)
+    field = DecoupledColorField(cfg, AABB)
+    assert field.hash.hash_table.shape == (16 * 2**19, 2)
+    # the finest level's resolution follows from the growth factor
+    assert abs(float(field.hash.scalings[-1]) - 16 * 1.447**15) <= 2.0
+    assert field.feature_dim == 32 and field.dir_dim == 16
+
+
+def test_shapes_and_colour_formula():
+    torch.manual_seed(0)
+    field = DecoupledColorField(small(), AABB)
+    torch.nn.init.normal_(field.spec_l3.weight, std=0.5)
+    pos, dirs = rand_inputs()
+    out = field(pos, dirs)
+    assert out["c_d"].shape == out["c_s"].shape == out["rgb"].shape == (64, 3)
+    torch.testing.assert_close(out["rgb"], torch.sigmoid(out["c_d"] + out["c_s"]))
+    assert out["c_s"].abs().max() > 0
+    # the pieces compose to forward
+    feats = field.encode(pos)
+    assert feats.shape == (64, 32)
+    h1, h2 = field.diffuse_hidden(feats)
+    assert h1.shape == h2.shape == (64, 64)
+    torch.testing.assert_close(field.diffuse_head(h2), out["c_d"])
+    torch.testing.assert_close(field.specular(feats, dirs, h1, h2), out["c_s"])
+
+
+def test_fresh_field_is_purely_diffuse():
+    field = DecoupledColorField(small(), AABB)
+    pos, dirs = rand_inputs()
+    out = field(pos, dirs)
+    assert torch.count_nonzero(out["c_s"]) == 0
+    # diffuse does not depend on the direction
+    out2 = field(pos, -dirs)
+    torch.testing.assert_close(out["c_d"], out2["c_d"])
+
+
+def test_residual_links_are_one_way():
+    torch.manual_seed(1)
+    field = DecoupledColorField(small(), AABB)
+    torch.nn.init.normal_(field.spec_l3.weight, std=0.5)
+    pos, dirs = rand_inputs()
+    out = field(pos, dirs)
+    # the diffuse colour has no gradient into the specular branch
+    grads = torch.autograd.grad(out["c_d"].sum(), [field.spec_l1.weight, field.spec_l2.weight, field.spec_l3.weight],
+                                allow_unused=True)
+    assert all(g is None or torch.count_nonzero(g) == 0 for g in grads)
+    # ... while the specular colour does depend on MLP_diff's layers 1 and 2 (the links) but not its head
+    out = field(pos, dirs)
+    g1, g2, gh = torch.autograd.grad(out["c_s"].sum(), [field.diffuse_l1.weight, field.diffuse_l2.weight,
+                                                        field.diffuse_head.weight], allow_unused=True)
+    assert g1 is not None and g1.abs().sum() > 0
+    assert g2 is not None and g2.abs().sum() > 0
+    assert gh is None or torch.count_nonzero(gh) == 0
+    # the links are concatenations of 64 extra inputs on MLP_spec layers 2 and 3
+    assert field.spec_l2.in_features == 128 and field.spec_l3.in_features == 128
+
+
+def test_without_residual_links_spec_ignores_diffuse_mlp():
+    torch.manual_seed(2)
+    field = DecoupledColorField(small(residual_links=False), AABB)
+    torch.nn.init.normal_(field.spec_l3.weight, std=0.5)
+    pos, dirs = rand_inputs()
+    out = field(pos, dirs)
+    g = torch.autograd.grad(out["c_s"].sum(), [field.diffuse_l1.weight], allow_unused=True)[0]
+    assert g is None or torch.count_nonzero(g) == 0
+    assert field.spec_l2.in_features == 64
+
+
+def test_single_mlp_baseline():
+    torch.manual_seed(3)
+    field = DecoupledColorField(small(decoupled=False), AABB)
+    assert not any(n.startswith("spec_") for n, _ in field.named_parameters())
+    pos, dirs = rand_inputs()
+    out = field(pos, dirs)
+    assert torch.count_nonzero(out["c_s"]) == 0
+    torch.testing.assert_close(out["rgb"], torch.sigmoid(out["c_d"]))
+    # its single MLP is view dependent
+    assert (field(pos, -dirs)["c_d"] - out["c_d"]).abs().max() > 1e-6
+    with pytest.raises(ValueError):
+        field.diffuse_hidden(field.encode(pos))
+
+
+def test_box_mapping_and_contraction():
+    field = DecoupledColorField(small(), AABB)
+    centre = AABB.mean(0, keepdim=True)
+    torch.testing.assert_close(field.normalized_positions(centre), torch.full((1, 3), 0.5))
+    torch.testing.assert_close(field.normalized_positions(AABB[1:2]), torch.full((1, 3), 0.75))
+    torch.testing.assert_close(field.normalized_positions(AABB[0:1]), torch.full((1, 3), 0.25))
+    # a point 10 half-extents out along x: L-inf contraction gives 2 - 1/10 along x, scaled others
+    half = (AABB[1] - AABB[0]) / 2
+    p = centre + torch.tensor([[10.0, 0.0, 0.0]]) * half
+    expect = torch.tensor([[(2 - 0.1 + 2) / 4, 0.5, 0.5]])
+    torch.testing.assert_close(field.normalized_positions(p), expect)
+    far = centre + 1e6 * half
+    assert bool((field.normalized_positions(far) <= 1.0).all())
+
+
+def test_view_directions():
+    means = torch.tensor([[0.0, 0.0, 5.0], [3.0, 4.0, 0.0]])
+    centers = torch.zeros(2, 3)
+    torch.testing.assert_close(view_directions(means, centers), torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.8, 0.0]]))
+
+
+def test_field_fits_a_view_dependent_colour():
+    """Diffuse albedo plus a lobe along +z: the trained field reproduces it and puts the lobe in c_s."""
+    torch.manual_seed(4)
+    field = DecoupledColorField(small(), AABB)
+    pos, _ = rand_inputs(256, seed=5)
+    albedo = torch.sigmoid(torch.stack([pos[:, 0], pos[:, 1] * 0.5, -pos[:, 0]], dim=-1))
+    opt = torch.optim.Adam(field.parameters(), lr=1e-2)
+    first = last = math.nan
+    for it in range(300):
+        dirs = torch.nn.functional.normalize(torch.randn(256, 3), dim=-1)
+        lobe = dirs[:, 2:3].clamp_min(0) ** 8
+        target = (albedo + 0.5 * lobe).clamp(0, 1)
+        out = field(pos, dirs)
+        loss = (out["rgb"] - target).abs().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if it == 0:
+            first = loss.item()
+        last = loss.item()
+    assert last < 0.3 * first
+    up = torch.tensor([[0.0, 0.0, 1.0]]).expand(256, 3)
+    down = -up
+    out_up, out_down = field(pos, up), field(pos, down)
+    # looking along +z is brighter than along -z by about the lobe's strength
+    gain = (out_up["rgb"] - out_down["rgb"]).mean().item()
+    assert 0.25 < gain < 0.75

@@ -1,0 +1,185 @@
+"""The colour field of a frozen Gaussian scene: hash-grid features, diffuse and specular MLPs.
+
+Every Gaussian gets features ``f = H(mean)`` from a multi-resolution hash grid over the
+contracted scene box. Two small MLPs read them:
+
+- ``MLP_diff``:  ``h1 = relu(A1 f)``, ``h2 = relu(A2 h1)``, ``c_d = diffuse_head(h2)``
+  (``h2`` is ``h_diff``, the input of the segmentation head; ``diffuse_head`` is the layer an
+  edit fine-tunes).
+- ``MLP_spec``:  ``s1 = relu(B1 [f, SH(d)])``, ``s2 = relu(B2 [s1, h1])``, ``c_s = B3 [s2, h2]``.
+  The one-way residual links are concatenations: layer 1 of MLP_diff feeds layer 2 of
+  MLP_spec, layer 2 of MLP_diff feeds layer 3 of MLP_spec. Nothing flows from MLP_spec into
+  MLP_diff's forward pass (gradients of the specular branch do reach MLP_diff's first two
+  layers through the links; the diffuse head never sees the specular branch).
+- colour ``C = sigmoid(c_d + c_s)``.
+
+``B3`` starts at zero, so a fresh field is purely diffuse and the specular branch grows only
+where the data asks for it.
+
+With ``decoupled=False`` the field is the single-MLP baseline: one MLP of the same depth reads
+``[f, SH(d)]`` and its output is ``c_d``; ``c_s`` is identically zero. Its hidden layers then
+depend on the view direction, so :meth:`DecoupledColorField.diffuse_hidden` needs ``dirs``.
+
+The field knows nothing of rendering; it maps positions (and directions) to colours.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Float
+from nerfstudio.field_components.encodings import HashEncoding, SHEncoding
+from nerfstudio.field_components.spatial_distortions import SceneContraction
+from torch import Tensor, nn
+
+
+@dataclass
+class ColorFieldConfig:
+    """Hash grid and MLP sizes (Compact-3DGS's grid by default)."""
+
+    levels: int = 16
+    """Hash grid levels."""
+    features_per_level: int = 2
+    """Features per level (the encoding is ``levels * features_per_level`` wide)."""
+    log2_hashmap_size: int = 19
+    """log2 of the table size per level."""
+    base_res: int = 16
+    """Resolution of the coarsest level."""
+    growth: float = 1.447
+    """Per-level resolution factor; the finest level is ``base_res * growth ** (levels - 1)``."""
+    hidden: int = 64
+    """Width of every hidden layer."""
+    sh_dir_degree: int = 4
+    """View-direction encoding: nerfstudio ``SHEncoding(levels=sh_dir_degree)`` (1..4), which gives
+    ``sh_dir_degree ** 2`` components (4 -> 16, SH bands 0..3)."""
+    decoupled: bool = True
+    """Diffuse + specular branches (True) or the single view-dependent MLP baseline (False)."""
+    residual_links: bool = True
+    """Feed MLP_diff's hidden layers into MLP_spec's layers 2 and 3 (concatenation)."""
+
+    @property
+    def max_res(self) -> int:
+        return int(round(self.base_res * self.growth ** max(self.levels - 1, 0)))
+
+
+class DecoupledColorField(nn.Module):
+    """Per-point colour ``sigmoid(c_d + c_s)`` from hash features and a view direction."""
+
+    def __init__(self, cfg: ColorFieldConfig, aabb: Float[Tensor, "2 3"]) -> None:
+        super().__init__()
+        self.cfg = cfg
+        aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3)
+        if not bool((aabb[1] > aabb[0]).all()):
+            raise ValueError(f"DecoupledColorField: empty scene box {aabb.tolist()}")
+        self.register_buffer("aabb", aabb.clone())
+        self.contraction = SceneContraction(order=float("inf"))
+        self.hash = HashEncoding(
+            num_levels=cfg.levels,
+            min_res=cfg.base_res,
+            max_res=max(cfg.max_res, cfg.base_res),
+            log2_hashmap_size=cfg.log2_hashmap_size,
+            features_per_level=cfg.features_per_level,
+            implementation="torch",
+        )
+        self.dir_encoding = SHEncoding(levels=cfg.sh_dir_degree, implementation="torch")
+        f = self.hash.get_out_dim()
+        d = self.dir_encoding.get_out_dim()
+        h = cfg.hidden
+        self.feature_dim = f
+        self.dir_dim = d
+
+        # MLP_diff (or the single MLP, which also reads the direction encoding)
+        self.diffuse_l1 = nn.Linear(f if cfg.decoupled else f + d, h)
+        self.diffuse_l2 = nn.Linear(h, h)
+        self.diffuse_head = nn.Linear(h, 3)
+
+        if cfg.decoupled:
+            link = h if cfg.residual_links else 0
+            self.spec_l1 = nn.Linear(f + d, h)
+            self.spec_l2 = nn.Linear(h + link, h)
+            self.spec_l3 = nn.Linear(h + link, 3)
+            nn.init.zeros_(self.spec_l3.weight)
+            nn.init.zeros_(self.spec_l3.bias)
+
+    # ------------------------------------------------------------------ pieces
+    @property
+    def decoupled(self) -> bool:
+        return self.cfg.decoupled
+
+    def normalized_positions(self, positions: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
+        """Scene box -> [-1, 1]^3, contracted (L-inf) so that everything outside lands in
+        [-2, 2]^3, then mapped to the hash grid's [0, 1]^3."""
+        lo, hi = self.aabb[0], self.aabb[1]
+        x = (positions - (lo + hi) / 2) / ((hi - lo) / 2)
+        x = self.contraction(x)
+        return ((x + 2.0) / 4.0).clamp(0.0, 1.0)
+
+    def encode(self, positions: Float[Tensor, "N 3"]) -> Float[Tensor, "N F"]:
+        """Hash-grid features of world positions."""
+        x = self.normalized_positions(positions.to(self.aabb.dtype))
+        return self.hash(x)
+
+    def encode_dirs(self, dirs: Float[Tensor, "N 3"]) -> Float[Tensor, "N D"]:
+        """SH encoding of unit view directions."""
+        return self.dir_encoding(dirs)
+
+    def diffuse_hidden(
+        self, feats: Float[Tensor, "N F"], dirs: Float[Tensor, "N 3"] | None = None
+    ) -> tuple[Float[Tensor, "N H"], Float[Tensor, "N H"]]:
+        """(h1, h2) of MLP_diff; ``h2`` is ``h_diff``. The single-MLP baseline needs ``dirs``."""
+        if self.cfg.decoupled:
+            x = feats
+        else:
+            if dirs is None:
+                raise ValueError("the single-MLP colour field needs view directions for its hidden layers")
+            x = torch.cat([feats, self.encode_dirs(dirs).to(feats.dtype)], dim=-1)
+        h1 = torch.relu(self.diffuse_l1(x))
+        h2 = torch.relu(self.diffuse_l2(h1))
+        return h1, h2
+
+    def diffuse(self, h2: Float[Tensor, "N H"]) -> Float[Tensor, "N 3"]:
+        """``c_d`` (pre-sigmoid) from ``h_diff``."""
+        return self.diffuse_head(h2)
+
+    def specular(
+        self,
+        feats: Float[Tensor, "N F"],
+        dirs: Float[Tensor, "N 3"],
+        h1: Float[Tensor, "N H"],
+        h2: Float[Tensor, "N H"],
+    ) -> Float[Tensor, "N 3"]:
+        """``c_s`` (pre-sigmoid) of MLP_spec; zeros for the single-MLP baseline."""
+        if not self.cfg.decoupled:
+            return feats.new_zeros(feats.shape[0], 3)
+        x = torch.cat([feats, self.encode_dirs(dirs).to(feats.dtype)], dim=-1)
+        s1 = torch.relu(self.spec_l1(x))
+        s2 = torch.relu(self.spec_l2(torch.cat([s1, h1], dim=-1) if self.cfg.residual_links else s1))
+        return self.spec_l3(torch.cat([s2, h2], dim=-1) if self.cfg.residual_links else s2)
+
+    # ----------------------------------------------------------------- forward
+    def forward(self, positions: Float[Tensor, "N 3"], dirs: Float[Tensor, "N 3"]) -> dict[str, Tensor]:
+        """``c_d``, ``c_s`` (pre-sigmoid, [N,3]) and ``rgb = sigmoid(c_d + c_s)``."""
+        feats = self.encode(positions)
+        h1, h2 = self.diffuse_hidden(feats, dirs)
+        c_d = self.diffuse(h2)
+        c_s = self.specular(feats, dirs, h1, h2)
+        return {"c_d": c_d, "c_s": c_s, "rgb": torch.sigmoid(c_d + c_s)}
+
+    def mlp_parameters(self) -> list[nn.Parameter]:
+        """Every parameter except the hash table."""
+        return [p for n, p in self.named_parameters() if not n.startswith("hash.")]
+
+    def grid_parameters(self) -> list[nn.Parameter]:
+        """The hash table."""
+        return list(self.hash.parameters())
+
+
+def view_directions(means: Float[Tensor, "N 3"], centers: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
+    """Unit directions from camera centres to points (the direction light travels to the eye,
+    reversed: camera -> point, as nerfstudio's ray directions)."""
+    d = means - centers
+    return d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+__all__ = ["ColorFieldConfig", "DecoupledColorField", "view_directions"]
