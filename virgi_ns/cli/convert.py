@@ -1,0 +1,54 @@
+"""``virgi-convert IN OUT``: convert any supported splat file to an INRIA ``.ply`` (or ``.spz``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+from rich.console import Console
+
+from virgi_ns.errors import InputError, cli_entry
+from virgi_ns.io import load_splat, save_ply, save_spz
+
+
+@dataclass
+class Convert:
+    """Convert a splat (.ply, .compressed.ply, .spz, splatfacto .ckpt or config.yml) to INRIA .ply."""
+
+    src: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="IN")]
+    """Input splat: .ply, .compressed.ply, .spz, a splatfacto .ckpt or its config.yml."""
+    dst: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="OUT")]
+    """Output file: .ply (INRIA layout) or .spz."""
+    drop_invalid: bool = False
+    """Drop Gaussians holding NaN or Inf values instead of refusing the file."""
+
+
+def run(args: Convert) -> str:
+    """Do the conversion; returns the one-line summary."""
+    suffix = args.dst.suffix.lower()
+    if suffix not in (".ply", ".spz"):
+        raise InputError(f"output {args.dst} must end in .ply or .spz")
+    if args.dst.name.lower().endswith(".compressed.ply"):
+        raise InputError(f"output {args.dst}: writing .compressed.ply is not offered; use .ply or .spz")
+    if args.dst.exists() and args.dst.resolve() == args.src.resolve():
+        raise InputError(f"output {args.dst} is the input file")
+    console = Console(stderr=True)
+    with console.status(f"reading {args.src}"):
+        g = load_splat(args.src, drop_invalid=args.drop_invalid)
+    with console.status(f"writing {args.dst}"):
+        (save_spz if suffix == ".spz" else save_ply)(g, args.dst)
+    return f"{args.dst}: {g.summary()}"
+
+
+def main() -> None:
+    print(run(tyro.cli(Convert)))
+
+
+def entrypoint() -> None:
+    cli_entry(main)
+
+
+if __name__ == "__main__":
+    entrypoint()
