@@ -1,0 +1,77 @@
+"""The HSV recolouring rule against Python's colorsys, pixel by pixel."""
+
+from __future__ import annotations
+
+import colorsys
+
+import pytest
+import torch
+
+from virgi_ns.recolor import RecolorRule, hsv_to_rgb, recolor, rgb_to_hsv
+
+
+def _rule_by_colorsys(rgb, rule: RecolorRule):
+    h, s, v = colorsys.rgb_to_hsv(*rgb)
+    hd = h * 360.0
+    in_hue = (rule.h0 <= hd <= rule.h1) if rule.h0 <= rule.h1 else (hd >= rule.h0 or hd <= rule.h1)
+    if not (in_hue and s >= rule.s_min and v >= rule.v_min):
+        return rgb, False
+    h2 = ((hd + rule.shift) % 360.0) / 360.0
+    s2 = min(max(s * rule.sat_scale, 0.0), 1.0)
+    return colorsys.hsv_to_rgb(h2, s2, v), True
+
+
+def test_hsv_round_trip_and_colorsys_agreement():
+    g = torch.Generator().manual_seed(0)
+    rgb = torch.rand(500, 3, generator=g, dtype=torch.float64)
+    hsv = rgb_to_hsv(rgb)
+    for i in range(0, 500, 7):
+        h, s, v = colorsys.rgb_to_hsv(*rgb[i].tolist())
+        assert hsv[i, 0].item() == pytest.approx(h * 360.0, abs=1e-9)
+        assert hsv[i, 1].item() == pytest.approx(s, abs=1e-12)
+        assert hsv[i, 2].item() == pytest.approx(v, abs=1e-12)
+    torch.testing.assert_close(hsv_to_rgb(hsv), rgb, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize(
+    "rule",
+    [
+        RecolorRule(h0=180, h1=260, shift=150, s_min=0.3, v_min=0.1),
+        RecolorRule(h0=330, h1=30, shift=120, s_min=0.2, v_min=0.2, sat_scale=0.5),  # wraps through 0
+        RecolorRule(h0=60, h1=180, shift=-90, s_min=0.0, v_min=0.0, sat_scale=2.0),
+    ],
+)
+def test_rule_matches_colorsys_per_pixel(rule):
+    g = torch.Generator().manual_seed(1)
+    img = torch.rand(17, 23, 3, generator=g, dtype=torch.float64)
+    img[0, 0] = torch.tensor([1.0, 1.0, 1.0])  # white: never selected with s_min > 0
+    img[0, 1] = torch.tensor([0.0, 0.0, 0.0])
+    out, mask = recolor(img, rule)
+    assert out.shape == img.shape and mask.shape == img.shape[:2]
+    n_sel = 0
+    for y in range(17):
+        for x in range(23):
+            exp, sel = _rule_by_colorsys(img[y, x].tolist(), rule)
+            assert bool(mask[y, x]) == sel
+            n_sel += sel
+            assert out[y, x].tolist() == pytest.approx(list(exp), abs=1e-9)
+    assert 0 < n_sel < 17 * 23
+
+
+def test_unselected_pixels_are_bit_identical_and_highlights_untouched():
+    rule = RecolorRule(h0=200, h1=250, shift=150, s_min=0.3)
+    img = torch.tensor([[[0.1, 0.2, 0.9], [0.95, 0.96, 1.0], [0.8, 0.2, 0.1]]], dtype=torch.float32)
+    out, mask = recolor(img, rule)
+    assert mask.tolist() == [[True, False, False]]
+    assert torch.equal(out[0, 1:], img[0, 1:])
+    # blue (hue ~233) + 150 -> ~23 degrees: red dominates
+    assert out[0, 0, 0] > out[0, 0, 2] and out[0, 0].max().item() == pytest.approx(0.9, abs=1e-6)
+
+
+def test_bad_rule_values():
+    with pytest.raises(ValueError):
+        RecolorRule(h0=-5, h1=20, shift=10)
+    with pytest.raises(ValueError):
+        RecolorRule(h0=5, h1=20, shift=10, sat_scale=-1)
+    with pytest.raises(ValueError):
+        recolor(torch.zeros(4, 4, 4), RecolorRule(0, 10, 5))
