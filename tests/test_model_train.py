@@ -1,0 +1,193 @@
+"""The VIRGi model end to end on a tiny procedural capture (CPU, reference rasterizer)."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import pytest
+import torch
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.optimizers import Optimizers
+
+from method_configs.virgi import virgi_trainer_config
+from virgi_ns.field import ColorFieldConfig
+from virgi_ns.nscams import raster_cameras
+from virgi_ns.raster import Request, rasterize
+
+from virgi_scene import GLOSSY_ALBEDO, MATTE_ALBEDO, Scene, make_scene
+
+warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Scene:
+    return make_scene(tmp_path_factory.mktemp("virgi_scene"))
+
+
+def build(scene: Scene, steps: int, decoupled: bool = True, batch_mode: str = "multiview", seed: int = 0):
+    torch.manual_seed(seed)
+    cfg = virgi_trainer_config("virgi-test", decoupled=decoupled, batch_mode=batch_mode, geometry_steps=0,
+                               colour_steps=steps)
+    dm = cfg.pipeline.datamanager
+    dm.data = scene.root
+    dm.dataparser = NerfstudioDataParserConfig(data=scene.root, load_3D_points=False, eval_mode="interval",
+                                               eval_interval=8)
+    dm.tile_size = 16
+    dm.pixel_budget = 5 * 256 * 4
+    dm.cache_images = "gpu"  # "gpu" caching keeps tensors on the manager's device (cpu here)
+    m = cfg.pipeline.model
+    m.geometry_from = scene.ply
+    m.background_color = "black"
+    m.color_field = ColorFieldConfig(log2_hashmap_size=12, levels=8, decoupled=decoupled)
+    m.raster_backend = "reference"
+    pipeline = cfg.pipeline.setup(device="cpu", test_mode="val")
+    pipeline.train()
+    optimizers = Optimizers(cfg.optimizers, pipeline.get_param_groups())
+
+    class FakeTrainer:  # what the model reads from nerfstudio's Trainer
+        config = cfg
+
+    cbs = pipeline.get_training_callbacks(TrainingCallbackAttributes(optimizers, None, pipeline, FakeTrainer()))
+    return cfg, pipeline, optimizers, cbs
+
+
+def train(pipeline, optimizers, cbs, steps: int) -> list[float]:
+    losses = []
+    for step in range(steps):
+        for cb in cbs:
+            cb.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+        optimizers.zero_grad_all()
+        _, loss_dict, _ = pipeline.get_train_loss_dict(step)
+        loss = sum(loss_dict.values())
+        loss.backward()
+        optimizers.optimizer_step_all()
+        optimizers.scheduler_step_all(step)
+        for cb in cbs:
+            cb.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+        losses.append(float(loss_dict["rgb_l1"]))
+    return losses
+
+
+def test_imported_geometry_lands_in_the_dataparser_frame(scene):
+    """Projecting the imported (transformed) means with the dataparser's cameras gives the same
+    pixels as projecting the original means with the original cameras."""
+    _, pipeline, _, _ = build(scene, steps=1)
+    model = pipeline.model
+    assert model.geometry_frozen and not model.means.requires_grad
+    cams_ns = raster_cameras(pipeline.datamanager.train_dataset.cameras)
+    # the nerfstudio dataparser keeps frame order for the train split (interval 8 drops 0 and 8)
+    train_idx = [i for i in range(len(scene.cameras)) if i % 8 != 0]
+
+    def proj(means, cams):
+        pc = torch.einsum("vij,nj->vni", cams.viewmats[:, :3, :3], means) + cams.viewmats[:, None, :3, 3]
+        return torch.einsum("vij,vnj->vni", cams.Ks, pc / pc[..., 2:3])[..., :2]
+
+    got = proj(model.means.detach(), cams_ns)
+    want = proj(scene.gaussians.means, scene.cameras.index(train_idx))
+    torch.testing.assert_close(got, want, atol=1e-3, rtol=1e-4)
+    # sizes scale with the frame: the ratio of scales equals the dataparser's scale
+    s = pipeline.datamanager.train_dataparser_outputs.dataparser_scale
+    torch.testing.assert_close(model.scales.detach().exp(), scene.gaussians.scales.exp() * s, rtol=1e-5, atol=1e-6)
+
+
+def test_virgi_trains_end_to_end(scene):
+    steps = 40
+    _, pipeline, optimizers, cbs = build(scene, steps)
+    losses = train(pipeline, optimizers, cbs, steps)
+    assert all(torch.isfinite(torch.tensor(losses)))
+    assert sum(losses[-5:]) / 5 < 0.6 * sum(losses[:5]) / 5
+    model = pipeline.model
+    assert model.gate_ready()  # built by the end-of-training callback
+    pipeline.eval()
+    cam, batch = pipeline.datamanager.next_eval_image(0)
+    out = model.get_outputs_for_camera(cam)
+    h, w = int(cam.height), int(cam.width)
+    for key in ("rgb", "diffuse", "specular", "depth", "accumulation"):
+        assert key in out and torch.isfinite(out[key]).all(), key
+        assert out[key].shape[:2] == (h, w)
+    metrics, images = model.get_image_metrics_and_images(out, batch)
+    assert metrics["psnr"] > 15 and 0 <= metrics["ssim"] <= 1
+    assert images["img"].shape == (h, 4 * w, 3)
+    # the gated render matches the full one (the gate keeps what matters)
+    full = model.render_camera(cam, gated=False)
+    gated = model.render_camera(cam, gated=True)
+    mse = float(((full["rgb"] - gated["rgb"]) ** 2).mean())
+    assert mse < 1e-4
+
+
+def test_tile_batches_share_anchors_across_views(scene):
+    _, pipeline, _, _ = build(scene, steps=1)
+    means, opac = pipeline.model.sampling_geometry()
+    tiles, batch = pipeline.datamanager.next_tile_batch(0, means, opac)
+    req = tiles.request
+    assert req.width == req.height == 16
+    assert req.num_pixels <= 5 * 256 * 4 and len(req) >= 5
+    # mini-batches of up to five distinct views
+    assert len(torch.unique(req.views[:5])) == 5
+    assert batch["image"].shape == (len(req), 16, 16, 3) and batch["valid"].shape == (len(req), 16, 16)
+    # the ground truth tiles are the images' pixels
+    imgs = pipeline.datamanager.train_images()
+    v, x0, y0 = int(req.views[0]), int(req.x0[0]), int(req.y0[0])
+    want = imgs[v][y0 : y0 + 16, x0 : x0 + 16].float() / 255.0
+    torch.testing.assert_close(batch["image"][0], want)
+    # single-view mode: every tile from one view
+    pipeline.datamanager.config.batch_mode = "singleview"
+    tiles, _ = pipeline.datamanager.next_tile_batch(1, means, opac)
+    assert len(torch.unique(tiles.request.views)) == 1
+
+
+def test_vanilla_single_mlp_trains(scene):
+    steps = 20
+    _, pipeline, optimizers, cbs = build(scene, steps, decoupled=False, batch_mode="singleview")
+    losses = train(pipeline, optimizers, cbs, steps)
+    assert losses[-1] < losses[0]
+    cam, _ = pipeline.datamanager.next_eval_image(0)
+    pipeline.eval()
+    out = pipeline.model.get_outputs_for_camera(cam)
+    assert torch.count_nonzero(out["specular"]) == 0
+
+
+def _diffuse_and_spec(pipeline, scene):
+    """Per-Gaussian learned diffuse colour and specular magnitude, for Gaussians the training views see."""
+    model = pipeline.model
+    cams = pipeline.datamanager.train_raster_cameras()
+    with torch.no_grad():
+        contrib = rasterize(model.means, model.quats, model.scales.exp(), torch.sigmoid(model.opacities).reshape(-1),
+                            cams, Request.whole_images(cams), backend="reference")
+        wsum = torch.zeros(model.num_points).index_add_(0, contrib.gaussian(), contrib.weight)
+        seen = wsum > 0.5
+        fld = model.field
+        f = fld.encode(model.means)
+        _, h2 = fld.diffuse_hidden(f)
+        diffuse = torch.sigmoid(fld.diffuse(h2))
+    return diffuse, model.spec_magnitude, seen
+
+
+def _check_decomposition(pipeline, scene, tol_albedo: float, max_matte_spec: float):
+    diffuse, spec, seen = _diffuse_and_spec(pipeline, scene)
+    matte = ~scene.glossy & seen
+    glossy = scene.glossy & seen
+    d_matte = diffuse[matte].mean(0)
+    d_glossy = diffuse[glossy].mean(0)
+    assert (d_matte - torch.tensor(MATTE_ALBEDO)).abs().max() < tol_albedo, d_matte
+    assert (d_glossy - torch.tensor(GLOSSY_ALBEDO)).abs().max() < tol_albedo, d_glossy
+    assert spec[matte].mean() < max_matte_spec, float(spec[matte].mean())
+    assert spec[glossy].mean() > 2 * spec[matte].mean()
+
+
+def test_diffuse_matches_albedo_and_matte_is_not_specular_fast(scene):
+    """A weaker, quick variant of the decomposition check."""
+    steps = 120
+    _, pipeline, optimizers, cbs = build(scene, steps)
+    train(pipeline, optimizers, cbs, steps)
+    _check_decomposition(pipeline, scene, tol_albedo=0.12, max_matte_spec=0.06)
+
+
+@pytest.mark.slow
+def test_diffuse_matches_albedo_and_matte_is_not_specular(scene):
+    steps = 600
+    _, pipeline, optimizers, cbs = build(scene, steps)
+    train(pipeline, optimizers, cbs, steps)
+    _check_decomposition(pipeline, scene, tol_albedo=0.06, max_matte_spec=0.03)

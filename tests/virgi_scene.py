@@ -1,0 +1,118 @@
+"""A tiny procedural capture for the model tests: two spheres of Gaussians (one matte, one with a
+known specular lobe), a ring of cameras, images rendered with the reference rasterizer and written
+as a nerfstudio-format dataset, and the geometry as an INRIA .ply in the capture's frame."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from virgi_ns.gaussians import SH_C0, Gaussians
+from virgi_ns.io import save_ply
+from virgi_ns.raster import Cameras, Request, composite
+from virgi_ns.raster.reference import rasterize
+
+MATTE_ALBEDO = (0.75, 0.25, 0.2)
+GLOSSY_ALBEDO = (0.15, 0.3, 0.7)
+LOBE_AXIS = (0.0, 0.0, -1.0)  # highlight seen by cameras looking along +z... see lobe()
+LOBE_GAIN = 0.6
+LOBE_POWER = 6.0
+
+
+@dataclass
+class Scene:
+    gaussians: Gaussians
+    albedo: torch.Tensor  # [N,3]
+    glossy: torch.Tensor  # [N] bool
+    cameras: Cameras
+    images: torch.Tensor  # [V,H,W,3]
+    root: Path
+    ply: Path
+
+
+def lobe(dirs: torch.Tensor) -> torch.Tensor:
+    """Specular term for camera->point directions: strongest when the camera looks down (-z world)."""
+    axis = torch.tensor(LOBE_AXIS, dtype=dirs.dtype)
+    return LOBE_GAIN * (dirs @ axis).clamp_min(0) ** LOBE_POWER
+
+
+def true_colours(g: Gaussians, albedo: torch.Tensor, glossy: torch.Tensor, cams: Cameras, pv, pg) -> torch.Tensor:
+    centres = cams.camera_centers()
+    d = torch.nn.functional.normalize(g.means[pg] - centres[pv], dim=-1)
+    spec = lobe(d)[:, None] * glossy[pg, None].to(d.dtype)
+    return (albedo[pg] + spec).clamp(0, 1)
+
+
+def _sphere_points(n: int, centre, radius: float, gen: torch.Generator) -> torch.Tensor:
+    v = torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=-1)
+    return torch.tensor(centre) + radius * v
+
+
+def look_at(eye: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """OpenCV world-to-camera for a camera at ``eye`` looking at ``target`` (world up +z)."""
+    fwd = torch.nn.functional.normalize(target - eye, dim=0)
+    up = torch.tensor([0.0, 0.0, 1.0])
+    right = torch.nn.functional.normalize(torch.linalg.cross(fwd, up), dim=0)
+    down = torch.linalg.cross(fwd, right)
+    R = torch.stack([right, down, fwd])  # rows: camera axes in world
+    M = torch.eye(4)
+    M[:3, :3] = R
+    M[:3, 3] = -R @ eye
+    return M
+
+
+def make_scene(root: Path, n_per_sphere: int = 120, views: int = 16, width: int = 48, height: int = 40,
+               seed: int = 0) -> Scene:
+    gen = torch.Generator().manual_seed(seed)
+    a = _sphere_points(n_per_sphere, (-0.6, 0.0, 0.0), 0.45, gen)
+    b = _sphere_points(n_per_sphere, (0.6, 0.0, 0.0), 0.45, gen)
+    means = torch.cat([a, b])
+    n = means.shape[0]
+    glossy = torch.zeros(n, dtype=torch.bool)
+    glossy[n_per_sphere:] = True
+    albedo = torch.where(glossy[:, None], torch.tensor(GLOSSY_ALBEDO), torch.tensor(MATTE_ALBEDO))
+    sh = ((albedo - 0.5) / SH_C0)[:, None, :]
+    g = Gaussians(
+        means=means,
+        scales=torch.full((n, 3), math.log(0.12)),
+        quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(n, 1),
+        opacities=torch.full((n,), 3.0),
+        sh=sh,
+    )
+    # cameras on two rings (above and level), looking at the origin
+    vms = []
+    for i in range(views):
+        ang = 2 * math.pi * i / views
+        elev = 0.9 if i % 2 == 0 else 0.25
+        eye = torch.tensor([3.2 * math.cos(ang), 3.2 * math.sin(ang), 3.2 * elev])
+        vms.append(look_at(eye, torch.zeros(3)))
+    viewmats = torch.stack(vms)
+    f = 40.0
+    cams = Cameras.from_params(f, f, width / 2, height / 2, viewmats, width, height)
+    req = Request.whole_images(cams)
+    with torch.no_grad():
+        contrib = rasterize(g.means, g.quats, torch.exp(g.scales), torch.sigmoid(g.opacities), cams, req)
+        cols = true_colours(g, albedo, glossy, cams, contrib.pair_view, contrib.pair_gaussian)
+        images = composite(cols, contrib, 0.0).clamp(0, 1)
+
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "images").mkdir(exist_ok=True)
+    frames = []
+    for i in range(views):
+        name = f"images/frame_{i:03d}.png"
+        Image.fromarray((images[i].numpy() * 255 + 0.5).astype(np.uint8)).save(root / name)
+        c2w = torch.linalg.inv(viewmats[i])
+        c2w[:3, 1:3] *= -1  # OpenCV -> OpenGL camera axes
+        frames.append({"file_path": name, "transform_matrix": c2w.tolist()})
+    meta = {"fl_x": f, "fl_y": f, "cx": width / 2, "cy": height / 2, "w": width, "h": height,
+            "camera_model": "OPENCV", "frames": frames}
+    (root / "transforms.json").write_text(json.dumps(meta))
+    ply = root / "scene.ply"
+    save_ply(g, ply)
+    return Scene(g, albedo, glossy, cams, images, root, ply)

@@ -1,0 +1,199 @@
+"""Multi-view tile batches for the colour stage.
+
+Each colour-stage step fills a pixel budget with mini-batches. A multi-view mini-batch picks one
+anchor Gaussian (opaque ones, uniformly), up to ``views_per_anchor`` training views whose image
+holds the anchor's projection (in front of the camera, inside the frame; occlusion is not
+checked), and cuts a ``tile_size`` square centred on the projection in each (shifted to stay
+inside the image). The single-view mode (the ablation's baseline) spends the same budget on
+tiles around anchors of one randomly chosen view per step.
+
+During the geometry stage the manager behaves as nerfstudio's :class:`FullImageDatamanager`
+(one whole image per step).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal, Type
+
+import torch
+from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
+from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
+from torch import Tensor
+
+from virgi_ns.nscams import COLMAP_TO_NS_WORLD, raster_cameras
+from virgi_ns.raster import Cameras, Request
+
+
+@dataclass
+class TileBatch:
+    """What the model renders in a colour-stage step: ``request`` items on ``cameras`` (all
+    training views, indexed by ``request.views``)."""
+
+    cameras: Cameras
+    request: Request
+
+    def to(self, device) -> "TileBatch":  # nerfstudio moves inputs with .to(); cameras move here
+        return TileBatch(self.cameras.to(device), self.request)
+
+
+@dataclass
+class VirgiDataManagerConfig(FullImageDatamanagerConfig):
+    _target: Type = field(default_factory=lambda: VirgiDataManager)
+    tile_size: int = 32
+    """Side of a training tile in pixels."""
+    views_per_anchor: int = 5
+    """Tiles (views) per multi-view mini-batch."""
+    pixel_budget: int = 163840
+    """Pixels per colour-stage step (filled with whole mini-batches; at least one)."""
+    batch_mode: Literal["multiview", "singleview"] = "multiview"
+    """Multi-view mini-batches around shared anchors, or all tiles from one view per step."""
+    min_anchor_opacity: float = 0.5
+    """Anchors are drawn among Gaussians at least this opaque (all of them if none is)."""
+
+
+def _gather_tiles(images: list[Tensor], request: Request, valid: Tensor) -> Tensor:
+    """Ground-truth pixels [T,s,s,C] of the request's tiles (zeros outside the image)."""
+    s_h, s_w = request.height, request.width
+    c = images[0].shape[-1]
+    out = images[0].new_zeros(len(request), s_h, s_w, c)
+    for i in range(len(request)):
+        img = images[int(request.views[i])]
+        H, W = img.shape[:2]
+        x0, y0 = int(request.x0[i]), int(request.y0[i])
+        xa, ya = max(x0, 0), max(y0, 0)
+        xb, yb = min(x0 + s_w, W), min(y0 + s_h, H)
+        if xb > xa and yb > ya:
+            out[i, ya - y0 : yb - y0, xa - x0 : xb - x0] = img[ya:yb, xa:xb]
+    return out
+
+
+def sample_tiles(
+    means: Tensor,
+    anchor_pool: Tensor,
+    cameras: Cameras,
+    tile_size: int,
+    views_per_anchor: int,
+    pixel_budget: int,
+    mode: str = "multiview",
+    generator: torch.Generator | None = None,
+) -> Request:
+    """Pick tiles for one step (see the module doc). ``anchor_pool``: indices of candidate anchors."""
+    dev = means.device
+    g = generator
+    tile_px = tile_size * tile_size
+    if mode == "multiview":
+        n_mini = max(1, pixel_budget // (views_per_anchor * tile_px))
+        n_try = n_mini * 2 + 8
+    else:
+        n_mini = max(1, pixel_budget // tile_px)
+        n_try = n_mini * 2 + 8
+    pick = anchor_pool[torch.randint(len(anchor_pool), (n_try,), generator=g).to(anchor_pool.device)]
+    pts = means[pick.to(dev)].float()  # [A,3]
+    K = cameras.Ks.to(dev).float()
+    vm = cameras.viewmats.to(dev).float()
+    pc = torch.einsum("vij,aj->avi", vm[:, :3, :3], pts) + vm[None, :, :3, 3]  # [A,V,3]
+    z = pc[..., 2]
+    zs = z.clamp_min(1e-6)
+    u = K[None, :, 0, 0] * pc[..., 0] / zs + K[None, :, 0, 2]
+    v = K[None, :, 1, 1] * pc[..., 1] / zs + K[None, :, 1, 2]
+    W = cameras.widths.to(dev)[None].float()
+    H = cameras.heights.to(dev)[None].float()
+    vis = (z > 0.01) & (u >= 0) & (v >= 0) & (u < W) & (v < H)  # [A,V]
+    vis = vis.cpu()
+    u, v = u.cpu(), v.cpu()
+    Wc, Hc = cameras.widths, cameras.heights
+
+    def origin(a: Tensor, view: Tensor) -> tuple[Tensor, Tensor]:
+        x0 = torch.floor(u[a, view] - tile_size / 2).long()
+        y0 = torch.floor(v[a, view] - tile_size / 2).long()
+        x0 = torch.minimum(x0, Wc[view] - tile_size).clamp_min(0)
+        y0 = torch.minimum(y0, Hc[view] - tile_size).clamp_min(0)
+        return x0, y0
+
+    if mode == "multiview":
+        score = torch.rand(vis.shape, generator=g) + vis.float()  # visible views score in [1, 2)
+        k = min(views_per_anchor, vis.shape[1])
+        top = score.topk(k, dim=1)
+        ok_anchor = vis.any(dim=1).nonzero().flatten()[:n_mini]
+        if len(ok_anchor) == 0:  # nothing visible anywhere: fall back to image centres
+            return Request.tiles(torch.arange(len(cameras))[:views_per_anchor],
+                                 (Wc[:views_per_anchor] - tile_size).clamp_min(0) // 2,
+                                 (Hc[:views_per_anchor] - tile_size).clamp_min(0) // 2, tile_size)
+        views, xs, ys = [], [], []
+        for a in ok_anchor.tolist():
+            sel = top.indices[a][top.values[a] >= 1.0]
+            aa = torch.full_like(sel, a)
+            x0, y0 = origin(aa, sel)
+            views.append(sel)
+            xs.append(x0)
+            ys.append(y0)
+        return Request.tiles(torch.cat(views), torch.cat(xs), torch.cat(ys), tile_size)
+
+    # single view: one random view with visible anchors
+    counts = vis.sum(0)
+    cand = (counts > 0).nonzero().flatten()
+    if len(cand) == 0:
+        view = torch.randint(len(cameras), (1,), generator=g)
+        return Request.tiles(view, (Wc[view] - tile_size).clamp_min(0) // 2,
+                             (Hc[view] - tile_size).clamp_min(0) // 2, tile_size)
+    view = cand[torch.randint(len(cand), (1,), generator=g)]
+    a = vis[:, view[0]].nonzero().flatten()[:n_mini]
+    vv = view.expand(len(a))
+    x0, y0 = origin(a, vv)
+    return Request.tiles(vv, x0, y0, tile_size)
+
+
+class VirgiDataManager(FullImageDatamanager):
+    """Whole images while geometry trains; multi-view tile batches for the colour field."""
+
+    config: VirgiDataManagerConfig
+
+    def __init__(self, config: VirgiDataManagerConfig, *args, **kwargs) -> None:
+        super().__init__(config, *args, **kwargs)
+        self._raster_cams: Cameras | None = None
+        self._images: list[Tensor] | None = None
+        self._generator = torch.Generator().manual_seed(0)
+        # the frame an imported capture-frame splat must be moved into, for the model
+        R = torch.eye(3)
+        if isinstance(self.config.dataparser, ColmapDataParserConfig) and getattr(
+            self.config.dataparser, "assume_colmap_world_coordinate_convention", True
+        ):
+            R = COLMAP_TO_NS_WORLD.clone()
+        T = self.train_dataparser_outputs.dataparser_transform.float()
+        capture = torch.cat([T[:3, :3] @ R, T[:3, 3:4]], dim=1)
+        meta = self.train_dataset.metadata
+        meta["virgi_capture_transform"] = capture
+        meta["virgi_capture_scale"] = float(self.train_dataparser_outputs.dataparser_scale)
+
+    # ------------------------------------------------------------------ colour stage
+    def train_raster_cameras(self) -> Cameras:
+        """All training views as rasterizer cameras (after undistortion), on the manager's device."""
+        if self._raster_cams is None:
+            cached = self.cached_train  # undistorts and fixes the cameras' intrinsics first
+            self._images = [c["image"] for c in cached]
+            self._raster_cams = raster_cameras(self.train_dataset.cameras).to(self.device)
+        return self._raster_cams
+
+    def train_images(self) -> list[Tensor]:
+        self.train_raster_cameras()
+        assert self._images is not None
+        return self._images
+
+    def next_tile_batch(self, step: int, means: Tensor, opacities: Tensor) -> tuple[TileBatch, dict]:
+        """One colour-stage batch: the tiles and their ground truth (``image`` [T,s,s,3] float in
+        [0,1], ``valid`` [T,s,s] bool). ``means`` / ``opacities`` (sigmoided) are the frozen geometry."""
+        cams = self.train_raster_cameras()
+        with torch.no_grad():
+            pool = (opacities.reshape(-1) >= self.config.min_anchor_opacity).nonzero().flatten()
+            if len(pool) == 0:
+                pool = torch.arange(means.shape[0], device=means.device)
+            req = sample_tiles(means, pool, cams, self.config.tile_size, self.config.views_per_anchor,
+                               self.config.pixel_budget, self.config.batch_mode, self._generator)
+        valid = req.valid_mask(cams)
+        gt = _gather_tiles(self.train_images(), req, valid)
+        if gt.dtype == torch.uint8:
+            gt = gt.float() / 255.0
+        gt = gt.to(self.device)
+        s = req.height
+        return TileBatch(cams, req), {"image": gt, "valid": valid.reshape(len(req), s, req.width).to(self.device)}

@@ -1,0 +1,41 @@
+"""The VIRGi pipeline: nerfstudio's pipeline with the two training stages wired in.
+
+Geometry stage: one whole image per step, as splatfacto. Colour stage: the model freezes its
+geometry (once), the datamanager samples tile batches around the frozen Gaussians, the model
+renders only those tiles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Type
+
+from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
+from nerfstudio.utils import profiler
+
+from virgi_ns.datamanager import VirgiDataManager
+from virgi_ns.model import VirgiModel
+
+
+@dataclass
+class VirgiPipelineConfig(VanillaPipelineConfig):
+    _target: Type = field(default_factory=lambda: VirgiPipeline)
+
+
+class VirgiPipeline(VanillaPipeline):
+    """Switches batches between whole images (geometry) and tiles (colour)."""
+
+    @profiler.time_function
+    def get_train_loss_dict(self, step: int):
+        model = self.model
+        dm = self.datamanager
+        if not (isinstance(model, VirgiModel) and isinstance(dm, VirgiDataManager)) or not model.in_colour_stage(step):
+            return super().get_train_loss_dict(step)
+        if not model.geometry_frozen:
+            model.freeze_geometry()
+        means, opac = model.sampling_geometry()
+        tiles, batch = dm.next_tile_batch(step, means, opac)
+        outputs = self._model(tiles)
+        metrics = model.get_metrics_dict(outputs, batch)
+        losses = model.get_loss_dict(outputs, batch, metrics)
+        return outputs, losses, metrics
