@@ -1,0 +1,406 @@
+"""The reference rasterizer: pure torch, CPU or GPU, float32 or float64, differentiable.
+
+This module is the specification that every other backend must reproduce. Its rules are those
+of gsplat 1.4.0 in classic mode (``fully_fused_projection_fwd.cu``, ``utils.cuh``,
+``isect_tiles.cu``, ``rasterize_to_pixels_fwd.cu``), checked against the installed sources:
+
+Projection (per view, per Gaussian)
+  * ``q`` is normalised; ``R(q)`` is the usual rotation matrix of a unit wxyz quaternion;
+    ``Sigma = (R S)(R S)^T`` with ``S = diag(scales)`` (standard deviations).
+  * camera space: ``mu_c = W mu + t``, ``Sigma_c = W Sigma W^T`` (``[W | t]`` = viewmat).
+  * culled (radius 0) when ``z < near`` (0.01) or ``z > far`` (1e10). ``z == near`` is kept.
+  * pinhole Jacobian with the image-bound clamp: ``tan_fovx = 0.5 W / fx``,
+    ``lim_x+ = (W - cx) / fx + 0.3 tan_fovx``, ``lim_x- = cx / fx + 0.3 tan_fovx`` (same for y
+    with H, fy, cy); ``tx = z clamp(x / z, -lim_x-, lim_x+)``, likewise ``ty``;
+    ``J = [[fx/z, 0, -fx tx / z^2], [0, fy/z, -fy ty / z^2]]``, ``Sigma2d = J Sigma_c J^T``.
+    W, H are the FULL image's size, whatever part of the image is requested.
+  * ``mean2d = (fx x / z + cx, fy y / z + cy)`` (unclamped).
+  * ``Sigma2d += eps2d I`` with eps2d = 0.3; ``det = a c - b^2`` of the blurred matrix; culled when
+    ``det <= 0``. ``conic = (c / det, -b / det, a / det)``.
+    Float32 note (deliberate, same values in exact arithmetic): ``Sigma2d = A A^T`` with
+    ``A = J W R S`` (2x3), and ``det`` is computed as ``sum of squared 2x2 minors of A
+    + eps2d (a0 + c0) + eps2d^2`` (Cauchy-Binet), which does not cancel for anisotropic Gaussians
+    the way ``a c - b^2`` does in float32.
+  * radius (one integer per Gaussian and view, as gsplat 1.4.0's ``radii`` [C, N]):
+    ``mid = (a + c) / 2``, ``v1 = mid + sqrt(max(0.01, mid^2 - det))``, ``r = ceil(3 sqrt(v1))``;
+    culled when ``r <= 0`` (radius_clip 0) or off-image:
+    ``x + r <= 0 or x - r >= W or y + r <= 0 or y - r >= H``.
+
+Tile membership (16 px, on the full image's grid, as ``isect_tiles``)
+  * ``tiles_w = ceil(W / 16)``, ``tiles_h = ceil(H / 16)``; with ``tx = x / 16``, ``tr = r / 16``:
+    ``[clamp(floor(tx - tr), 0, tiles_w), clamp(ceil(tx + tr), 0, tiles_w))`` (half open), same in y
+    (gsplat casts the floor to uint32, which saturates negatives to 0).
+  * A pixel (px, py) is reached only by Gaussians whose range holds its grid tile
+    (px // 16, py // 16), whatever the request's own tile placement.
+  * Per grid tile, Gaussians are composited by increasing depth z; ties by Gaussian index (gsplat's
+    radix sort is stable over ids written in Gaussian order).
+
+Compositing (per pixel, front to back)
+  * pixel centre ``p = (px + 0.5, py + 0.5)``, ``d = mean2d - p``,
+    ``sigma = 0.5 (a dx^2 + c dy^2) + b dx dy`` with conic (a, b, c). Evaluated as the equal sum
+    of two squares ``sigma = 0.5 (p (dx - r dy)^2 + s dy^2)`` with ``p = c2/det``, ``r = b2/c2``,
+    ``s = 1/c2`` (``a2, b2, c2``: the blurred 2D covariance; ``Projection.quad``), because the
+    conic form cancels catastrophically in float32 for elongated Gaussians (errors ~1e-3 in alpha
+    at anisotropy 1e4). Backends must use this form to agree with the reference in float32;
+    ``sigma`` is never negative in it, so gsplat's ``sigma < 0`` skip never fires;
+  * ``alpha = min(0.999, o exp(-sigma))``; skipped when ``sigma < 0`` or ``alpha < 1/255``;
+  * ``T_next = T (1 - alpha)``; when ``T_next <= 1e-4`` the pixel stops and that Gaussian is
+    excluded; otherwise it contributes ``w = alpha T`` and ``T = T_next``. ``T`` starts at 1 and its
+    final value is the pixel's transmittance.
+
+Implementation: per requested (view, grid tile), its depth-sorted candidates are processed in
+blocks of candidates x 256 pixels; an exclusive cumulative product gives T. Every step is a torch
+op of the geometry, so weights carry gradients to means, quats, scales and opacities.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from virgi_ns.raster.contract import Cameras, Contributions, Request
+
+NEAR_PLANE = 0.01
+FAR_PLANE = 1e10
+EPS2D = 0.3
+TILE_SIZE = 16
+ALPHA_MIN = 1.0 / 255.0
+ALPHA_MAX = 0.999
+T_MIN = 1e-4
+
+_TILE_PIX = TILE_SIZE * TILE_SIZE
+
+
+@dataclass
+class Projection:
+    """Per-view screen-space Gaussians, each [V, N, ...]; entries with ``radii == 0`` are culled
+    (their other values are finite but meaningless)."""
+
+    means2d: Tensor  # [V, N, 2]
+    conics: Tensor  # [V, N, 3] (a, b, c) of the inverse 2D covariance, gsplat's ``conics``
+    quad: Tensor  # [V, N, 3] (p, r, s): sigma = 0.5 (p (dx - r dy)^2 + s dy^2), the same form
+    depths: Tensor  # [V, N] camera-space z
+    radii: Tensor  # [V, N] int32 pixel radius, 0 = culled
+    widths: Tensor  # [V] long (cpu)
+    heights: Tensor  # [V] long (cpu)
+
+    @property
+    def visible(self) -> Tensor:
+        """[V, N] bool: the Gaussian reaches the view's image."""
+        return self.radii > 0
+
+    def tile_ranges(self, tile_size: int = TILE_SIZE) -> Tensor:
+        """[V, N, 4] long ``(x_min, y_min, x_max, y_max)`` half-open tile ranges on the view's grid
+        (empty for culled Gaussians), as gsplat's ``isect_tiles``."""
+        dev = self.means2d.device
+        m = self.means2d.detach()
+        r = self.radii.to(m.dtype)
+        tw = torch.div(self.widths + tile_size - 1, tile_size, rounding_mode="floor").to(dev).view(-1, 1)
+        th = torch.div(self.heights + tile_size - 1, tile_size, rounding_mode="floor").to(dev).view(-1, 1)
+        tx = m[..., 0] / tile_size
+        ty = m[..., 1] / tile_size
+        tr = r / tile_size
+        zero = torch.zeros((), dtype=torch.long, device=dev)
+        x0 = torch.floor(tx - tr).clamp(-1, 2**31).long().clamp(min=zero).minimum(tw)
+        y0 = torch.floor(ty - tr).clamp(-1, 2**31).long().clamp(min=zero).minimum(th)
+        x1 = torch.ceil(tx + tr).clamp(-1, 2**31).long().clamp(min=zero).minimum(tw)
+        y1 = torch.ceil(ty + tr).clamp(-1, 2**31).long().clamp(min=zero).minimum(th)
+        out = torch.stack([x0, y0, x1, y1], dim=-1)
+        return torch.where(self.visible[..., None], out, torch.zeros_like(out))
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """[N, 4] wxyz (any norm) -> [N, 3, 3] rotation matrices."""
+    q = torch.nn.functional.normalize(quats, dim=-1)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(*q.shape[:-1], 3, 3)
+
+
+def project(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    cameras: Cameras,
+    near_plane: float = NEAR_PLANE,
+    far_plane: float = FAR_PLANE,
+    eps2d: float = EPS2D,
+) -> Projection:
+    """Project N Gaussians into every view of ``cameras`` (gsplat 1.4.0 classic rules)."""
+    dtype, dev = means.dtype, means.device
+    cams = cameras.to(dev, dtype)
+    W = cams.viewmats[:, :3, :3]  # [V,3,3]
+    t = cams.viewmats[:, :3, 3]  # [V,3]
+    wid = cams.widths.to(dev, dtype).view(-1, 1)
+    hei = cams.heights.to(dev, dtype).view(-1, 1)
+    fx = cams.Ks[:, 0, 0].view(-1, 1)
+    fy = cams.Ks[:, 1, 1].view(-1, 1)
+    cx = cams.Ks[:, 0, 2].view(-1, 1)
+    cy = cams.Ks[:, 1, 2].view(-1, 1)
+
+    Rq = quat_to_rotmat(quats)
+    mean_c = torch.einsum("vij,nj->vni", W, means) + t[:, None, :]  # [V,N,3]
+
+    x, y, z = mean_c.unbind(-1)
+    in_depth = (z >= near_plane) & (z <= far_plane)
+    zs = torch.where(in_depth, z, torch.ones_like(z))  # keep culled rows finite (and their grads)
+    rz = 1.0 / zs
+    rz2 = rz * rz
+    tan_fovx = 0.5 * wid / fx
+    tan_fovy = 0.5 * hei / fy
+    lim_x_pos = (wid - cx) / fx + 0.3 * tan_fovx
+    lim_x_neg = cx / fx + 0.3 * tan_fovx
+    lim_y_pos = (hei - cy) / fy + 0.3 * tan_fovy
+    lim_y_neg = cy / fy + 0.3 * tan_fovy
+    tx = zs * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, x * rz))
+    ty = zs * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, y * rz))
+    zero = torch.zeros_like(zs)
+    J = torch.stack([fx * rz, zero, -fx * tx * rz2, zero, fy * rz, -fy * ty * rz2], dim=-1).reshape(*zs.shape, 2, 3)
+    means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)
+
+    # Sigma2d = J W R S S R^T W^T J^T = A A^T with A = J W R S (2x3): its entries and its determinant
+    # (Cauchy-Binet: the sum of the squared 2x2 minors of A) stay accurate in float32 even for
+    # very anisotropic Gaussians, where a c - b^2 would cancel.
+    JW = torch.einsum("vnij,vjk->vnik", J, W)  # [V,N,2,3]
+    A = torch.einsum("vnij,njk->vnik", JW, Rq) * scales[None, :, None, :]
+    a0 = (A[..., 0, :] * A[..., 0, :]).sum(-1)
+    c0 = (A[..., 1, :] * A[..., 1, :]).sum(-1)
+    b = (A[..., 0, :] * A[..., 1, :]).sum(-1)
+    m01 = A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0]
+    m02 = A[..., 0, 0] * A[..., 1, 2] - A[..., 0, 2] * A[..., 1, 0]
+    m12 = A[..., 0, 1] * A[..., 1, 2] - A[..., 0, 2] * A[..., 1, 1]
+    det0 = m01 * m01 + m02 * m02 + m12 * m12
+    a = a0 + eps2d
+    c = c0 + eps2d
+    det = det0 + eps2d * (a0 + c0) + eps2d * eps2d
+    ok = in_depth & (det > 0)
+    det_s = torch.where(ok, det, torch.ones_like(det))
+    conics = torch.stack([c / det_s, -b / det_s, a / det_s], dim=-1)
+    # the same quadratic form as a sum of two squares (see the module docstring)
+    quad = torch.stack([c / det_s, b / c, 1.0 / c], dim=-1)
+
+    with torch.no_grad():
+        mid = 0.5 * (a + c)
+        v1 = mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.01))
+        radius = torch.ceil(3.0 * torch.sqrt(v1))
+        radius = torch.where(ok & torch.isfinite(radius), radius, torch.zeros_like(radius))
+        mx, my = means2d[..., 0], means2d[..., 1]
+        inside = (mx + radius > 0) & (mx - radius < wid) & (my + radius > 0) & (my - radius < hei)
+        radius = torch.where(inside & (radius > 0), radius, torch.zeros_like(radius))
+        radii = radius.clamp(max=2**31 - 1).to(torch.int32)
+    return Projection(means2d, conics, quad, z, radii, cams.widths.clone(), cams.heights.clone())
+
+
+def _empty(request: Request, n: int, dtype: torch.dtype, dev: torch.device, valid: Tensor) -> Contributions:
+    li = torch.zeros(0, dtype=torch.long, device=dev)
+    return Contributions(
+        request=request, num_gaussians=n, pair_view=li, pair_gaussian=li.clone(),
+        pair_depth=torch.zeros(0, dtype=dtype, device=dev), pixel=li.clone(), pair=li.clone(),
+        weight=torch.zeros(0, dtype=dtype, device=dev),
+        transmittance=torch.ones(request.num_pixels, dtype=dtype, device=dev), valid=valid,
+    )
+
+
+def _segment_arange(counts: Tensor) -> Tensor:
+    """[0..c0), [0..c1), ... concatenated."""
+    total = int(counts.sum())
+    starts = torch.cumsum(counts, 0) - counts
+    return torch.arange(total, device=counts.device) - torch.repeat_interleave(starts, counts, output_size=total)
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    cameras: Cameras,
+    request: Request,
+    block: int = 128,
+    max_elems: int = 1 << 22,
+) -> Contributions:
+    """Contribution lists for ``request`` (see the module docstring for the rules).
+
+    ``block`` candidates per step and at most about ``max_elems`` (candidate, pixel) values at once
+    bound the memory; results do not depend on them beyond float rounding of T's products.
+    """
+    dtype, dev = means.dtype, means.device
+    n = int(means.shape[0])
+    opacities = opacities.reshape(-1)
+    valid_cpu = request.valid_mask(cameras)
+    valid = valid_cpu.to(dev)
+    if n == 0 or len(request) == 0 or not bool(valid_cpu.any()):
+        return _empty(request, n, dtype, dev, valid)
+
+    # ---- project only the views the request touches
+    views_used = torch.unique(request.views)
+    proj = project(means, quats, scales, cameras.index(views_used))
+    tw = torch.div(proj.widths + TILE_SIZE - 1, TILE_SIZE, rounding_mode="floor")  # [Vu] cpu
+    th = torch.div(proj.heights + TILE_SIZE - 1, TILE_SIZE, rounding_mode="floor")
+    tile_base = torch.cumsum(tw * th, 0) - tw * th  # first global tile id of each used view
+
+    # ---- requested pixels -> (unit = requested grid tile of a view, local pixel)
+    pv, px, py = request.pixel_coords()
+    pidx = torch.nonzero(valid_cpu).squeeze(1)
+    pvu = torch.searchsorted(views_used, pv[pidx])
+    pgx, pgy = px[pidx] // TILE_SIZE, py[pidx] // TILE_SIZE
+    ptile = tile_base[pvu] + pgy * tw[pvu] + pgx
+    units, p_unit = torch.unique(ptile, return_inverse=True)  # sorted global tile ids
+    n_units = int(units.shape[0])
+    p_local = (py[pidx] % TILE_SIZE) * TILE_SIZE + (px[pidx] % TILE_SIZE)
+    p_q = p_unit * _TILE_PIX + p_local  # unit-pixel id of each valid output pixel
+    u_vu = torch.searchsorted(tile_base, units, right=True) - 1
+    u_tile = units - tile_base[u_vu]
+    u_gx, u_gy = u_tile % tw[u_vu], u_tile // tw[u_vu]
+    wanted = torch.zeros(n_units * _TILE_PIX, dtype=torch.bool)
+    wanted[p_q] = True
+    unit_of_tile = torch.full((int((tw * th).sum()),), -1, dtype=torch.long)
+    unit_of_tile[units] = torch.arange(n_units)
+
+    # ---- intersections (view, Gaussian, unit), only for requested tiles
+    with torch.no_grad():
+        rng = proj.tile_ranges().cpu()  # [Vu,N,4]
+        bx0 = torch.full((len(views_used),), 2**40, dtype=torch.long).scatter_reduce(0, u_vu, u_gx, "amin")
+        by0 = torch.full((len(views_used),), 2**40, dtype=torch.long).scatter_reduce(0, u_vu, u_gy, "amin")
+        bx1 = torch.full((len(views_used),), -1, dtype=torch.long).scatter_reduce(0, u_vu, u_gx + 1, "amax")
+        by1 = torch.full((len(views_used),), -1, dtype=torch.long).scatter_reduce(0, u_vu, u_gy + 1, "amax")
+        x0 = torch.maximum(rng[..., 0], bx0[:, None])
+        y0 = torch.maximum(rng[..., 1], by0[:, None])
+        x1 = torch.minimum(rng[..., 2], bx1[:, None])
+        y1 = torch.minimum(rng[..., 3], by1[:, None])
+        wx = (x1 - x0).clamp(min=0)
+        wy = (y1 - y0).clamp(min=0)
+        cnt = (wx * wy).reshape(-1)  # in (view, Gaussian) order
+        vg = torch.repeat_interleave(torch.arange(cnt.shape[0]), cnt)
+        off = _segment_arange(cnt)
+        wxf = wx.reshape(-1)[vg]
+        ix_vu = vg // n
+        gx = x0.reshape(-1)[vg] + off % wxf
+        gy = y0.reshape(-1)[vg] + off // wxf
+        i_unit = unit_of_tile[tile_base[ix_vu] + gy * tw[ix_vu] + gx]
+        keep = i_unit >= 0
+        vg, i_unit = vg[keep], i_unit[keep]
+        # depth order (stable: ties keep Gaussian order), then group by unit (stable)
+        depth = proj.depths.detach().reshape(-1).cpu()[vg]
+        order = torch.argsort(depth, stable=True)
+        vg, i_unit = vg[order], i_unit[order]
+        order = torch.argsort(i_unit, stable=True)
+        vg, i_unit = vg[order], i_unit[order]
+        k_count = torch.bincount(i_unit, minlength=n_units)
+        k_start = torch.cumsum(k_count, 0) - k_count
+
+    # ---- per-(view, Gaussian) values used by the compositing, flattened [Vu*N]
+    m2d = proj.means2d.reshape(-1, 2)
+    con = proj.quad.reshape(-1, 3)
+    opa = opacities.reshape(1, -1).expand(len(views_used), n).reshape(-1)
+
+    vg_d = vg.to(dev)
+    lx = (torch.arange(_TILE_PIX, device=dev) % TILE_SIZE).to(dtype)
+    ly = (torch.arange(_TILE_PIX, device=dev) // TILE_SIZE).to(dtype)
+    T_units = torch.ones(n_units, _TILE_PIX, dtype=dtype, device=dev)
+    e_q, e_k, e_vg, e_w = [], [], [], []
+    per_chunk = max(1, max_elems // (block * _TILE_PIX))
+    # units with most candidates first, so chunks are alike in length
+    unit_order = torch.argsort(k_count, descending=True, stable=True)
+    for c0 in range(0, n_units, per_chunk):
+        cu = unit_order[c0 : c0 + per_chunk]
+        if int(k_count[cu[0]]) == 0:
+            break
+        cu_d = cu.to(dev)
+        pxs = (u_gx[cu].to(dev, dtype) * TILE_SIZE)[:, None] + lx + 0.5  # [B,256]
+        pys = (u_gy[cu].to(dev, dtype) * TILE_SIZE)[:, None] + ly + 0.5
+        done = ~wanted.view(n_units, _TILE_PIX)[cu].to(dev)
+        T = torch.ones(len(cu), _TILE_PIX, dtype=dtype, device=dev)
+        kc = k_count[cu].to(dev)
+        ks = k_start[cu].to(dev)
+        kmax = int(k_count[cu].max())
+        for k0 in range(0, kmax, block):
+            act = torch.nonzero((kc > k0) & ~done.all(1)).squeeze(1)
+            if act.numel() == 0:
+                break
+            kk = k0 + torch.arange(min(block, kmax - k0), device=dev)
+            cvalid = kk[None, :] < kc[act, None]  # [Ba,kb]
+            ent = (ks[act, None] + kk[None, :]).clamp(max=max(vg_d.shape[0] - 1, 0))
+            gid = vg_d[ent]  # flat (view, Gaussian) ids [Ba,kb]
+            mu = m2d[gid]  # [Ba,kb,2]
+            cn = con[gid]
+            op = opa[gid]
+            dx = mu[..., 0:1] - pxs[act][:, None, :]  # [Ba,kb,256]
+            dy = mu[..., 1:2] - pys[act][:, None, :]
+            e = dx - cn[..., 1:2] * dy
+            sigma = 0.5 * (cn[..., 0:1] * e * e + cn[..., 2:3] * dy * dy)
+            alpha = torch.clamp(op[..., None] * torch.exp(-sigma), max=ALPHA_MAX)
+            m = cvalid[..., None] & (sigma >= 0) & (alpha >= ALPHA_MIN) & ~done[act][:, None, :]
+            f = torch.where(m, 1.0 - alpha, torch.ones_like(alpha))
+            T0 = T[act][:, None, :]
+            cp = torch.cumprod(f, dim=1)
+            incl = T0 * cp
+            excl = T0 * torch.cat([torch.ones_like(cp[:, :1]), cp[:, :-1]], dim=1)
+            alive_t = incl > T_MIN  # a prefix along the candidates
+            alive = m & alive_t
+            stopped = (m & ~alive_t).any(1)  # [Ba,256]
+            # T after the last kept Gaussian: incl at the end of the alive prefix
+            n_alive = alive_t.sum(1)
+            last = (n_alive - 1).clamp(min=0)
+            T_new = torch.where(n_alive > 0, incl.gather(1, last[:, None, :]).squeeze(1), T[act])
+            T = T.index_put((act,), T_new)
+            done = done.index_put((act,), done[act] | stopped)
+            b_i, k_i, l_i = torch.nonzero(alive, as_tuple=True)
+            if b_i.numel():
+                e_q.append(cu_d[act[b_i]] * _TILE_PIX + l_i)
+                e_k.append(k0 + k_i)
+                e_vg.append(gid[b_i, k_i])
+                e_w.append((alpha * excl)[alive])
+        T_units = T_units.index_put((cu_d,), T)
+
+    # ---- transmittance of every output pixel
+    pidx_d, p_q_d = pidx.to(dev), p_q.to(dev)
+    trans = torch.ones(request.num_pixels, dtype=dtype, device=dev)
+    trans = trans.index_put((pidx_d,), T_units.reshape(-1)[p_q_d])
+    if not e_q:
+        out = _empty(request, n, dtype, dev, valid)
+        out.transmittance = trans
+        return out
+
+    # ---- entries grouped by unit-pixel, in depth order; then joined to output pixels
+    q = torch.cat(e_q)
+    k = torch.cat(e_k)
+    evg = torch.cat(e_vg)
+    w = torch.cat(e_w)
+    kspan = int(k.max()) + 1
+    order = torch.argsort(q * kspan + k)
+    q, evg, w = q[order], evg[order], w[order]
+    q_count = torch.bincount(q, minlength=n_units * _TILE_PIX)
+    q_start = torch.cumsum(q_count, 0) - q_count
+    c = q_count[p_q_d]
+    sel = torch.repeat_interleave(q_start[p_q_d], c) + _segment_arange(c)
+    pixel = torch.repeat_interleave(pidx_d, c)
+    evg, w = evg[sel], w[sel]
+
+    # ---- distinct (view, Gaussian) pairs, sorted by view * N + gaussian
+    vu_e = evg // n
+    g_e = evg % n
+    view_e = views_used.to(dev)[vu_e]
+    keys, pair = torch.unique(view_e * n + g_e, sorted=True, return_inverse=True)
+    pair_view, pair_gaussian = keys // n, keys % n
+    pvu_pair = torch.searchsorted(views_used.to(dev), pair_view)
+    pair_depth = proj.depths[pvu_pair, pair_gaussian]
+    return Contributions(
+        request=request,
+        num_gaussians=n,
+        pair_view=pair_view,
+        pair_gaussian=pair_gaussian,
+        pair_depth=pair_depth,
+        pixel=pixel,
+        pair=pair,
+        weight=w,
+        transmittance=trans,
+        valid=valid,
+    )
