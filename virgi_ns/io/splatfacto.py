@@ -35,8 +35,13 @@ def _safe_load(path: Path) -> dict:
             obj = torch.load(path, map_location="cpu", weights_only=True)
     except (pickle.UnpicklingError, RuntimeError, EOFError, zipfile.BadZipFile, ValueError, OSError,
             AttributeError, KeyError, IndexError, TypeError, UnicodeDecodeError) as e:
-        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise InputError(f"{path}: cannot read the checkpoint ({msg[:200]})") from None
+        text = re.sub(r"\x1b\[[0-9;]*m", "", str(e))
+        glob = re.search(r"Unsupported global: GLOBAL (\S+)", text)
+        if glob:
+            msg = f"it holds a {glob.group(1)} object, which safe loading refuses"
+        else:
+            msg = text.strip().splitlines()[0][:200] if text.strip() else type(e).__name__
+        raise InputError(f"{path}: cannot read the checkpoint ({msg})") from None
     if not isinstance(obj, dict):
         raise InputError(f"{path}: checkpoint does not hold a dictionary")
     return obj

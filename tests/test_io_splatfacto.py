@@ -1,0 +1,71 @@
+"""Gaussians from a nerfstudio splatfacto checkpoint (.ckpt) and from a run's config.yml."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import pytest
+import torch
+
+from virgi_ns.errors import InputError
+from virgi_ns.io import load_splat
+
+
+def _checkpoint(n: int, degree: int, seed: int) -> dict:
+    g = torch.Generator().manual_seed(seed)
+    r = lambda *s: torch.randn(*s, generator=g)  # noqa: E731
+    params = {"means": r(n, 3), "scales": r(n, 3), "quats": r(n, 4), "features_dc": r(n, 3),
+              "features_rest": r(n, (degree + 1) ** 2 - 1, 3), "opacities": r(n, 1)}
+    pipeline = {f"_model.gauss_params.{k}": v for k, v in params.items()}
+    pipeline["_model.camera_optimizer.pose_adjustment"] = r(4, 6)
+    pipeline["datamanager.train_camera_optimizer.pose_adjustment"] = r(4, 6)
+    # the layout nerfstudio's Trainer.save_checkpoint writes, numpy scalars included
+    return {"step": np.int64(seed), "pipeline": pipeline, "optimizers": {}, "schedulers": {},
+            "scalers": {"scale": np.float64(1.0)}}, params
+
+
+def test_checkpoint_loads_in_our_conventions(tmp_path):
+    ckpt, p = _checkpoint(50, 3, seed=7)
+    torch.save(ckpt, tmp_path / "step-000000007.ckpt")
+    g = load_splat(tmp_path / "step-000000007.ckpt")
+    assert len(g) == 50 and g.sh_degree == 3
+    assert torch.equal(g.means, p["means"]) and torch.equal(g.quats, p["quats"])
+    assert torch.equal(g.opacities, p["opacities"][:, 0])
+    assert torch.equal(g.sh[:, 0], p["features_dc"]) and torch.equal(g.sh[:, 1:], p["features_rest"])
+
+
+def test_config_yml_picks_the_newest_checkpoint(tmp_path):
+    run = tmp_path / "outputs" / "scene" / "splatfacto" / "2024-01-01_000000"
+    models = run / "nerfstudio_models"
+    models.mkdir(parents=True)
+    for step in (500, 29999, 3000):
+        torch.save(_checkpoint(10 + step % 7, 0, seed=step)[0], models / f"step-{step:09d}.ckpt")
+    (run / "config.yml").write_text(
+        "!!python/object:nerfstudio.engine.trainer.TrainerConfig\n"
+        "relative_model_dir: !!python/object/apply:pathlib.PosixPath\n- nerfstudio_models\n"
+    )
+    g = load_splat(run / "config.yml")
+    assert len(g) == 10 + 29999 % 7
+    assert torch.equal(g.means, _checkpoint(10 + 29999 % 7, 0, seed=29999)[1]["means"])
+    assert len(load_splat(run)) == len(g)  # the run directory works too
+
+
+def test_checkpoint_without_gaussians_is_refused(tmp_path):
+    torch.save({"step": 1, "pipeline": {"_model.field.mlp.weight": torch.zeros(2, 2)}}, tmp_path / "a.ckpt")
+    with pytest.raises(InputError, match="not a splatfacto checkpoint"):
+        load_splat(tmp_path / "a.ckpt")
+
+
+def test_corrupt_checkpoint_and_empty_run_are_refused(tmp_path):
+    (tmp_path / "b.ckpt").write_bytes(b"PK\x03\x04 not really a zip")
+    with pytest.raises(InputError, match="cannot read the checkpoint"):
+        load_splat(tmp_path / "b.ckpt")
+    # arbitrary pickled objects are not unpickled (safe loading), only refused
+    ckpt, _ = _checkpoint(5, 0, seed=1)
+    torch.save({**ckpt, "extra": argparse.Namespace(a=1)}, tmp_path / "c.ckpt")
+    with pytest.raises(InputError, match="cannot read the checkpoint"):
+        load_splat(tmp_path / "c.ckpt")
+    (tmp_path / "config.yml").write_text("x: 1\n")
+    with pytest.raises(InputError, match="no step-\\*.ckpt checkpoint"):
+        load_splat(tmp_path / "config.yml")
