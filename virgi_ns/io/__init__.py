@@ -26,6 +26,8 @@ SUPPORTED = ".ply, .compressed.ply, .spz, a splatfacto .ckpt or its config.yml"
 
 def check_finite(g: Gaussians, drop_invalid: bool, where: str) -> Gaussians:
     """Refuse (or with ``drop_invalid`` drop) rows holding NaN or infinity."""
+    if len(g) == 0:
+        return g
     bad = g.invalid_rows()
     n_bad = int(bad.sum())
     if n_bad == 0:

@@ -53,7 +53,7 @@ def gaussians_from_inria(ply: PlyData, where: str = "file") -> Gaussians:
         means=col("x", "y", "z"),
         scales=col("scale_0", "scale_1", "scale_2"),
         quats=col("rot_0", "rot_1", "rot_2", "rot_3"),
-        opacities=np.asarray(d["opacity"], dtype=np.float32),
+        opacities=np.array(d["opacity"], dtype=np.float32),  # a copy: the file buffer is read-only
         sh=sh,
     )
 
@@ -61,7 +61,7 @@ def gaussians_from_inria(ply: PlyData, where: str = "file") -> Gaussians:
 def inria_ply_bytes(g: Gaussians) -> bytes:
     """Serialise Gaussians in the INRIA layout, float32, in one vectorised pass."""
     n, k = len(g), g.sh.shape[1]
-    t = lambda x: x.detach().cpu().to(torch.float32).numpy().reshape(n, -1)  # noqa: E731
+    t = lambda x: x.detach().cpu().to(torch.float32).numpy().reshape(n, x.shape[1:].numel())  # noqa: E731
     sh = t(g.sh).reshape(n, k, 3)
     rest = sh[:, 1:].transpose(0, 2, 1).reshape(n, 3 * (k - 1))
     cols = [t(g.means), np.zeros((n, 3), np.float32), sh[:, 0], rest,

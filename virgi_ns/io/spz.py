@@ -204,9 +204,9 @@ def spz_bytes(g: Gaussians, version: int = 3, fractional_bits: int | None = None
     if version not in (2, 3, 4):
         raise ValueError("SPZ writing supports versions 2, 3 and 4")
     n = len(g)
-    a = lambda x: x.detach().cpu().to(torch.float64).numpy().reshape(n, -1)  # noqa: E731
+    a = lambda x: x.detach().cpu().to(torch.float64).numpy().reshape(n, x.shape[1:].numel())  # noqa: E731
     means, scales, quats, opac, sh = a(g.means), a(g.scales), a(g.quats), a(g.opacities)[:, 0], a(g.sh)
-    sh = sh.reshape(n, -1, 3)
+    sh = sh.reshape(n, g.sh.shape[1], 3)
     deg = g.sh_degree
     if fractional_bits is None:
         extent = float(np.abs(means).max()) if n else 0.0
