@@ -183,3 +183,25 @@ def test_allow_list_is_narrow(tmp_path: Path) -> None:
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert "REFUSED UnpicklingError" in out.stdout
+
+
+@pytest.mark.parametrize("module", ["numpy.core.multiarray", "numpy._core.multiarray"])
+def test_scalar_loads_under_either_numpy_spelling(tmp_path: Path, module: str) -> None:
+    """numpy 1.x pickles its scalars as numpy.core.multiarray.scalar, numpy 2.x as numpy._core...;
+    a checkpoint written with either loads with either."""
+    import zipfile
+
+    import virgi_ns.compat  # noqa: F401
+
+    src, dst = tmp_path / "src.ckpt", tmp_path / "dst.ckpt"
+    torch.save({"lr": np.float64(0.25) * np.exp(-1.0)}, src)
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w", zipfile.ZIP_STORED) as zout:
+        for item in zin.infolist():
+            data = zin.read(item)
+            if item.filename.endswith("data.pkl"):
+                for spelling in (b"numpy.core.multiarray\nscalar\n", b"numpy._core.multiarray\nscalar\n"):
+                    data = data.replace(spelling, module.encode() + b"\nscalar\n")
+                assert module.encode() + b"\nscalar\n" in data
+            zout.writestr(item, data)
+    lr = torch.load(dst, map_location="cpu")["lr"]
+    assert isinstance(lr, np.float64) and lr == np.float64(0.25) * np.exp(-1.0)
