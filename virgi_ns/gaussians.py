@@ -97,8 +97,9 @@ class Gaussians:
         """Bool [N]: rows holding a NaN or an infinity in any attribute."""
         bad = torch.zeros(len(self), dtype=torch.bool, device=self.device)
         for f in fields(self):
-            v = getattr(self, f.name).reshape(len(self), -1)
-            bad |= ~torch.isfinite(v).all(dim=1)
+            v = getattr(self, f.name).reshape(len(self), -1) if len(self) else None
+            if v is not None:
+                bad |= ~torch.isfinite(v).all(dim=1)
         return bad
 
     def bbox(self) -> tuple[np.ndarray, np.ndarray]:

@@ -82,11 +82,8 @@ def load_splat(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians
 
 
 def _write(data: bytes, path: str | os.PathLike) -> None:
-    umask = os.umask(0)
-    os.umask(umask)
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
-        os.chmod(tmp, 0o666 & ~umask)  # the temporary file is private; give the result normal permissions
 
 
 def save_ply(g: Gaussians, path: str | os.PathLike) -> None:
