@@ -96,8 +96,11 @@ LOAD_LIKE_NERFSTUDIO = f"""
     import numpy as np
     import torch
 
+    assert "virgi_ns.compat" not in sys.modules
     # what every ns-* command does first: discover methods and dataparsers through entry points
     from nerfstudio.configs.method_configs import all_methods
+
+    assert "virgi_ns.compat" in sys.modules  # brought in by entry-point discovery alone
     from nerfstudio.engine.trainer import Trainer, TrainerConfig
     from nerfstudio.utils.eval_utils import eval_load_checkpoint
 
