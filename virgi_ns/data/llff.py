@@ -48,7 +48,7 @@ class LLFFDataParserConfig(DataParserConfig):
     data: Path = Path()
     """Directory holding poses_bounds.npy and the image folder."""
     images_dir: str = "images"
-    """Image folder inside ``data`` (e.g. images_8 for LLFF's 8x downscaled images)."""
+    """Image folder inside the data directory (e.g. images_8 for LLFF's 8x downscaled images)."""
     llffhold: int = 8
     """Every llffhold-th frame, starting at frame 0, is held out for evaluation (LLFF convention). 0: none."""
     orientation_method: Literal["pca", "up", "vertical", "none"] = "up"
