@@ -1,0 +1,263 @@
+"""Benchmark (GPU): splatfacto against VIRGi on a real capture, same split and geometry steps.
+
+Rows:
+  splatfacto                 nerfstudio's recipe, ``--steps`` steps
+  virgi                      geometry trained in the same run (``--steps``), then ``--colour-steps``
+  virgi (imported geometry)  the splatfacto run's Gaussians imported, then ``--colour-steps``
+With ``--ablation`` also decoupled x multi-view on the imported geometry (the paper's Tables 2/3),
+per scene in ``--scenes``.
+
+Columns: PSNR, SSIM, LPIPS (NaN offline) on the held-out views (every 8th frame), train time,
+Gaussians, render FPS (whole eval images); for virgi also the specular gate's kept fraction, the
+gated render's speed-up and the PSNR between gated and full renders. Writes ``results.json`` and,
+for one held-out view, ``<scene>_<row>.png`` = ground truth | rgb | diffuse | specular
+(|rgb - diffuse|, x2) side by side.
+
+    python bench/train.py --data ../shared/data --out bench_out/train --steps 30000 --colour-steps 10000
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+import torch
+import tyro
+from rich.console import Console
+from rich.table import Table
+
+from virgi_ns.errors import InputError, atomic_path, cli_entry
+
+console = Console()
+
+
+@dataclass
+class Args:
+    data: Path = Path(__file__).resolve().parents[2] / "shared" / "data"
+    """Folder holding beercan/ (COLMAP) and fern/ (LLFF)."""
+    out: Path = Path("bench_out/train")
+    scenes: List[str] = field(default_factory=lambda: ["beercan"])
+    steps: int = 30000
+    """splatfacto steps = virgi geometry steps."""
+    colour_steps: int = 10000
+    """virgi colour-stage steps."""
+    ablation: bool = False
+    """Also train decoupled x multi-view variants on the imported geometry."""
+    skip_trained_virgi: bool = False
+    """Only the imported-geometry virgi rows (saves one geometry training)."""
+    fps_repeats: int = 3
+
+
+def _stub_lpips_if_offline() -> None:
+    """splatfacto builds torchmetrics' LPIPS on construction, which downloads AlexNet; offline, give
+    it a stand-in (this benchmark scores every row with virgi_ns.metrics instead)."""
+    from virgi_ns.metrics import make_lpips
+
+    if make_lpips() is not None:
+        return
+    import torchmetrics.image.lpip as lp
+
+    class _NoLpips(torch.nn.Module):
+        def __init__(self, *a, **k) -> None:
+            super().__init__()
+
+        def forward(self, a, b):
+            return torch.tensor(float("nan"))
+
+    lp.LearnedPerceptualImagePatchSimilarity = _NoLpips  # type: ignore[misc]
+
+
+def dataparser_for(scene: str, root: Path):
+    path = root / scene
+    if not path.is_dir():
+        raise InputError(f"scene folder not found: {path}")
+    if (path / "sparse" / "0").is_dir():
+        from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
+
+        return ColmapDataParserConfig(data=path, colmap_path=Path("sparse/0"), images_path=Path("images"),
+                                      eval_mode="interval", eval_interval=8, load_3D_points=True,
+                                      downscale_factor=1)
+    from virgi_ns.data.llff import LLFFDataParserConfig
+
+    images = "images_8" if (path / "images_8").is_dir() else "images"
+    return LLFFDataParserConfig(data=path, images_dir=images, llffhold=8)
+
+
+def quiet(cfg, out: Path, name: str) -> None:
+    cfg.vis = "tensorboard"
+    cfg.output_dir = out / "runs"
+    cfg.experiment_name = name
+    cfg.timestamp = "run"
+    cfg.steps_per_eval_image = 10**9
+    cfg.steps_per_eval_batch = 10**9
+    cfg.steps_per_eval_all_images = 10**9
+    cfg.steps_per_save = 10**9
+    cfg.viewer.quit_on_train_completion = True
+
+
+def train(cfg) -> tuple[object, float, Path]:
+    trainer = cfg.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    trainer.train()
+    torch.cuda.synchronize()
+    return trainer, time.perf_counter() - t0, Path(cfg.get_base_dir()) / "nerfstudio_models"
+
+
+@torch.no_grad()
+def evaluate(pipeline, repeats: int, picture: Optional[Path]) -> Dict[str, float]:
+    from virgi_ns.metrics import image_metrics
+    from virgi_ns.model import VirgiModel
+
+    model = pipeline.model
+    model.eval()
+    dm = pipeline.datamanager
+    n = len(dm.eval_dataset)
+    scores: Dict[str, List[float]] = {"psnr": [], "ssim": [], "lpips": []}
+    render_s = 0.0
+    frames = 0
+    is_virgi = isinstance(model, VirgiModel)
+    gated_psnr, full_s, gated_s = [], 0.0, 0.0
+    for i in range(n):
+        gt = dm.cached_eval[i]["image"].to(model.device)  # first: caching undistorts and fixes the cameras
+        cam = dm.eval_dataset.cameras[i : i + 1].to(model.device)
+        gt = (gt.float() / 255.0 if gt.dtype == torch.uint8 else gt)[..., :3]
+        out = model.get_outputs_for_camera(cam)
+        for k, v in image_metrics(out["rgb"], gt).items():
+            scores[k].append(v)
+        for _ in range(repeats):
+            torch.cuda.synchronize()
+            t = time.perf_counter()
+            model.get_outputs_for_camera(cam)
+            torch.cuda.synchronize()
+            render_s += time.perf_counter() - t
+            frames += 1
+        if is_virgi and model.gate_ready():
+            torch.cuda.synchronize()
+            t = time.perf_counter()
+            full = model.render_camera(cam, gated=False)
+            torch.cuda.synchronize()
+            t2 = time.perf_counter()
+            gated = model.render_camera(cam, gated=True)
+            torch.cuda.synchronize()
+            full_s += t2 - t
+            gated_s += time.perf_counter() - t2
+            mse = float(((full["rgb"] - gated["rgb"]) ** 2).mean())
+            gated_psnr.append(-10 * math.log10(max(mse, 1e-12)))
+        if i == 0 and picture is not None:
+            save_picture(picture, gt, out)
+    res = {k: float(np.nanmean(v)) if v else float("nan") for k, v in scores.items()}
+    res["fps"] = frames / max(render_s, 1e-9)
+    res["gaussians"] = int(model.num_points)
+    if is_virgi and gated_psnr:
+        res["gate_kept"] = float(model.spec_gate.float().mean())
+        res["gate_speedup"] = full_s / max(gated_s, 1e-9)
+        res["gate_psnr_vs_full"] = float(np.mean(gated_psnr))
+    return res
+
+
+def save_picture(path: Path, gt: torch.Tensor, out: Dict[str, torch.Tensor]) -> None:
+    from PIL import Image
+
+    panels = [gt, out["rgb"]]
+    if "diffuse" in out:
+        panels += [out["diffuse"], (2 * out["specular"].abs()).clamp(0, 1)]
+    img = torch.cat([p[..., :3].float().clamp(0, 1).cpu() for p in panels], dim=1)
+    with atomic_path(path) as tmp:
+        Image.fromarray((img.numpy() * 255 + 0.5).astype(np.uint8)).save(tmp, format="PNG")
+
+
+def run_scene(args: Args, scene: str) -> List[Dict[str, object]]:
+    from nerfstudio.configs.method_configs import method_configs
+
+    from method_configs.virgi import virgi_trainer_config
+
+    rows: List[Dict[str, object]] = []
+    out = args.out
+
+    def record(name: str, pipeline, seconds: float) -> None:
+        res = evaluate(pipeline, args.fps_repeats, out / f"{scene}_{name.replace(' ', '_')}.png")
+        row = {"scene": scene, "method": name, "train_s": seconds, **res}
+        console.log(row)
+        rows.append(row)
+
+    # splatfacto
+    cfg = copy.deepcopy(method_configs["splatfacto"])
+    cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
+    cfg.max_num_iterations = args.steps
+    quiet(cfg, out, f"{scene}-splatfacto")
+    trainer, secs, ckpt_dir = train(cfg)
+    record("splatfacto", trainer.pipeline, secs)
+    ckpt = sorted(ckpt_dir.glob("*.ckpt"))[-1]
+    del trainer
+    torch.cuda.empty_cache()
+
+    # virgi, geometry trained in the run
+    if not args.skip_trained_virgi:
+        cfg = virgi_trainer_config("virgi", geometry_steps=args.steps, colour_steps=args.colour_steps)
+        cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
+        quiet(cfg, out, f"{scene}-virgi")
+        trainer, secs, _ = train(cfg)
+        record("virgi", trainer.pipeline, secs)
+        del trainer
+        torch.cuda.empty_cache()
+
+    variants = [("virgi (imported geometry)", True, "multiview")]
+    if args.ablation:
+        variants += [("imported, decoupled, single-view", True, "singleview"),
+                     ("imported, single MLP, multi-view", False, "multiview"),
+                     ("imported, single MLP, single-view", False, "singleview")]
+    for name, decoupled, mode in variants:
+        cfg = virgi_trainer_config("virgi", decoupled=decoupled, batch_mode=mode, geometry_steps=0,
+                                   colour_steps=args.colour_steps)
+        cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
+        cfg.pipeline.model.geometry_from = ckpt
+        quiet(cfg, out, f"{scene}-{name.replace(' ', '_').replace(',', '')}")
+        trainer, secs, _ = train(cfg)
+        record(name, trainer.pipeline, secs)
+        del trainer
+        torch.cuda.empty_cache()
+    return rows
+
+
+def print_table(rows: List[Dict[str, object]], device: str) -> None:
+    t = Table(title=f"splatfacto vs virgi on {device}")
+    cols = ["scene", "method", "psnr", "ssim", "lpips", "train_s", "gaussians", "fps", "gate_kept", "gate_speedup",
+            "gate_psnr_vs_full"]
+    for c in cols:
+        t.add_column(c)
+    for r in rows:
+        t.add_row(*[f"{r[c]:.4g}" if isinstance(r.get(c), float) else str(r.get(c, "")) for c in cols])
+    console.print(t)
+
+
+def main(args: Args) -> None:
+    if not torch.cuda.is_available():
+        raise InputError("bench/train.py needs a CUDA GPU (splatfacto trains with gsplat)")
+    warnings.filterwarnings("ignore", category=FutureWarning)
+    _stub_lpips_if_offline()
+    args.out.mkdir(parents=True, exist_ok=True)
+    device = torch.cuda.get_device_name(0)
+    rows: List[Dict[str, object]] = []
+    for scene in args.scenes:
+        rows += run_scene(args, scene)
+        with atomic_path(args.out / "results.json") as tmp:
+            tmp.write_text(json.dumps({"device": device, "steps": args.steps, "colour_steps": args.colour_steps,
+                                       "rows": rows}, indent=2))
+    print_table(rows, device)
+
+
+def entrypoint() -> None:
+    cli_entry(lambda: main(tyro.cli(Args)))
+
+
+if __name__ == "__main__":
+    entrypoint()
