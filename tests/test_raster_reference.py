@@ -312,12 +312,12 @@ def test_float32_matches_float64(name):
     assert (c64.transmittance - c32.transmittance.double()).abs().max() <= TOL
 
 
-def test_block_and_chunk_sizes_do_not_change_results():
+def test_chunk_size_does_not_change_results():
     cams = make_cams(70, 45, views=2)
     scene = SCENES["pile"]()
     req = Request.whole_images(cams)
     a = reference.rasterize(*scene, cams, req)
-    b = reference.rasterize(*scene, cams, req, block=7, max_elems=3000)
+    b = reference.rasterize(*scene, cams, req, max_pairs=300)
     assert torch.equal(a.pixel, b.pixel) and torch.equal(a.pair, b.pair)
     assert torch.allclose(a.weight, b.weight, atol=1e-13, rtol=0)
     assert torch.allclose(a.transmittance, b.transmittance, atol=1e-13, rtol=0)
@@ -355,10 +355,10 @@ def test_gradients_finite_on_hard_cases():
 
 
 def test_gradcheck_tiny_scene():
-    cams = make_cams(24, 20, views=1, f=20.0)
-    means, quats, scales, opac = random_scene(5, seed=7, spread=0.4, scale=(0.15, 0.4))
+    cams = make_cams(20, 16, views=1, f=16.0)
+    means, quats, scales, opac = random_scene(4, seed=7, spread=0.4, scale=(0.15, 0.4))
     opac = 0.2 + 0.5 * opac  # stay clear of the 0.999 clamp
-    colors = torch.rand(5, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    colors = torch.rand(4, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
     req = Request.whole_images(cams)
 
     def render(m, q, s, o, col):
@@ -367,7 +367,7 @@ def test_gradcheck_tiny_scene():
 
     assert render(means, quats, scales, opac, colors).abs().sum() > 1
     inputs = tuple(a.clone().requires_grad_(True) for a in (means, quats, scales, opac, colors))
-    assert torch.autograd.gradcheck(render, inputs, eps=1e-7, atol=1e-5, rtol=1e-3)
+    assert torch.autograd.gradcheck(render, inputs, eps=1e-7, atol=1e-5, rtol=1e-3, fast_mode=True)
 
 
 @pytest.mark.gpu

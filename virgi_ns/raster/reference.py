@@ -48,8 +48,12 @@ Compositing (per pixel, front to back)
     excluded; otherwise it contributes ``w = alpha T`` and ``T = T_next``. ``T`` starts at 1 and its
     final value is the pixel's transmittance.
 
-Implementation: per requested (view, grid tile), its depth-sorted candidates are processed in
-blocks of candidates x 256 pixels; an exclusive cumulative product gives T. Every step is a torch
+Implementation: each Gaussian's tile-range intersections with the requested grid tiles are
+sorted by (tile, depth, index); each intersection is expanded into the pixels of its tile where
+alpha can reach 1/255 (a conservative box around the ellipse ``sigma <= log(255 o)``, 1 px
+margin: every excluded pixel has alpha < 1/255 for certain, so nothing depends on the box); the
+surviving (pixel, Gaussian) pairs are grouped per pixel in depth order and T is a sequential
+``cumprod`` in the working dtype over each pixel's row of a padded matrix. Every step is a torch
 op of the geometry, so weights carry gradients to means, quats, scales and opacities.
 """
 
@@ -81,6 +85,7 @@ class Projection:
     means2d: Tensor  # [V, N, 2]
     conics: Tensor  # [V, N, 3] (a, b, c) of the inverse 2D covariance, gsplat's ``conics``
     quad: Tensor  # [V, N, 3] (p, r, s): sigma = 0.5 (p (dx - r dy)^2 + s dy^2), the same form
+    cov2d: Tensor  # [V, N, 3] (a, b, c) of the blurred 2D covariance
     depths: Tensor  # [V, N] camera-space z
     radii: Tensor  # [V, N] int32 pixel radius, 0 = culled
     widths: Tensor  # [V] long (cpu)
@@ -186,6 +191,7 @@ def project(
     conics = torch.stack([c / det_s, -b / det_s, a / det_s], dim=-1)
     # the same quadratic form as a sum of two squares (see the module docstring)
     quad = torch.stack([c / det_s, b / c, 1.0 / c], dim=-1)
+    cov2d = torch.stack([a, b, c], dim=-1)
 
     with torch.no_grad():
         mid = 0.5 * (a + c)
@@ -196,7 +202,7 @@ def project(
         inside = (mx + radius > 0) & (mx - radius < wid) & (my + radius > 0) & (my - radius < hei)
         radius = torch.where(inside & (radius > 0), radius, torch.zeros_like(radius))
         radii = radius.clamp(max=2**31 - 1).to(torch.int32)
-    return Projection(means2d, conics, quad, z, radii, cams.widths.clone(), cams.heights.clone())
+    return Projection(means2d, conics, quad, cov2d, z, radii, cams.widths.clone(), cams.heights.clone())
 
 
 def _empty(request: Request, n: int, dtype: torch.dtype, dev: torch.device, valid: Tensor) -> Contributions:
@@ -223,13 +229,12 @@ def rasterize(
     opacities: Tensor,
     cameras: Cameras,
     request: Request,
-    block: int = 128,
-    max_elems: int = 1 << 22,
+    max_pairs: int = 1 << 21,
 ) -> Contributions:
     """Contribution lists for ``request`` (see the module docstring for the rules).
 
-    ``block`` candidates per step and at most about ``max_elems`` (candidate, pixel) values at once
-    bound the memory; results do not depend on them beyond float rounding of T's products.
+    Work is split into chunks of whole grid tiles of about ``max_pairs`` candidate (pixel,
+    Gaussian) pairs each, which bounds memory; results do not depend on it.
     """
     dtype, dev = means.dtype, means.device
     n = int(means.shape[0])
@@ -294,89 +299,123 @@ def rasterize(
         order = torch.argsort(i_unit, stable=True)
         vg, i_unit = vg[order], i_unit[order]
         k_count = torch.bincount(i_unit, minlength=n_units)
-        k_start = torch.cumsum(k_count, 0) - k_count
 
     # ---- per-(view, Gaussian) values used by the compositing, flattened [Vu*N]
     m2d = proj.means2d.reshape(-1, 2)
-    con = proj.quad.reshape(-1, 3)
+    quad = proj.quad.reshape(-1, 3)
     opa = opacities.reshape(1, -1).expand(len(views_used), n).reshape(-1)
 
-    vg_d = vg.to(dev)
-    lx = (torch.arange(_TILE_PIX, device=dev) % TILE_SIZE).to(dtype)
-    ly = (torch.arange(_TILE_PIX, device=dev) // TILE_SIZE).to(dtype)
-    T_units = torch.ones(n_units, _TILE_PIX, dtype=dtype, device=dev)
-    e_q, e_k, e_vg, e_w = [], [], [], []
-    per_chunk = max(1, max_elems // (block * _TILE_PIX))
-    # units with most candidates first, so chunks are alike in length
-    unit_order = torch.argsort(k_count, descending=True, stable=True)
-    for c0 in range(0, n_units, per_chunk):
-        cu = unit_order[c0 : c0 + per_chunk]
-        if int(k_count[cu[0]]) == 0:
-            break
-        cu_d = cu.to(dev)
-        pxs = (u_gx[cu].to(dev, dtype) * TILE_SIZE)[:, None] + lx + 0.5  # [B,256]
-        pys = (u_gy[cu].to(dev, dtype) * TILE_SIZE)[:, None] + ly + 0.5
-        done = ~wanted.view(n_units, _TILE_PIX)[cu].to(dev)
-        T = torch.ones(len(cu), _TILE_PIX, dtype=dtype, device=dev)
-        kc = k_count[cu].to(dev)
-        ks = k_start[cu].to(dev)
-        kmax = int(k_count[cu].max())
-        for k0 in range(0, kmax, block):
-            act = torch.nonzero((kc > k0) & ~done.all(1)).squeeze(1)
-            if act.numel() == 0:
-                break
-            kk = k0 + torch.arange(min(block, kmax - k0), device=dev)
-            cvalid = kk[None, :] < kc[act, None]  # [Ba,kb]
-            ent = (ks[act, None] + kk[None, :]).clamp(max=max(vg_d.shape[0] - 1, 0))
-            gid = vg_d[ent]  # flat (view, Gaussian) ids [Ba,kb]
-            mu = m2d[gid]  # [Ba,kb,2]
-            cn = con[gid]
-            op = opa[gid]
-            dx = mu[..., 0:1] - pxs[act][:, None, :]  # [Ba,kb,256]
-            dy = mu[..., 1:2] - pys[act][:, None, :]
-            e = dx - cn[..., 1:2] * dy
-            sigma = 0.5 * (cn[..., 0:1] * e * e + cn[..., 2:3] * dy * dy)
-            alpha = torch.clamp(op[..., None] * torch.exp(-sigma), max=ALPHA_MAX)
-            m = cvalid[..., None] & (sigma >= 0) & (alpha >= ALPHA_MIN) & ~done[act][:, None, :]
-            f = torch.where(m, 1.0 - alpha, torch.ones_like(alpha))
-            T0 = T[act][:, None, :]
-            cp = torch.cumprod(f, dim=1)
-            incl = T0 * cp
-            excl = T0 * torch.cat([torch.ones_like(cp[:, :1]), cp[:, :-1]], dim=1)
-            alive_t = incl > T_MIN  # a prefix along the candidates
-            alive = m & alive_t
-            stopped = (m & ~alive_t).any(1)  # [Ba,256]
-            # T after the last kept Gaussian: incl at the end of the alive prefix
-            n_alive = alive_t.sum(1)
-            last = (n_alive - 1).clamp(min=0)
-            T_new = torch.where(n_alive > 0, incl.gather(1, last[:, None, :]).squeeze(1), T[act])
-            T = T.index_put((act,), T_new)
-            done = done.index_put((act,), done[act] | stopped)
-            b_i, k_i, l_i = torch.nonzero(alive, as_tuple=True)
-            if b_i.numel():
-                e_q.append(cu_d[act[b_i]] * _TILE_PIX + l_i)
-                e_k.append(k0 + k_i)
-                e_vg.append(gid[b_i, k_i])
-                e_w.append((alpha * excl)[alive])
-        T_units = T_units.index_put((cu_d,), T)
+    # ---- per intersection: the pixel box inside its tile where alpha can reach 1/255
+    # (sigma <= log(255 o) implies |dx| <= sqrt(2 log(255 o) cov_xx), likewise y; 1 px margin)
+    with torch.no_grad():
+        vg_d = vg.to(dev)
+        i_unit_d = i_unit.to(dev)
+        cov = proj.cov2d.detach().reshape(-1, 3)[vg_d]
+        lg = torch.log(255.0 * opa.detach()[vg_d].clamp_min(1e-30).double()).clamp_min(0)
+        ex = torch.sqrt(2 * lg * cov[:, 0].double()) + 1.0
+        ey = torch.sqrt(2 * lg * cov[:, 2].double()) + 1.0
+        mu = m2d.detach()[vg_d].double()
+        ux0 = (u_gx.to(dev) * TILE_SIZE)[i_unit_d]
+        uy0 = (u_gy.to(dev) * TILE_SIZE)[i_unit_d]
+        big = float(2**40)
+        bx0 = torch.ceil(mu[:, 0] - ex - 0.5).clamp(-big, big).long().maximum(ux0)
+        bx1 = torch.floor(mu[:, 0] + ex - 0.5).clamp(-big, big).long().minimum(ux0 + TILE_SIZE - 1) + 1
+        by0 = torch.ceil(mu[:, 1] - ey - 0.5).clamp(-big, big).long().maximum(uy0)
+        by1 = torch.floor(mu[:, 1] + ey - 0.5).clamp(-big, big).long().minimum(uy0 + TILE_SIZE - 1) + 1
+        bw = (bx1 - bx0).clamp(min=0)
+        bh = (by1 - by0).clamp(min=0)
+        box = bw * bh
+        box = torch.where(lg > 0, box, torch.zeros_like(box))
+        # chunks of whole units (segments never cross units) of at most ~max_pairs boxes' pixels
+        unit_pairs = torch.zeros(n_units, dtype=torch.long, device=dev).index_add_(0, i_unit_d, box).cpu()
+        unit_end = torch.cumsum(unit_pairs, 0)
+        k_end = torch.cumsum(k_count, 0)
+        wanted_d = wanted.to(dev)
+
+    all_wanted = bool(wanted.all())
+    lx0_all = bx0 - ux0  # box origin inside its tile, 0..15
+    ly0_all = by0 - uy0
+    ux0_t = ux0.to(dtype) + 0.5
+    uy0_t = uy0.to(dtype) + 0.5
+    T_q = torch.ones(n_units * _TILE_PIX, dtype=dtype, device=dev)
+    e_q, e_vg, e_w = [], [], []
+    u0 = 0
+    while u0 < n_units:
+        base = int(unit_end[u0 - 1]) if u0 > 0 else 0
+        u1 = int(torch.searchsorted(unit_end, torch.tensor(base + max_pairs), right=True))
+        u1 = min(max(u1, u0 + 1), n_units)
+        i0 = int(k_end[u0 - 1]) if u0 > 0 else 0
+        i1 = int(k_end[u1 - 1])
+        q0 = u0 * _TILE_PIX
+        u0 = u1
+        if i1 == i0:
+            continue
+        # expand every intersection into the pixels of its box (pairs stay in (unit, depth) order)
+        with torch.no_grad():
+            c_box = box[i0:i1]
+            n_pairs = int(c_box.sum())
+            if n_pairs == 0:
+                continue
+            rep = torch.repeat_interleave(torch.arange(i1 - i0, device=dev), c_box, output_size=n_pairs)
+            off = torch.arange(n_pairs, device=dev) - (torch.cumsum(c_box, 0) - c_box)[rep]
+            bwr = bw[i0:i1][rep]
+            row = torch.div(off, bwr, rounding_mode="floor")
+            lx = lx0_all[i0:i1][rep] + (off - row * bwr)
+            ly = ly0_all[i0:i1][rep] + row
+            q = (i_unit_d[i0:i1] * _TILE_PIX - q0)[rep] + ly * TILE_SIZE + lx  # chunk-local unit-pixel
+            if not all_wanted:
+                keep = torch.nonzero(wanted_d[q + q0]).squeeze(1)
+                rep, q, lx, ly = rep[keep], q[keep], lx[keep], ly[keep]
+        gid_i = vg_d[i0:i1]
+        ox = m2d[gid_i, 0] - ux0_t[i0:i1]  # mean minus the centre of the tile's first pixel
+        oy = m2d[gid_i, 1] - uy0_t[i0:i1]
+        qd_i = quad[gid_i]
+        dx = ox[rep] - lx.to(dtype)
+        dy = oy[rep] - ly.to(dtype)
+        e = dx - qd_i[rep, 1] * dy
+        sigma = 0.5 * (qd_i[rep, 0] * e * e + qd_i[rep, 2] * dy * dy)
+        alpha = torch.clamp(opa[gid_i][rep] * torch.exp(-sigma), max=ALPHA_MAX)
+        sel = torch.nonzero((sigma >= 0) & (alpha >= ALPHA_MIN)).squeeze(1)
+        if sel.numel() == 0:
+            continue
+        # group by unit-pixel; a stable sort keeps the depth order the pairs were made in
+        order = sel[torch.sort(q[sel].int(), stable=True)[1]]
+        q, rep, alpha = q[order], rep[order], alpha[order]
+        # front-to-back transmittance per unit-pixel: a product over each pixel's segment, laid
+        # out as rows of a padded matrix so that it is a plain sequential cumprod, as in gsplat
+        first = torch.ones_like(q, dtype=torch.bool)
+        first[1:] = q[1:] != q[:-1]
+        seg = torch.cumsum(first, 0) - 1
+        start = torch.nonzero(first).squeeze(1)
+        pos = torch.arange(len(q), device=dev) - start[seg]
+        lmax = int(pos.max()) + 1
+        F = torch.ones(len(start), lmax, dtype=dtype, device=dev).index_put((seg, pos), 1.0 - alpha)
+        cp = torch.cumprod(F, dim=1)
+        t_incl = cp[seg, pos]
+        t_excl = torch.where(pos > 0, cp[seg, (pos - 1).clamp(min=0)], torch.ones_like(t_incl))
+        alive = t_incl > T_MIN  # a prefix of each segment
+        n_alive = torch.zeros(len(start), dtype=torch.long, device=dev).index_add_(0, seg, alive.long())
+        has = n_alive > 0
+        last = (start + n_alive - 1)[has]
+        T_q = T_q.index_put((q[last] + q0,), t_incl[last])
+        idx = torch.nonzero(alive).squeeze(1)
+        e_q.append(q[idx] + q0)
+        e_vg.append(gid_i[rep[idx]])
+        e_w.append(alpha[idx] * t_excl[idx])
 
     # ---- transmittance of every output pixel
     pidx_d, p_q_d = pidx.to(dev), p_q.to(dev)
     trans = torch.ones(request.num_pixels, dtype=dtype, device=dev)
-    trans = trans.index_put((pidx_d,), T_units.reshape(-1)[p_q_d])
+    trans = trans.index_put((pidx_d,), T_q[p_q_d])
     if not e_q:
         out = _empty(request, n, dtype, dev, valid)
         out.transmittance = trans
         return out
 
-    # ---- entries grouped by unit-pixel, in depth order; then joined to output pixels
+    # ---- entries (already grouped by unit-pixel, in depth order) joined to output pixels
     q = torch.cat(e_q)
-    k = torch.cat(e_k)
     evg = torch.cat(e_vg)
     w = torch.cat(e_w)
-    kspan = int(k.max()) + 1
-    order = torch.argsort(q * kspan + k)
-    q, evg, w = q[order], evg[order], w[order]
     q_count = torch.bincount(q, minlength=n_units * _TILE_PIX)
     q_start = torch.cumsum(q_count, 0) - q_count
     c = q_count[p_q_d]
@@ -384,14 +423,16 @@ def rasterize(
     pixel = torch.repeat_interleave(pidx_d, c)
     evg, w = evg[sel], w[sel]
 
-    # ---- distinct (view, Gaussian) pairs, sorted by view * N + gaussian
-    vu_e = evg // n
-    g_e = evg % n
-    view_e = views_used.to(dev)[vu_e]
-    keys, pair = torch.unique(view_e * n + g_e, sorted=True, return_inverse=True)
-    pair_view, pair_gaussian = keys // n, keys % n
-    pvu_pair = torch.searchsorted(views_used.to(dev), pair_view)
-    pair_depth = proj.depths[pvu_pair, pair_gaussian]
+    # ---- distinct (view, Gaussian) pairs, sorted by view * N + gaussian (views_used is sorted, so
+    # the flat (used view, Gaussian) id has the same order)
+    present = torch.zeros(len(views_used) * n, dtype=torch.bool, device=dev)
+    present[evg] = True
+    pair_vg = torch.nonzero(present).squeeze(1)
+    pair_of = torch.cumsum(present, 0) - 1
+    pair = pair_of[evg]
+    pair_view = views_used.to(dev)[pair_vg // n]
+    pair_gaussian = pair_vg % n
+    pair_depth = proj.depths.reshape(-1)[pair_vg]
     return Contributions(
         request=request,
         num_gaussians=n,
