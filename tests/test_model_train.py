@@ -192,3 +192,55 @@ def test_diffuse_matches_albedo_and_matte_is_not_specular(scene):
     _, pipeline, optimizers, cbs = build(scene, steps)
     train(pipeline, optimizers, cbs, steps)
     _check_decomposition(pipeline, scene, tol_albedo=0.06, max_matte_spec=0.03)
+
+
+def test_cpu_geometry_stage_then_freeze(scene):
+    """Without an import, geometry trains through the differentiable reference (CPU), then freezes."""
+    torch.manual_seed(0)
+    cfg = virgi_trainer_config("virgi-test", geometry_steps=3, colour_steps=2)
+    dm = cfg.pipeline.datamanager
+    dm.data = scene.root
+    dm.dataparser = NerfstudioDataParserConfig(data=scene.root, load_3D_points=False, eval_mode="interval",
+                                               eval_interval=8)
+    dm.tile_size = 16
+    dm.pixel_budget = 5 * 256
+    m = cfg.pipeline.model
+    m.random_init = True
+    m.num_random = 150
+    m.random_scale = 1.0
+    m.num_downscales = 0
+    m.background_color = "black"
+    m.color_field = ColorFieldConfig(log2_hashmap_size=12, levels=8)
+    pipeline = cfg.pipeline.setup(device="cpu", test_mode="val")
+    pipeline.train()
+    optimizers = Optimizers(cfg.optimizers, pipeline.get_param_groups())
+
+    class FakeTrainer:
+        config = cfg
+
+    cbs = pipeline.get_training_callbacks(TrainingCallbackAttributes(optimizers, None, pipeline, FakeTrainer()))
+    model = pipeline.model
+    means0 = model.means.detach().clone()
+    assert not model.geometry_frozen and model.means.requires_grad
+    for step in range(3):
+        for cb in cbs:
+            cb.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+        optimizers.zero_grad_all()
+        _, loss_dict, _ = pipeline.get_train_loss_dict(step)
+        sum(loss_dict.values()).backward()
+        optimizers.optimizer_step_all()
+    moved = model.means.detach().clone()
+    assert (moved - means0).abs().max() > 0  # geometry trained
+    train(pipeline, optimizers, cbs, 0)  # no-op guard
+    for step in range(3, 5):
+        for cb in cbs:
+            cb.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+        optimizers.zero_grad_all()
+        _, loss_dict, _ = pipeline.get_train_loss_dict(step)
+        assert "rgb_l1" in loss_dict and torch.isfinite(loss_dict["rgb_l1"])
+        sum(loss_dict.values()).backward()
+        optimizers.optimizer_step_all()
+    assert model.geometry_frozen and not model.means.requires_grad
+    torch.testing.assert_close(model.means.detach(), moved)  # frozen: colour steps leave geometry alone
+    # the hash grid's box was fitted to the frozen means
+    assert bool((model.field.aabb[1] > model.field.aabb[0]).all())

@@ -20,9 +20,9 @@ from virgi_ns.raster.reference import rasterize
 
 MATTE_ALBEDO = (0.75, 0.25, 0.2)
 GLOSSY_ALBEDO = (0.15, 0.3, 0.7)
-LOBE_AXIS = (0.0, 0.0, -1.0)  # highlight seen by cameras looking along +z... see lobe()
+LOBE_AXIS = (0.0, 0.0, -1.0)  # brightest for cameras looking down (the upper ring)
 LOBE_GAIN = 0.6
-LOBE_POWER = 6.0
+LOBE_POWER = 2.0
 
 
 @dataclass
