@@ -96,10 +96,22 @@ def test_imported_geometry_lands_in_the_dataparser_frame(scene):
 def test_virgi_trains_end_to_end(scene):
     steps = 40
     _, pipeline, optimizers, cbs = build(scene, steps)
+    model = pipeline.model
+
+    def full_image_l1() -> float:  # a fixed yardstick: whole training views, not the random tiles
+        dm = pipeline.datamanager
+        errs = []
+        for i in (1, 4):
+            gt = dm.train_images()[i].float()[..., :3] / 255.0
+            out = model.render_camera(dm.train_dataset.cameras[i : i + 1])
+            errs.append(float((out["rgb"] - gt).abs().mean()))
+        return sum(errs) / len(errs)
+
+    before = full_image_l1()
     losses = train(pipeline, optimizers, cbs, steps)
     assert all(torch.isfinite(torch.tensor(losses)))
-    assert sum(losses[-5:]) / 5 < 0.6 * sum(losses[:5]) / 5
-    model = pipeline.model
+    assert sum(losses[-5:]) < sum(losses[:5])
+    assert full_image_l1() < 0.75 * before
     assert model.gate_ready()  # built by the end-of-training callback
     pipeline.eval()
     cam, batch = pipeline.datamanager.next_eval_image(0)
@@ -231,7 +243,6 @@ def test_cpu_geometry_stage_then_freeze(scene):
         optimizers.optimizer_step_all()
     moved = model.means.detach().clone()
     assert (moved - means0).abs().max() > 0  # geometry trained
-    train(pipeline, optimizers, cbs, 0)  # no-op guard
     for step in range(3, 5):
         for cb in cbs:
             cb.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)

@@ -444,7 +444,8 @@ class VirgiModel(SplatfactoModel):
 
     @torch.no_grad()
     def get_outputs_for_camera(self, camera: NSCameras, obb_box=None) -> Dict[str, Tensor]:
-        if obb_box is not None and self.geometry_frozen:
+        if obb_box is not None and self.geometry_frozen and not getattr(self, "_crop_notice", False):
+            self._crop_notice = True
             CONSOLE.log("virgi: crop boxes are ignored when rendering the colour field")
         self.set_crop(None if self.geometry_frozen else obb_box)
         return self.get_outputs(camera.to(self.device))  # type: ignore[return-value]
