@@ -370,29 +370,37 @@ def test_gradcheck_tiny_scene():
     assert torch.autograd.gradcheck(render, inputs, eps=1e-7, atol=1e-5, rtol=1e-3, fast_mode=True)
 
 
+# gsplat's float32 projection forms Sigma2d = J Sigma J^T and det = a c - b^2 directly; on the
+# well-conditioned scenes its images agree with the reference to 1e-4. On the anisotropic and
+# near-plane scenes its own conics are off by up to ~1e-4 relative (measured on CPU with its torch
+# mirror against our float64 oracle), so those are held to 1e-3 only.
+GSPLAT_TOL = {"random": 1e-4, "pile": 1e-4, "large": 1e-4, "degenerate": 1e-3, "near_plane": 1e-3}
+
+
 @pytest.mark.gpu
-def test_reference_matches_gsplat_whole_images():
+@pytest.mark.parametrize("name", list(GSPLAT_TOL))
+def test_reference_matches_gsplat_whole_images(name):
     gsplat = pytest.importorskip("gsplat")
     dev = torch.device("cuda")
     cams = make_cams(96, 64, views=3)
-    for name in ["random", "degenerate", "pile", "large", "near_plane"]:
-        means, quats, scales, opac = (a.float().to(dev) for a in SCENES[name]())
-        colors = torch.rand(means.shape[0], 3, device=dev)
-        c = reference.rasterize(means, quats, scales, opac, cams.to(dev, torch.float32), Request.whole_images(cams))
-        ours = composite(colors[c.pair_gaussian], c, None)
-        img, alpha, _ = gsplat.rasterization(
-            means, quats, scales, opac, colors, cams.viewmats.float().to(dev), cams.Ks.float().to(dev), 96, 64,
-            packed=False, rasterize_mode="classic", sh_degree=None,
-        )
-        assert (ours - img).abs().max() <= 1e-4, name
-        assert (c.accumulation() - alpha[..., 0]).abs().max() <= 1e-4, name
+    means, quats, scales, opac = (a.float().to(dev) for a in SCENES[name]())
+    colors = torch.rand(means.shape[0], 3, device=dev, generator=torch.Generator(device=dev).manual_seed(0))
+    c = reference.rasterize(means, quats, scales, opac, cams.to(dev, torch.float32), Request.whole_images(cams))
+    ours = composite(colors[c.pair_gaussian], c, None)
+    img, alpha, _ = gsplat.rasterization(
+        means, quats, scales, opac, colors, cams.viewmats.float().to(dev), cams.Ks.float().to(dev), 96, 64,
+        packed=False, rasterize_mode="classic", sh_degree=None,
+    )
+    assert (ours - img).abs().max() <= GSPLAT_TOL[name]
+    assert (c.accumulation() - alpha[..., 0]).abs().max() <= GSPLAT_TOL[name]
 
 
-def test_reference_runs_on_gpu_if_present():
-    if not torch.cuda.is_available():
-        pytest.skip("needs a CUDA GPU")
+@pytest.mark.gpu
+def test_reference_on_gpu_matches_cpu():
     cams = make_cams(70, 45, views=2)
     scene = SCENES["random"]()
     c_cpu = reference.rasterize(*scene, cams, Request.whole_images(cams))
     c_gpu = reference.rasterize(*(a.cuda() for a in scene), cams.to("cuda"), Request.whole_images(cams))
+    assert torch.equal(c_gpu.pixel.cpu(), c_cpu.pixel) and torch.equal(c_gpu.pair_gaussian.cpu(), c_cpu.pair_gaussian)
+    assert torch.allclose(c_gpu.weight.cpu(), c_cpu.weight, atol=1e-10)
     assert torch.allclose(c_gpu.transmittance.cpu(), c_cpu.transmittance, atol=1e-10)

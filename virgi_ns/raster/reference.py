@@ -53,7 +53,8 @@ sorted by (tile, depth, index); each intersection is expanded into the pixels of
 alpha can reach 1/255 (a conservative box around the ellipse ``sigma <= log(255 o)``, 1 px
 margin: every excluded pixel has alpha < 1/255 for certain, so nothing depends on the box); the
 surviving (pixel, Gaussian) pairs are grouped per pixel in depth order and T is a sequential
-``cumprod`` in the working dtype over each pixel's row of a padded matrix. Every step is a torch
+``cumprod`` in the working dtype over each pixel's row of a padded matrix (rows padded to a
+power of two, one matrix per width, so that padding at most doubles the memory). Every step is a torch
 op of the geometry, so weights carry gradients to means, quats, scales and opacities.
 """
 
@@ -388,11 +389,22 @@ def rasterize(
         seg = torch.cumsum(first, 0) - 1
         start = torch.nonzero(first).squeeze(1)
         pos = torch.arange(len(q), device=dev) - start[seg]
-        lmax = int(pos.max()) + 1
-        F = torch.ones(len(start), lmax, dtype=dtype, device=dev).index_put((seg, pos), 1.0 - alpha)
-        cp = torch.cumprod(F, dim=1)
-        t_incl = cp[seg, pos]
-        t_excl = torch.where(pos > 0, cp[seg, (pos - 1).clamp(min=0)], torch.ones_like(t_incl))
+        seg_len = torch.bincount(seg, minlength=len(start))
+        # rows padded to the next power of two of their length, one matrix per such width
+        width = torch.ones_like(seg_len)
+        while bool((width < seg_len).any()):
+            width = torch.where(width < seg_len, width * 2, width)
+        t_incl = torch.zeros_like(alpha)
+        t_excl = torch.zeros_like(alpha)
+        for wd in torch.unique(width).tolist():
+            rows = torch.nonzero(width == wd).squeeze(1)
+            row_of = torch.full_like(seg_len, -1).index_put((rows,), torch.arange(len(rows), device=dev))
+            ent = torch.nonzero(row_of[seg] >= 0).squeeze(1)
+            r, c = row_of[seg[ent]], pos[ent]
+            F = torch.ones(len(rows), wd, dtype=dtype, device=dev).index_put((r, c), 1.0 - alpha[ent])
+            cp = torch.cumprod(F, dim=1)
+            t_incl = t_incl.index_put((ent,), cp[r, c])
+            t_excl = t_excl.index_put((ent,), torch.where(c > 0, cp[r, (c - 1).clamp(min=0)], torch.ones_like(cp[r, c])))
         alive = t_incl > T_MIN  # a prefix of each segment
         n_alive = torch.zeros(len(start), dtype=torch.long, device=dev).index_add_(0, seg, alive.long())
         has = n_alive > 0
