@@ -1,0 +1,353 @@
+// Torch side of the tile rasterizer and the Python bindings: plans a request (requested views,
+// requested grid tiles, work units) on the CPU, uploads it in one copy, runs the kernels of
+// raster_kernels.cu / composite_kernels.cu and wraps their outputs as tensors.
+
+#include <c10/cuda/CUDAGuard.h>
+#include <c10/cuda/CUDAStream.h>
+#include <torch/extension.h>
+
+#include <algorithm>
+#include <cstdint>
+#include <cstdlib>
+#include <limits>
+#include <vector>
+
+#include "kernels.h"
+
+#define VIRGI_CUDA_CHECK(expr)                                                      \
+  do {                                                                              \
+    const cudaError_t err_ = (expr);                                                \
+    TORCH_CHECK(err_ == cudaSuccess, #expr, " failed: ", cudaGetErrorString(err_)); \
+  } while (0)
+
+namespace virgi {
+
+namespace {
+
+// The request, laid out as int tables for the kernels (offsets into one uploaded buffer).
+struct Plan {
+  std::vector<int> buf;
+  int64_t views_at = 0, items_at = 0, units_at = 0, slots_at = 0, sat_at = 0;
+  int num_views = 0, num_items = 0, num_units = 0, num_slots = 0;
+};
+
+Plan make_plan(const torch::Tensor& widths, const torch::Tensor& heights,
+               const torch::Tensor& item_views, const torch::Tensor& item_x0,
+               const torch::Tensor& item_y0, int item_w, int item_h) {
+  auto wa = widths.accessor<int64_t, 1>();
+  auto ha = heights.accessor<int64_t, 1>();
+  auto iv = item_views.accessor<int64_t, 1>();
+  auto ix = item_x0.accessor<int64_t, 1>();
+  auto iy = item_y0.accessor<int64_t, 1>();
+  const int V = static_cast<int>(widths.size(0));
+  const int T = static_cast<int>(item_views.size(0));
+
+  // Requested views, ascending; row[v] = its position among them.
+  std::vector<int> row(V, -1);
+  for (int i = 0; i < T; ++i) {
+    TORCH_CHECK(iv[i] >= 0 && iv[i] < V, "request names view ", iv[i], " of ", V);
+    row[iv[i]] = 0;
+  }
+  std::vector<int> vr_ids;
+  for (int v = 0; v < V; ++v)
+    if (row[v] >= 0) {
+      row[v] = static_cast<int>(vr_ids.size());
+      vr_ids.push_back(v);
+    }
+  const int Vr = static_cast<int>(vr_ids.size());
+
+  std::vector<int> views(static_cast<size_t>(Vr) * kViewInts);
+  int64_t total_tiles = 0, total_sat = 0;
+  for (int r = 0; r < Vr; ++r) {
+    const int v = vr_ids[r];
+    const int64_t W = wa[v], H = ha[v];
+    TORCH_CHECK(W > 0 && H > 0 && W < (1 << 24) && H < (1 << 24), "bad image size for view ", v);
+    const int gw = static_cast<int>((W + kTile - 1) / kTile);
+    const int gh = static_cast<int>((H + kTile - 1) / kTile);
+    int* vt = views.data() + r * kViewInts;
+    vt[0] = v;
+    vt[1] = static_cast<int>(W);
+    vt[2] = static_cast<int>(H);
+    vt[3] = gw;
+    vt[4] = gh;
+    vt[5] = static_cast<int>(total_tiles);
+    vt[6] = static_cast<int>(total_sat);
+    vt[7] = 0;
+    total_tiles += static_cast<int64_t>(gw) * gh;
+    total_sat += static_cast<int64_t>(gw + 1) * (gh + 1);
+  }
+  TORCH_CHECK(total_tiles + total_sat < std::numeric_limits<int>::max() / 2, "request too large");
+
+  std::vector<int> items(static_cast<size_t>(T) * kItemInts);
+  std::vector<int> tile_slot(total_tiles, -1);
+  std::vector<int> units;
+  int num_slots = 0;
+  for (int i = 0; i < T; ++i) {
+    const int r = row[iv[i]];
+    const int* vt = views.data() + r * kViewInts;
+    TORCH_CHECK(std::abs(ix[i]) < (1 << 24) && std::abs(iy[i]) < (1 << 24), "tile origin too far");
+    int* it = items.data() + i * kItemInts;
+    it[0] = r;
+    it[1] = static_cast<int>(ix[i]);
+    it[2] = static_cast<int>(iy[i]);
+    it[3] = 0;
+    const int x0 = std::max(it[1], 0), x1 = std::min(it[1] + item_w, vt[1]);
+    const int y0 = std::max(it[2], 0), y1 = std::min(it[2] + item_h, vt[2]);
+    if (x1 <= x0 || y1 <= y0) continue;
+    for (int gy = y0 / kTile; gy <= (y1 - 1) / kTile; ++gy) {
+      for (int gx = x0 / kTile; gx <= (x1 - 1) / kTile; ++gx) {
+        int& s = tile_slot[vt[5] + static_cast<int64_t>(gy) * vt[3] + gx];
+        if (s < 0) s = num_slots++;
+        units.insert(units.end(), {i, s, gx, gy});
+      }
+    }
+  }
+
+  // Summed-area table of requested tiles per view: counts requested tiles in any rectangle.
+  std::vector<int> sat(total_sat, 0);
+  for (int r = 0; r < Vr; ++r) {
+    const int* vt = views.data() + r * kViewInts;
+    const int gw = vt[3], gh = vt[4], w1 = gw + 1;
+    int* st = sat.data() + vt[6];
+    const int* ts = tile_slot.data() + vt[5];
+    for (int y = 0; y < gh; ++y)
+      for (int x = 0; x < gw; ++x)
+        st[(y + 1) * w1 + x + 1] = (ts[y * gw + x] >= 0) + st[y * w1 + x + 1] +
+                                   st[(y + 1) * w1 + x] - st[y * w1 + x];
+  }
+
+  Plan plan;
+  plan.num_views = Vr;
+  plan.num_items = T;
+  plan.num_units = static_cast<int>(units.size() / kUnitInts);
+  plan.num_slots = num_slots;
+  auto append = [&](const std::vector<int>& v, int64_t& at) {
+    at = static_cast<int64_t>(plan.buf.size());
+    plan.buf.insert(plan.buf.end(), v.begin(), v.end());
+    while (plan.buf.size() % 4) plan.buf.push_back(0);  // keep 16-byte alignment
+  };
+  append(views, plan.views_at);
+  append(items, plan.items_at);
+  append(units, plan.units_at);
+  append(tile_slot, plan.slots_at);
+  append(sat, plan.sat_at);
+  return plan;
+}
+
+void check_input(const torch::Tensor& t, const char* name, int64_t cols) {
+  TORCH_CHECK(t.is_cuda(), name, " must be on a CUDA device");
+  TORCH_CHECK(t.scalar_type() == torch::kFloat32, name, " must be float32");
+  TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
+  if (cols > 0) TORCH_CHECK(t.dim() == 2 && t.size(1) == cols, name, " must have ", cols, " columns");
+}
+
+}  // namespace
+
+// Returns {pixel i32[M], pair i32[M], weight f32[M], transmittance f32[P], valid bool[P],
+//          pixel_offsets i64[P+1], pair_view i64[U], pair_gaussian i64[U], pair_depth f32[U]}.
+std::vector<torch::Tensor> rasterize_contributions(
+    torch::Tensor means, torch::Tensor quats, torch::Tensor scales, torch::Tensor opacities,
+    torch::Tensor Ks, torch::Tensor viewmats, torch::Tensor widths, torch::Tensor heights,
+    torch::Tensor item_views, torch::Tensor item_x0, torch::Tensor item_y0, int64_t item_w,
+    int64_t item_h) {
+  check_input(means, "means", 3);
+  check_input(quats, "quats", 4);
+  check_input(scales, "scales", 3);
+  check_input(opacities, "opacities", 0);
+  check_input(Ks, "Ks", 0);
+  check_input(viewmats, "viewmats", 0);
+  TORCH_CHECK(widths.device().is_cpu() && widths.scalar_type() == torch::kInt64, "widths: cpu int64");
+  TORCH_CHECK(heights.device().is_cpu() && heights.scalar_type() == torch::kInt64, "heights: cpu int64");
+  TORCH_CHECK(item_views.device().is_cpu() && item_x0.device().is_cpu() && item_y0.device().is_cpu(),
+              "request tensors must be on the CPU");
+  TORCH_CHECK(item_w > 0 && item_h > 0 && item_w < (1 << 24) && item_h < (1 << 24), "bad item size");
+  const c10::cuda::CUDAGuard guard(means.device());
+  auto stream = c10::cuda::getCurrentCUDAStream();
+  const int64_t N64 = means.size(0);
+  const auto f32 = means.options();
+  const auto i32 = f32.dtype(torch::kInt32);
+  const auto i64 = f32.dtype(torch::kInt64);
+
+  const int iw = static_cast<int>(item_w), ih = static_cast<int>(item_h);
+  Plan plan = make_plan(widths.contiguous(), heights.contiguous(), item_views.contiguous(),
+                        item_x0.contiguous(), item_y0.contiguous(), iw, ih);
+  const int N = static_cast<int>(N64);
+  const int Vr = plan.num_views;
+  const int64_t VN = static_cast<int64_t>(Vr) * N;
+  TORCH_CHECK(VN < std::numeric_limits<int>::max(), "views x Gaussians must stay below 2^31");
+  const int64_t P = static_cast<int64_t>(plan.num_items) * item_w * item_h;
+  TORCH_CHECK(P < std::numeric_limits<int>::max(), "requested pixels must stay below 2^31");
+
+  auto host = torch::from_blob(plan.buf.data(), {static_cast<int64_t>(plan.buf.size())},
+                               torch::TensorOptions().dtype(torch::kInt32))
+                  .pin_memory();
+  auto dev = host.to(means.device(), /*non_blocking=*/true);
+  const int* dbuf = dev.data_ptr<int>();
+  const int* d_views = dbuf + plan.views_at;
+  const int* d_items = dbuf + plan.items_at;
+  const int* d_units = dbuf + plan.units_at;
+  const int* d_slots = dbuf + plan.slots_at;
+  const int* d_sat = dbuf + plan.sat_at;
+
+  auto transmittance = torch::empty({P}, f32);
+  auto valid = torch::empty({P}, f32.dtype(torch::kBool));
+  VIRGI_CUDA_CHECK(launch_init_pixels(P, iw, ih, d_items, d_views, transmittance.data_ptr<float>(),
+                     valid.data_ptr<bool>(), stream));
+
+  // Project every Gaussian once per requested view; count the requested tiles it touches.
+  auto rec0 = torch::empty({VN, 4}, f32);
+  auto rec1 = torch::empty({VN, 4}, f32);
+  auto counts = torch::empty({VN}, i32);
+  VIRGI_CUDA_CHECK(launch_project_count(N, Vr, means.data_ptr<float>(), quats.data_ptr<float>(),
+                       scales.data_ptr<float>(), opacities.data_ptr<float>(), Ks.data_ptr<float>(),
+                       viewmats.data_ptr<float>(), d_views, d_sat,
+                       reinterpret_cast<float4*>(rec0.data_ptr<float>()),
+                       reinterpret_cast<float4*>(rec1.data_ptr<float>()), counts.data_ptr<int>(),
+                       stream));
+  const float4* r0 = reinterpret_cast<const float4*>(rec0.data_ptr<float>());
+  const float4* r1 = reinterpret_cast<const float4*>(rec1.data_ptr<float>());
+
+  // Bin into requested tiles, sort by (slot, depth); ties keep the (view, Gaussian) order.
+  int64_t n_isect = 0;
+  torch::Tensor cum;
+  if (VN > 0) {
+    cum = torch::cumsum(counts, 0, torch::kInt64);
+    n_isect = cum[-1].item<int64_t>();
+  }
+  TORCH_CHECK(n_isect < std::numeric_limits<int>::max(), "too many tile intersections");
+  auto ranges = torch::zeros({2 * static_cast<int64_t>(std::max(plan.num_slots, 1))}, i32);
+  auto sorted_vals = torch::empty({n_isect}, i32);
+  if (n_isect > 0) {
+    auto keys = torch::empty({n_isect}, i64);
+    auto vals = torch::empty({n_isect}, i32);
+    VIRGI_CUDA_CHECK(launch_bin(N, Vr, counts.data_ptr<int>(), cum.data_ptr<int64_t>(), r0, r1, d_views, d_slots,
+               reinterpret_cast<uint64_t*>(keys.data_ptr<int64_t>()), vals.data_ptr<int>(), stream));
+    auto keys_sorted = torch::empty_like(keys);
+    int slot_bits = 1;
+    while ((int64_t{1} << slot_bits) < plan.num_slots) ++slot_bits;
+    auto* k_in = reinterpret_cast<uint64_t*>(keys.data_ptr<int64_t>());
+    auto* k_out = reinterpret_cast<uint64_t*>(keys_sorted.data_ptr<int64_t>());
+    size_t bytes = 0;
+    VIRGI_CUDA_CHECK(sort_pairs(nullptr, bytes, n_isect, 32 + slot_bits, k_in, k_out,
+                                vals.data_ptr<int>(), sorted_vals.data_ptr<int>(), stream));
+    auto scratch = torch::empty({static_cast<int64_t>(bytes) + 1}, f32.dtype(torch::kUInt8));
+    VIRGI_CUDA_CHECK(sort_pairs(scratch.data_ptr(), bytes, n_isect, 32 + slot_bits, k_in, k_out,
+                                vals.data_ptr<int>(), sorted_vals.data_ptr<int>(), stream));
+    VIRGI_CUDA_CHECK(launch_ranges(n_isect, reinterpret_cast<const uint64_t*>(keys_sorted.data_ptr<int64_t>()),
+                  ranges.data_ptr<int>(), stream));
+  }
+
+  // Pass 1: entries per pixel and final transmittance.
+  auto px_count = torch::zeros({P}, i32);
+  VIRGI_CUDA_CHECK(launch_raster(false, plan.num_units, d_units, d_items, d_views, iw, ih, ranges.data_ptr<int>(),
+                sorted_vals.data_ptr<int>(), r0, r1, px_count.data_ptr<int>(),
+                transmittance.data_ptr<float>(), nullptr, nullptr, nullptr, nullptr, nullptr,
+                stream));
+  auto offsets = torch::zeros({P + 1}, i64);
+  if (P > 0) offsets.narrow(0, 1, P).copy_(torch::cumsum(px_count, 0, torch::kInt64));
+  const int64_t M = P > 0 ? offsets[P].item<int64_t>() : 0;
+
+  // Pass 2: the entries, grouped by pixel in compositing order.
+  auto pixel = torch::empty({M}, i32);
+  auto pair = torch::empty({M}, i32);
+  auto weight = torch::empty({M}, f32);
+  auto mark = torch::zeros({std::max<int64_t>(VN, 1)}, f32.dtype(torch::kUInt8));
+  VIRGI_CUDA_CHECK(launch_raster(true, plan.num_units, d_units, d_items, d_views, iw, ih, ranges.data_ptr<int>(),
+                sorted_vals.data_ptr<int>(), r0, r1, nullptr, nullptr, offsets.data_ptr<int64_t>(),
+                pixel.data_ptr<int>(), pair.data_ptr<int>(), weight.data_ptr<float>(),
+                mark.data_ptr<uint8_t>(), stream));
+
+  // Distinct (view, Gaussian) pairs, ascending in view * N + gaussian (the rows are ascending
+  // in view), and each entry's pair rank.
+  int64_t U = 0;
+  torch::Tensor rank;
+  if (M > 0) {
+    rank = torch::cumsum(mark, 0, torch::kInt32);
+    U = rank[-1].item<int>();
+  }
+  auto pair_view = torch::empty({U}, i64);
+  auto pair_gaussian = torch::empty({U}, i64);
+  auto pair_depth = torch::empty({U}, f32);
+  if (M > 0) {
+    VIRGI_CUDA_CHECK(launch_pairs(VN, mark.data_ptr<uint8_t>(), rank.data_ptr<int>(), N, d_views, r0,
+                 pair_view.data_ptr<int64_t>(), pair_gaussian.data_ptr<int64_t>(),
+                 pair_depth.data_ptr<float>(), stream));
+    VIRGI_CUDA_CHECK(launch_remap(M, rank.data_ptr<int>(), pair.data_ptr<int>(), stream));
+  }
+  // (The pinned host buffer's allocator waits on the upload's event before reusing it.)
+  return {pixel, pair, weight, transmittance, valid, offsets, pair_view, pair_gaussian, pair_depth};
+}
+
+namespace {
+
+void check_f32(const torch::Tensor& t, const char* name) {
+  TORCH_CHECK(t.is_cuda() && t.is_contiguous() && t.scalar_type() == torch::kFloat32, name,
+              " must be a contiguous float32 CUDA tensor");
+}
+
+void check_i32(const torch::Tensor& t, const char* name) {
+  TORCH_CHECK(t.is_cuda() && t.is_contiguous() && t.scalar_type() == torch::kInt32, name,
+              " must be a contiguous int32 CUDA tensor");
+}
+
+}  // namespace
+
+// Images [P, D] = sum over each pixel's entries of weight * colors[pair] (+ T * background).
+torch::Tensor composite_forward(torch::Tensor colors, torch::Tensor pair, torch::Tensor weight,
+                                torch::Tensor pixel_offsets, torch::Tensor transmittance,
+                                torch::Tensor background) {
+  check_f32(colors, "colors");
+  check_i32(pair, "pair");
+  check_f32(weight, "weight");
+  check_f32(transmittance, "transmittance");
+  TORCH_CHECK(pixel_offsets.is_cuda() && pixel_offsets.scalar_type() == torch::kInt64,
+              "pixel_offsets must be int64 on the GPU");
+  TORCH_CHECK(colors.dim() == 2, "colors must be [U, D]");
+  const c10::cuda::CUDAGuard guard(colors.device());
+  const int64_t P = transmittance.size(0);
+  TORCH_CHECK(pixel_offsets.numel() == P + 1, "pixel_offsets must hold P + 1 entries");
+  const int D = static_cast<int>(colors.size(1));
+  const float* bg = nullptr;
+  if (background.numel() > 0) {
+    check_f32(background, "background");
+    TORCH_CHECK(background.numel() == D, "background must hold one value per channel");
+    bg = background.data_ptr<float>();
+  }
+  auto out = torch::empty({P, D}, colors.options());
+  VIRGI_CUDA_CHECK(launch_composite_forward(P, D, colors.data_ptr<float>(), pair.data_ptr<int>(),
+                                            weight.data_ptr<float>(),
+                                            pixel_offsets.data_ptr<int64_t>(),
+                                            transmittance.data_ptr<float>(), bg,
+                                            out.data_ptr<float>(),
+                                            c10::cuda::getCurrentCUDAStream()));
+  return out;
+}
+
+// d colors [U, D] from d images [P, D].
+torch::Tensor composite_backward(torch::Tensor grad_images, torch::Tensor pixel, torch::Tensor pair,
+                                 torch::Tensor weight, int64_t num_pairs) {
+  check_f32(grad_images, "grad_images");
+  check_i32(pixel, "pixel");
+  check_i32(pair, "pair");
+  check_f32(weight, "weight");
+  const c10::cuda::CUDAGuard guard(grad_images.device());
+  const int64_t M = weight.size(0);
+  const int D = static_cast<int>(grad_images.size(1));
+  auto grad_colors = torch::zeros({num_pairs, D}, grad_images.options());
+  VIRGI_CUDA_CHECK(launch_composite_backward(M, D, grad_images.data_ptr<float>(),
+                                             pixel.data_ptr<int>(), pair.data_ptr<int>(),
+                                             weight.data_ptr<float>(),
+                                             grad_colors.data_ptr<float>(),
+                                             c10::cuda::getCurrentCUDAStream()));
+  return grad_colors;
+}
+
+}  // namespace virgi
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.doc() = "virgi-ns frozen-geometry tile rasterizer";
+  m.def("rasterize_contributions", &virgi::rasterize_contributions,
+        "Contribution lists of N Gaussians for a request of equally sized items");
+  m.def("composite_forward", &virgi::composite_forward, "Segmented sum of weighted pair colours");
+  m.def("composite_backward", &virgi::composite_backward, "Gradient of composite_forward to colours");
+}

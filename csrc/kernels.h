@@ -1,0 +1,61 @@
+// Frozen-geometry tile rasterizer: kernel launchers (plain CUDA, no torch headers, so the .cu
+// files compile quickly). Each launcher returns the launch's cudaError_t.
+//
+// Pipeline (extension.cpp, rasterize_contributions):
+//   host plan   -> requested views, their requested 16-px grid tiles ("slots"), work units
+//   project     -> each Gaussian projected once per requested view; culled when its 3-sigma
+//                  tile rectangle holds no requested grid tile (summed-area table lookup)
+//   bin + sort  -> (slot, depth) keys for requested tiles only, stable radix sort
+//   rasterize   -> per pixel, walk the tile's list twice: count, then fill contribution lists
+//                  grouped by pixel in compositing order
+#pragma once
+
+#include <cuda_runtime.h>
+
+#include <cstddef>
+#include <cstdint>
+
+namespace virgi {
+
+// Number of ints per row of the packed host tables (see extension.cpp).
+constexpr int kViewInts = 8;  // view id, W, H, gw, gh, tile_base, sat_base, pad
+constexpr int kItemInts = 4;  // view row, x0, y0, pad
+constexpr int kUnitInts = 4;  // item, slot, gx, gy
+constexpr int kTile = 16;     // grid tile size (pixels), as gsplat's default
+
+cudaError_t launch_project_count(int N, int Vr, const float* means, const float* quats,
+                                 const float* scales, const float* opacities, const float* Ks,
+                                 const float* viewmats, const int* views, const int* sat,
+                                 float4* rec0, float4* rec1, int* counts, cudaStream_t stream);
+cudaError_t launch_bin(int N, int Vr, const int* counts, const int64_t* cum_counts,
+                       const float4* rec0, const float4* rec1, const int* views,
+                       const int* tile_slot, uint64_t* keys, int* vals, cudaStream_t stream);
+// With temp == nullptr, writes the scratch size needed to temp_bytes and sorts nothing.
+cudaError_t sort_pairs(void* temp, size_t& temp_bytes, int64_t n, int end_bit,
+                       const uint64_t* keys_in, uint64_t* keys_out, const int* vals_in,
+                       int* vals_out, cudaStream_t stream);
+cudaError_t launch_ranges(int64_t n, const uint64_t* keys, int* ranges, cudaStream_t stream);
+cudaError_t launch_init_pixels(int64_t P, int item_w, int item_h, const int* items,
+                               const int* views, float* trans, bool* valid, cudaStream_t stream);
+cudaError_t launch_raster(bool fill, int num_units, const int* units, const int* items,
+                          const int* views, int item_w, int item_h, const int* ranges,
+                          const int* sorted_vals, const float4* rec0, const float4* rec1,
+                          int* px_count, float* px_trans, const int64_t* px_offsets,
+                          int* out_pixel, int* out_flat, float* out_weight, uint8_t* mark,
+                          cudaStream_t stream);
+cudaError_t launch_pairs(int64_t n, const uint8_t* mark, const int* rank_incl, int N,
+                         const int* views, const float4* rec0, int64_t* pair_view,
+                         int64_t* pair_gaussian, float* pair_depth, cudaStream_t stream);
+cudaError_t launch_remap(int64_t M, const int* rank_incl, int* ids, cudaStream_t stream);
+
+// images[P, D] = sum over each pixel's entries of weight * colors[pair] (+ T * background).
+cudaError_t launch_composite_forward(int64_t P, int D, const float* colors, const int* pair,
+                                     const float* weight, const int64_t* offsets,
+                                     const float* trans, const float* background, float* out,
+                                     cudaStream_t stream);
+// grad_colors[U, D] (pre-zeroed) += weight * grad_images[pixel] for every entry.
+cudaError_t launch_composite_backward(int64_t M, int D, const float* grad, const int* pixel,
+                                      const int* pair, const float* weight, float* grad_colors,
+                                      cudaStream_t stream);
+
+}  // namespace virgi

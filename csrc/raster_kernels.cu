@@ -1,0 +1,402 @@
+// Kernels of the frozen-geometry tile rasterizer: projection + culling against requested tiles,
+// binning into requested grid tiles, depth sort, per-pixel contribution lists.
+//
+// Numerical rules (gsplat 1.4.0 classic mode): pinhole projection with the Jacobian clamped at
+// 1.3x the field of view, eps2d = 0.3 added to the 2D covariance, radius = ceil(3 sqrt(lambda_max)),
+// near plane 0.01, 16-px tile membership on the full-image grid, pixel centres at +0.5,
+// alpha = min(0.999, o exp(-sigma)), skip sigma < 0 or alpha < 1/255, stop before T <= 1e-4.
+// The 2D covariance, its determinant and the exponent use the float32-stable forms of the
+// reference (virgi_ns/raster/reference.py). Built without fast math and without FMA contraction
+// (-fmad=false): exp is the accurate expf and every product is rounded as torch rounds it, so
+// weights match the reference to float32 rounding.
+
+#include <cub/cub.cuh>
+#include <cuda_runtime.h>
+
+#include "kernels.h"
+
+namespace virgi {
+
+namespace {
+
+constexpr int kThreads = 256;
+constexpr float kNear = 0.01f;
+constexpr float kFar = 1e10f;
+constexpr float kEps2d = 0.3f;
+constexpr float kAlphaMin = 1.f / 255.f;
+constexpr float kAlphaMax = 0.999f;
+constexpr float kTMin = 1e-4f;
+
+// Tile rectangle [x0, x1) x [y0, y1) of a projected Gaussian on a gw x gh grid.
+__device__ __forceinline__ void tile_rect(float mx, float my, float radius, int gw, int gh, int& x0,
+                                          int& x1, int& y0, int& y1) {
+  const float tr = radius / static_cast<float>(kTile);
+  const float tx = mx / static_cast<float>(kTile);
+  const float ty = my / static_cast<float>(kTile);
+  x0 = static_cast<int>(fminf(fmaxf(floorf(tx - tr), 0.f), static_cast<float>(gw)));
+  x1 = static_cast<int>(fminf(fmaxf(ceilf(tx + tr), 0.f), static_cast<float>(gw)));
+  y0 = static_cast<int>(fminf(fmaxf(floorf(ty - tr), 0.f), static_cast<float>(gh)));
+  y1 = static_cast<int>(fminf(fmaxf(ceilf(ty + tr), 0.f), static_cast<float>(gh)));
+}
+
+// One thread per Gaussian; loops over the requested views so the Gaussian's rotation is
+// computed once. Writes counts[v*N+g] (requested tiles touched) and, where > 0, the records
+// rec0 = (mean2d.x, mean2d.y, depth, opacity), rec1 = (p, r, s, radius) where the Gaussian's
+// exponent at offset (dx, dy) is sigma = 0.5 (p (dx - r dy)^2 + s dy^2).
+//
+// The 2D covariance is formed as the reference does, stable in float32 for very anisotropic
+// Gaussians: A = J W R diag(s) (2x3), cov2d = A A^T + eps2d I, and its determinant by
+// Cauchy-Binet (sum of squared 2x2 minors of A + eps2d (a0 + c0) + eps2d^2) instead of a c - b^2.
+__global__ void project_count_kernel(int N, int Vr, const float* __restrict__ means,
+                                     const float* __restrict__ quats,
+                                     const float* __restrict__ scales,
+                                     const float* __restrict__ opacities,
+                                     const float* __restrict__ Ks,
+                                     const float* __restrict__ viewmats,
+                                     const int* __restrict__ views, const int* __restrict__ sat,
+                                     float4* __restrict__ rec0, float4* __restrict__ rec1,
+                                     int* __restrict__ counts) {
+  const int g = blockIdx.x * blockDim.x + threadIdx.x;
+  if (g >= N) return;
+
+  const float px = means[3 * g], py = means[3 * g + 1], pz = means[3 * g + 2];
+  float qw = quats[4 * g], qx = quats[4 * g + 1], qy = quats[4 * g + 2], qz = quats[4 * g + 3];
+  const float qn = fmaxf(sqrtf(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12f);
+  qw /= qn;
+  qx /= qn;
+  qy /= qn;
+  qz /= qn;
+  // Rotation matrix, row-major R[i][j].
+  const float R[3][3] = {
+      {1.f - 2.f * (qy * qy + qz * qz), 2.f * (qx * qy - qw * qz), 2.f * (qx * qz + qw * qy)},
+      {2.f * (qx * qy + qw * qz), 1.f - 2.f * (qx * qx + qz * qz), 2.f * (qy * qz - qw * qx)},
+      {2.f * (qx * qz - qw * qy), 2.f * (qy * qz + qw * qx), 1.f - 2.f * (qx * qx + qy * qy)}};
+  const float s[3] = {scales[3 * g], scales[3 * g + 1], scales[3 * g + 2]};
+  const float opac = opacities[g];
+
+  for (int v = 0; v < Vr; ++v) {
+    const int* vt = views + v * kViewInts;
+    const int cam = vt[0], W = vt[1], H = vt[2], gw = vt[3], gh = vt[4], sat_base = vt[6];
+    const float* vm = viewmats + 16 * cam;
+    const float* K = Ks + 9 * cam;
+    const int64_t idx = static_cast<int64_t>(v) * N + g;
+    int count = 0;
+
+    const float x = vm[0] * px + vm[1] * py + vm[2] * pz + vm[3];
+    const float y = vm[4] * px + vm[5] * py + vm[6] * pz + vm[7];
+    const float z = vm[8] * px + vm[9] * py + vm[10] * pz + vm[11];
+    if (z >= kNear && z <= kFar) {
+      const float fx = K[0], fy = K[4], cx = K[2], cy = K[5];
+      const float Wf = static_cast<float>(W), Hf = static_cast<float>(H);
+      const float tan_fovx = 0.5f * Wf / fx, tan_fovy = 0.5f * Hf / fy;
+      const float lim_x_pos = (Wf - cx) / fx + 0.3f * tan_fovx;
+      const float lim_x_neg = cx / fx + 0.3f * tan_fovx;
+      const float lim_y_pos = (Hf - cy) / fy + 0.3f * tan_fovy;
+      const float lim_y_neg = cy / fy + 0.3f * tan_fovy;
+      const float rz = 1.f / z, rz2 = rz * rz;
+      const float tx = z * fminf(lim_x_pos, fmaxf(-lim_x_neg, x * rz));
+      const float ty = z * fminf(lim_y_pos, fmaxf(-lim_y_neg, y * rz));
+      // J = [[fx rz, 0, -fx tx rz2], [0, fy rz, -fy ty rz2]]
+      const float j00 = fx * rz, j02 = -fx * tx * rz2, j11 = fy * rz, j12 = -fy * ty * rz2;
+      float JW[2][3];
+#pragma unroll
+      for (int k = 0; k < 3; ++k) {
+        JW[0][k] = j00 * vm[k] + j02 * vm[8 + k];
+        JW[1][k] = j11 * vm[4 + k] + j12 * vm[8 + k];
+      }
+      float A[2][3];
+#pragma unroll
+      for (int i = 0; i < 2; ++i)
+#pragma unroll
+        for (int k = 0; k < 3; ++k)
+          A[i][k] = (JW[i][0] * R[0][k] + JW[i][1] * R[1][k] + JW[i][2] * R[2][k]) * s[k];
+      const float a0 = A[0][0] * A[0][0] + A[0][1] * A[0][1] + A[0][2] * A[0][2];
+      const float c0 = A[1][0] * A[1][0] + A[1][1] * A[1][1] + A[1][2] * A[1][2];
+      const float b = A[0][0] * A[1][0] + A[0][1] * A[1][1] + A[0][2] * A[1][2];
+      const float m01 = A[0][0] * A[1][1] - A[0][1] * A[1][0];
+      const float m02 = A[0][0] * A[1][2] - A[0][2] * A[1][0];
+      const float m12 = A[0][1] * A[1][2] - A[0][2] * A[1][1];
+      const float det0 = m01 * m01 + m02 * m02 + m12 * m12;
+      const float a = a0 + kEps2d, c = c0 + kEps2d;
+      const float det = det0 + kEps2d * (a0 + c0) + kEps2d * kEps2d;
+      const float mx = fx * x * rz + cx, my = fy * y * rz + cy;
+      if (det > 0.f) {
+        const float mid = 0.5f * (a + c);
+        const float v1 = mid + sqrtf(fmaxf(mid * mid - det, 0.01f));
+        const float radius = ceilf(3.f * sqrtf(v1));
+        if (radius > 0.f && isfinite(radius) &&
+            (mx + radius > 0.f) && (mx - radius < Wf) && (my + radius > 0.f) && (my - radius < Hf)) {
+          // gsplat keeps integer radii (int32): beyond 2^31 the stored radius saturates.
+          const float r_int = fminf(radius, 2147483648.f);
+          int x0, x1, y0, y1;
+          tile_rect(mx, my, r_int, gw, gh, x0, x1, y0, y1);
+          if (x1 > x0 && y1 > y0) {
+            const int* st = sat + sat_base;
+            const int w1 = gw + 1;
+            count = st[y1 * w1 + x1] - st[y0 * w1 + x1] - st[y1 * w1 + x0] + st[y0 * w1 + x0];
+          }
+          if (count > 0) {
+            rec0[idx] = make_float4(mx, my, z, opac);
+            rec1[idx] = make_float4(c / det, b / c, 1.f / c, r_int);
+          }
+        }
+      }
+    }
+    counts[idx] = count;
+  }
+}
+
+// Writes (slot << 32 | depth bits, v*N+g) for every requested tile a visible Gaussian touches.
+__global__ void bin_kernel(int N, int Vr, const int* __restrict__ counts,
+                           const int64_t* __restrict__ cum_counts, const float4* __restrict__ rec0,
+                           const float4* __restrict__ rec1, const int* __restrict__ views,
+                           const int* __restrict__ tile_slot, uint64_t* __restrict__ keys,
+                           int* __restrict__ vals) {
+  const int64_t idx = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (idx >= static_cast<int64_t>(N) * Vr) return;
+  const int count = counts[idx];
+  if (count == 0) return;
+  const int v = static_cast<int>(idx / N);
+  const int* vt = views + v * kViewInts;
+  const int gw = vt[3], gh = vt[4];
+  const int* ts = tile_slot + vt[5];
+  const float4 r0 = rec0[idx];
+  const float4 r1 = rec1[idx];
+  int x0, x1, y0, y1;
+  tile_rect(r0.x, r0.y, r1.w, gw, gh, x0, x1, y0, y1);
+  const uint64_t depth_bits = static_cast<uint64_t>(__float_as_uint(r0.z));
+  int64_t out = cum_counts[idx] - count;
+  const int64_t end = cum_counts[idx];
+  for (int y = y0; y < y1 && out < end; ++y) {
+    for (int x = x0; x < x1; ++x) {
+      const int slot = ts[y * gw + x];
+      if (slot >= 0) {
+        keys[out] = (static_cast<uint64_t>(slot) << 32) | depth_bits;
+        vals[out] = static_cast<int>(idx);
+        ++out;
+      }
+    }
+  }
+}
+
+// ranges[2 s], ranges[2 s + 1]: start and end of slot s in the sorted keys (pre-zeroed).
+__global__ void ranges_kernel(int64_t n, const uint64_t* __restrict__ keys, int* __restrict__ ranges) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= n) return;
+  const uint32_t slot = static_cast<uint32_t>(keys[i] >> 32);
+  if (i == 0 || static_cast<uint32_t>(keys[i - 1] >> 32) != slot) ranges[2 * slot] = static_cast<int>(i);
+  if (i == n - 1 || static_cast<uint32_t>(keys[i + 1] >> 32) != slot)
+    ranges[2 * slot + 1] = static_cast<int>(i + 1);
+}
+
+// transmittance = 1 everywhere, valid = the output pixel lies inside its view's image.
+__global__ void init_pixels_kernel(int64_t P, int item_w, int item_h, const int* __restrict__ items,
+                                   const int* __restrict__ views, float* __restrict__ trans,
+                                   bool* __restrict__ valid) {
+  const int64_t p = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (p >= P) return;
+  const int64_t per_item = static_cast<int64_t>(item_w) * item_h;
+  const int item = static_cast<int>(p / per_item);
+  const int rem = static_cast<int>(p - item * per_item);
+  const int r = rem / item_w, c = rem - r * item_w;
+  const int* it = items + item * kItemInts;
+  const int* vt = views + it[0] * kViewInts;
+  const int X = it[1] + c, Y = it[2] + r;
+  valid[p] = X >= 0 && Y >= 0 && X < vt[1] && Y < vt[2];
+  trans[p] = 1.f;
+}
+
+// One block of 16x16 threads per work unit (an item's overlap with one grid tile). Each thread
+// owns one pixel and walks the tile's depth-sorted list. Pass 1 (FILL=false) counts entries and
+// writes the final transmittance; pass 2 (FILL=true) writes the entries at the pixel's offset.
+template <bool FILL>
+__global__ void __launch_bounds__(kTile* kTile)
+    raster_kernel(const int* __restrict__ units, const int* __restrict__ items,
+                  const int* __restrict__ views, int item_w, int item_h,
+                  const int* __restrict__ ranges, const int* __restrict__ sorted_vals,
+                  const float4* __restrict__ rec0, const float4* __restrict__ rec1,
+                  int* __restrict__ px_count, float* __restrict__ px_trans,
+                  const int64_t* __restrict__ px_offsets, int* __restrict__ out_pixel,
+                  int* __restrict__ out_flat, float* __restrict__ out_weight,
+                  uint8_t* __restrict__ mark) {
+  constexpr int B = kTile * kTile;
+  __shared__ int s_id[B];
+  __shared__ float4 s_r0[B];
+  __shared__ float4 s_r1[B];
+
+  const int* u = units + blockIdx.x * kUnitInts;
+  const int item = u[0], slot = u[1], gx = u[2], gy = u[3];
+  const int* it = items + item * kItemInts;
+  const int* vt = views + it[0] * kViewInts;
+  const int ix0 = it[1], iy0 = it[2], W = vt[1], H = vt[2];
+  const int tid = threadIdx.x;
+  const int lx = tid % kTile, ly = tid / kTile;
+  const int X = gx * kTile + lx;
+  const int Y = gy * kTile + ly;
+  const bool inside = X >= max(ix0, 0) && X < min(ix0 + item_w, W) && Y >= max(iy0, 0) &&
+                      Y < min(iy0 + item_h, H);
+  const int64_t p =
+      (static_cast<int64_t>(item) * item_h + (Y - iy0)) * item_w + (X - ix0);
+  // Offsets from the centre of the tile's first pixel, then the pixel within the tile (the
+  // reference's order of operations).
+  const float tcx = static_cast<float>(gx * kTile) + 0.5f;
+  const float tcy = static_cast<float>(gy * kTile) + 0.5f;
+  const float flx = static_cast<float>(lx), fly = static_cast<float>(ly);
+
+  const int start = ranges[2 * slot], end = ranges[2 * slot + 1];
+  bool done = !inside;
+  int64_t base = 0;
+  int64_t n_out = 0;
+  if (FILL && inside) {
+    base = px_offsets[p];
+    n_out = px_offsets[p + 1] - base;
+    if (n_out == 0) done = true;
+  }
+  float T = 1.f;
+  int k = 0;
+
+  for (int b0 = start; b0 < end; b0 += B) {
+    if (__syncthreads_count(done) == B) break;
+    const int j = b0 + tid;
+    if (j < end) {
+      const int f = sorted_vals[j];
+      s_id[tid] = f;
+      s_r0[tid] = rec0[f];
+      s_r1[tid] = rec1[f];
+    }
+    __syncthreads();
+    const int nb = min(B, end - b0);
+    for (int t = 0; t < nb && !done; ++t) {
+      const float4 m = s_r0[t];
+      const float4 q = s_r1[t];
+      const float dx = (m.x - tcx) - flx, dy = (m.y - tcy) - fly;
+      const float e = dx - q.y * dy;
+      const float sigma = 0.5f * (q.x * e * e + q.z * dy * dy);
+      const float alpha = fminf(kAlphaMax, m.w * expf(-sigma));
+      if (sigma < 0.f || alpha < kAlphaMin) continue;
+      const float next_T = T * (1.f - alpha);
+      if (next_T <= kTMin) {
+        done = true;
+        break;
+      }
+      if (FILL) {
+        const int64_t e = base + k;
+        const int f = s_id[t];
+        out_pixel[e] = static_cast<int>(p);
+        out_flat[e] = f;
+        out_weight[e] = alpha * T;
+        mark[f] = 1;
+        if (k + 1 == n_out) done = true;
+      }
+      ++k;
+      T = next_T;
+    }
+  }
+  if (!FILL && inside) {
+    px_count[p] = k;
+    px_trans[p] = T;
+  }
+}
+
+// For every flat (view row, Gaussian) index marked as contributing, write the pair's view,
+// Gaussian and depth at its rank (inclusive scan of the marks minus one).
+__global__ void pairs_kernel(int64_t n, const uint8_t* __restrict__ mark,
+                             const int* __restrict__ rank_incl, int N, const int* __restrict__ views,
+                             const float4* __restrict__ rec0, int64_t* __restrict__ pair_view,
+                             int64_t* __restrict__ pair_gaussian, float* __restrict__ pair_depth) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= n || !mark[i]) return;
+  const int r = rank_incl[i] - 1;
+  const int v = static_cast<int>(i / N);
+  pair_view[r] = views[v * kViewInts];  // the camera row is the view id
+  pair_gaussian[r] = i - static_cast<int64_t>(v) * N;
+  pair_depth[r] = rec0[i].z;
+}
+
+__global__ void remap_kernel(int64_t M, const int* __restrict__ rank_incl, int* __restrict__ ids) {
+  const int64_t e = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (e >= M) return;
+  ids[e] = rank_incl[ids[e]] - 1;
+}
+
+inline unsigned blocks_for(int64_t n) { return static_cast<unsigned>((n + kThreads - 1) / kThreads); }
+
+}  // namespace
+
+cudaError_t launch_project_count(int N, int Vr, const float* means, const float* quats,
+                                 const float* scales, const float* opacities, const float* Ks,
+                                 const float* viewmats, const int* views, const int* sat,
+                                 float4* rec0, float4* rec1, int* counts, cudaStream_t stream) {
+  if (N == 0 || Vr == 0) return cudaSuccess;
+  project_count_kernel<<<blocks_for(N), kThreads, 0, stream>>>(
+      N, Vr, means, quats, scales, opacities, Ks, viewmats, views, sat, rec0, rec1, counts);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_bin(int N, int Vr, const int* counts, const int64_t* cum_counts,
+                       const float4* rec0, const float4* rec1, const int* views,
+                       const int* tile_slot, uint64_t* keys, int* vals, cudaStream_t stream) {
+  const int64_t n = static_cast<int64_t>(N) * Vr;
+  if (n == 0) return cudaSuccess;
+  bin_kernel<<<blocks_for(n), kThreads, 0, stream>>>(N, Vr, counts, cum_counts, rec0, rec1, views,
+                                                     tile_slot, keys, vals);
+  return cudaGetLastError();
+}
+
+cudaError_t sort_pairs(void* temp, size_t& temp_bytes, int64_t n, int end_bit,
+                       const uint64_t* keys_in, uint64_t* keys_out, const int* vals_in,
+                       int* vals_out, cudaStream_t stream) {
+  // Radix sort is stable: equal keys keep their (view, Gaussian) input order.
+  return cub::DeviceRadixSort::SortPairs(temp, temp_bytes, keys_in, keys_out, vals_in, vals_out,
+                                         n, 0, end_bit, stream);
+}
+
+cudaError_t launch_ranges(int64_t n, const uint64_t* keys, int* ranges, cudaStream_t stream) {
+  if (n == 0) return cudaSuccess;
+  ranges_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, keys, ranges);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_init_pixels(int64_t P, int item_w, int item_h, const int* items,
+                               const int* views, float* trans, bool* valid, cudaStream_t stream) {
+  if (P == 0) return cudaSuccess;
+  init_pixels_kernel<<<blocks_for(P), kThreads, 0, stream>>>(P, item_w, item_h, items, views,
+                                                              trans, valid);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_raster(bool fill, int num_units, const int* units, const int* items,
+                          const int* views, int item_w, int item_h, const int* ranges,
+                          const int* sorted_vals, const float4* rec0, const float4* rec1,
+                          int* px_count, float* px_trans, const int64_t* px_offsets,
+                          int* out_pixel, int* out_flat, float* out_weight, uint8_t* mark,
+                          cudaStream_t stream) {
+  if (num_units == 0) return cudaSuccess;
+  if (fill) {
+    raster_kernel<true><<<num_units, kTile * kTile, 0, stream>>>(
+        units, items, views, item_w, item_h, ranges, sorted_vals, rec0, rec1, px_count, px_trans,
+        px_offsets, out_pixel, out_flat, out_weight, mark);
+  } else {
+    raster_kernel<false><<<num_units, kTile * kTile, 0, stream>>>(
+        units, items, views, item_w, item_h, ranges, sorted_vals, rec0, rec1, px_count, px_trans,
+        px_offsets, out_pixel, out_flat, out_weight, mark);
+  }
+  return cudaGetLastError();
+}
+
+cudaError_t launch_pairs(int64_t n, const uint8_t* mark, const int* rank_incl, int N,
+                         const int* views, const float4* rec0, int64_t* pair_view,
+                         int64_t* pair_gaussian, float* pair_depth, cudaStream_t stream) {
+  if (n == 0) return cudaSuccess;
+  pairs_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, mark, rank_incl, N, views, rec0,
+                                                       pair_view, pair_gaussian, pair_depth);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_remap(int64_t M, const int* rank_incl, int* ids, cudaStream_t stream) {
+  if (M == 0) return cudaSuccess;
+  remap_kernel<<<blocks_for(M), kThreads, 0, stream>>>(M, rank_incl, ids);
+  return cudaGetLastError();
+}
+
+}  // namespace virgi

@@ -1,0 +1,248 @@
+"""The CUDA rasterizer (csrc/) against the torch reference, and its build.
+
+GPU tests (skipped without a GPU): the same contributions as the reference (same entries after a
+canonical sort, weights and transmittances to float32 rounding), images within 1e-5, on random
+scenes, the hard cases of ``test_raster_reference`` and tile requests of every kind; the fused
+composite against the plain one, forward and backward.
+
+CPU tests: every .cu file compiles with nvcc for one architecture (fast), and the whole
+extension builds with torch's JIT loader (slow: a few minutes on a small machine).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from test_raster_reference import SCENES, make_cams, random_scene
+from virgi_ns.raster import reference
+from virgi_ns.raster.contract import Cameras, Request, composite
+
+REPO = Path(__file__).resolve().parents[1]
+CSRC = REPO / "csrc"
+IMG_TOL = 1e-5
+W_TOL = 2e-6
+
+
+# ----------------------------------------------------------------------------- helpers
+def _canonical(c):
+    """Entries as (pixel, view, gaussian) long keys sorted, with their weights (float64)."""
+    n = c.num_gaussians
+    pix = c.pixel.long().cpu()
+    pair = c.pair.long().cpu()
+    view = c.pair_view.cpu()[pair]
+    gau = c.pair_gaussian.cpu()[pair]
+    key = (pix * (int(c.pair_view.max()) + 1 if len(c.pair_view) else 1) + view) * n + gau
+    order = torch.argsort(key)
+    return torch.stack([pix, view, gau], 1)[order], c.weight.detach().double().cpu()[order]
+
+
+def assert_same_contributions(cu, ref):
+    """Same entries, same pairs, weights and transmittance to float32 rounding, contract order."""
+    assert cu.num_pixels == ref.num_pixels
+    assert torch.equal(cu.valid.cpu(), ref.valid.cpu())
+    assert torch.equal(cu.pair_view.cpu(), ref.pair_view.cpu())
+    assert torch.equal(cu.pair_gaussian.cpu(), ref.pair_gaussian.cpu())
+    assert torch.allclose(cu.pair_depth.cpu().double(), ref.pair_depth.detach().cpu().double(), rtol=1e-6, atol=1e-7)
+    e_cu, w_cu = _canonical(cu)
+    e_ref, w_ref = _canonical(ref)
+    assert e_cu.shape == e_ref.shape, f"{len(e_cu)} entries vs the reference's {len(e_ref)}"
+    assert torch.equal(e_cu, e_ref)
+    assert (w_cu - w_ref).abs().max() <= W_TOL if len(w_cu) else True
+    t_err = (cu.transmittance.cpu().double() - ref.transmittance.detach().cpu().double()).abs().max()
+    assert t_err <= W_TOL
+    # contract order: grouped by pixel ascending, front to back inside a pixel
+    pix = cu.pixel.long().cpu()
+    assert torch.all(pix[1:] >= pix[:-1])
+    same = pix[1:] == pix[:-1]
+    d = cu.pair_depth.cpu()[cu.pair.long().cpu()]
+    assert torch.all(d[1:][same] >= d[:-1][same])
+    assert torch.all(cu.transmittance.cpu()[~cu.valid.cpu()] == 1)
+
+
+def _run_both(scene, cams: Cameras, request: Request):
+    from virgi_ns.raster import cuda
+
+    dev = torch.device("cuda")
+    m, q, s, o = (a.float().to(dev) for a in scene)
+    cams32 = cams.to(dev, torch.float32)
+    cu = cuda.rasterize(m, q, s, o, cams32, request)
+    ref = reference.rasterize(m, q, s, o, cams32, request)
+    return cu, ref
+
+
+def _images(c, colors_vn, bg):
+    cols = colors_vn[c.pair_view, c.pair_gaussian]
+    return composite(cols, c, bg)
+
+
+TILE_REQUESTS = {
+    "whole": None,
+    "tiles32": (32, [(0, 5, 7), (1, 5, 7), (0, 50, 30), (1, -10, -5), (0, 60, 40), (0, 5, 7)]),
+    "tiles16": (16, [(0, 0, 0), (0, 64, 32), (1, 48, 16), (0, 200, 200)]),
+    "tiles64": (64, [(1, 3, 0), (0, -20, -20)]),
+}
+
+
+def _request(kind, cams):
+    if TILE_REQUESTS[kind] is None:
+        return Request.whole_images(cams)
+    size, tiles = TILE_REQUESTS[kind]
+    v, x0, y0 = (torch.tensor(t) for t in zip(*tiles))
+    return Request.tiles(v, x0, y0, size)
+
+
+# ----------------------------------------------------------------------------- GPU
+@pytest.mark.gpu
+def test_cuda_backend_available():
+    from virgi_ns.raster import cuda
+
+    ok, why = cuda.available()
+    assert ok, why
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("kind", list(TILE_REQUESTS))
+@pytest.mark.parametrize("name", list(SCENES))
+def test_cuda_matches_reference(name, kind):
+    cams = make_cams(70, 45, views=2)
+    scene = SCENES[name]()
+    req = _request(kind, cams)
+    cu, ref = _run_both(scene, cams, req)
+    assert_same_contributions(cu, ref)
+    if name in ("random", "pile", "large") and kind == "whole":
+        assert ref.weight.numel() > 100  # the comparison is not vacuous
+    dev = torch.device("cuda")
+    colors = torch.rand(2, scene[0].shape[0], 3, device=dev, generator=torch.Generator(dev).manual_seed(1))
+    bg = torch.tensor([0.2, 0.5, 0.9], device=dev)
+    assert (_images(cu, colors, bg) - _images(ref, colors, bg)).abs().max() <= IMG_TOL
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("seed", [0, 1])
+def test_cuda_matches_reference_larger_scene(seed):
+    """Thousands of Gaussians, non-square images, 3 views, many grid tiles, mixed tile requests."""
+    g = torch.Generator().manual_seed(seed)
+    cams = make_cams(173, 98, views=3, f=120.0)
+    scene = random_scene(4000, seed=seed, spread=1.0, scale=(0.005, 0.08))
+    cu, ref = _run_both(scene, cams, Request.whole_images(cams))
+    assert_same_contributions(cu, ref)
+    assert ref.weight.numel() > 10_000
+    views = torch.randint(0, 3, (40,), generator=g)
+    x0 = torch.randint(-20, 173, (40,), generator=g)
+    y0 = torch.randint(-20, 98, (40,), generator=g)
+    req = Request.tiles(views, x0, y0, 32)
+    cu_t, ref_t = _run_both(scene, cams, req)
+    assert_same_contributions(cu_t, ref_t)
+    # a tile equals the same pixels cut from the whole images
+    dev = torch.device("cuda")
+    colors = torch.rand(3, 4000, 3, device=dev, generator=torch.Generator(dev).manual_seed(seed))
+    whole = _images(cu, colors, None).cpu()
+    tiles = _images(cu_t, colors, None).cpu().reshape(-1, 3)
+    pv, px, py = req.pixel_coords()
+    ok = req.valid_mask(cams)
+    assert (tiles[ok] - whole[pv[ok], py[ok], px[ok]]).abs().max() <= 1e-6
+
+
+@pytest.mark.gpu
+def test_cuda_empty_cases():
+    from virgi_ns.raster import cuda
+
+    dev = torch.device("cuda")
+    cams = make_cams(70, 45, views=2).to(dev, torch.float32)
+    m, q, s, o = (a.float().to(dev) for a in random_scene(50, seed=6, spread=0.1, scale=(0.01, 0.02)))
+    c = cuda.rasterize(m, q, s, o, cams, Request.tiles([0, 1], [0, 0], [0, 0], 16))  # nothing reaches
+    assert c.weight.numel() == 0 and torch.all(c.transmittance == 1) and c.pair_view.numel() == 0
+    behind = m.clone()
+    behind[:, 2] = -10.0
+    c = cuda.rasterize(behind, q, s, o, cams, Request.whole_images(cams))
+    assert c.weight.numel() == 0 and torch.all(c.transmittance == 1)
+    assert cuda.composite(torch.zeros(0, 3, device=dev), c, 0.5).eq(0.5).all()
+    c = cuda.rasterize(m[:0], q[:0], s[:0], o[:0], cams, Request.whole_images(cams))
+    assert c.weight.numel() == 0 and c.transmittance.shape == (2 * 45 * 70,)
+    c = cuda.rasterize(m, q, s, o, cams, Request.tiles([1], [500], [500], 32))  # fully outside
+    assert c.weight.numel() == 0 and not c.valid.any()
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("d", [3, 1, 5])
+def test_fused_composite_matches_plain(d):
+    from virgi_ns.raster import cuda
+
+    dev = torch.device("cuda")
+    cams = make_cams(96, 64, views=2)
+    m, q, s, o = (a.float().to(dev) for a in random_scene(800, seed=7, scale=(0.01, 0.15)))
+    c = cuda.rasterize(m, q, s, o, cams.to(dev, torch.float32), Request.whole_images(cams))
+    assert c.weight.numel() > 1000
+    gen = torch.Generator(dev).manual_seed(d)
+    colors = torch.rand(len(c.pair_view), d, device=dev, generator=gen).requires_grad_(True)
+    bg = torch.rand(d, device=dev, generator=gen).requires_grad_(True)
+    up = torch.randn(2, 64, 96, d, device=dev, generator=gen)
+    fused = cuda.composite(colors, c, bg)
+    (g_c, g_b) = torch.autograd.grad((fused * up).sum(), (colors, bg))
+    plain = composite(colors, c, bg)
+    (p_c, p_b) = torch.autograd.grad((plain * up).sum(), (colors, bg))
+    assert (fused - plain).abs().max() <= 1e-5
+    assert torch.allclose(g_c, p_c, atol=1e-4, rtol=1e-5)
+    assert torch.allclose(g_b, p_b, atol=1e-3, rtol=1e-5)
+
+
+@pytest.mark.gpu
+def test_auto_backend_picks_cuda():
+    from virgi_ns.raster import cuda, rasterize
+
+    dev = torch.device("cuda")
+    cams = make_cams(40, 30, views=1).to(dev, torch.float32)
+    m, q, s, o = (a.float().to(dev) for a in random_scene(30))
+    c = rasterize(m, q, s, o, cams, Request.whole_images(cams), backend="auto")
+    assert isinstance(c, cuda.CudaContributions)
+
+
+# ----------------------------------------------------------------------------- CPU: the build
+def _nvcc() -> str | None:
+    from virgi_ns.raster.cuda import cuda_home
+
+    root = cuda_home()
+    return str(Path(root) / "bin" / "nvcc") if root else None
+
+
+@pytest.mark.parametrize("source", sorted(p.name for p in CSRC.glob("*.cu")))
+def test_cuda_sources_compile(source, tmp_path):
+    """Each kernel file compiles for sm_90 (the kernels need only the CUDA toolkit, not torch)."""
+    nvcc = _nvcc()
+    if nvcc is None:
+        pytest.skip("nvcc not found")
+    cmd = [nvcc, "-c", str(CSRC / source), "-o", str(tmp_path / "k.o"), "-std=c++17", "-O1",
+           "-fmad=false", "-gencode=arch=compute_90,code=sm_90", "-Werror=all-warnings"]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-4000:]
+
+
+@pytest.mark.slow
+def test_cuda_extension_builds(tmp_path):
+    """The whole extension (kernels + torch bindings) builds with torch's JIT loader, no GPU needed."""
+    if _nvcc() is None:
+        pytest.skip("nvcc not found")
+    if torch.version.cuda is None:
+        pytest.skip("torch has no CUDA support")
+    env = dict(os.environ)
+    env.setdefault("TORCH_CUDA_ARCH_LIST", "9.0")
+    env.setdefault("MAX_JOBS", str(os.cpu_count() or 2))
+    code = ("from virgi_ns.raster import cuda; m = cuda.build(); "
+            "assert hasattr(m, 'rasterize_contributions') and hasattr(m, 'composite_backward'); print('ok')")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=REPO)
+    assert res.returncode == 0 and "ok" in res.stdout, (res.stdout + res.stderr)[-4000:]
+
+
+def test_available_reports_a_reason_without_gpu():
+    from virgi_ns.raster import cuda
+
+    if torch.cuda.is_available():
+        pytest.skip("a GPU is present")
+    ok, why = cuda.available()
+    assert not ok and "GPU" in why

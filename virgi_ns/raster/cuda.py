@@ -1,0 +1,211 @@
+"""CUDA backend of the rasterizer: our kernels in ``csrc/``, built on first use.
+
+The extension is compiled with :func:`torch.utils.cpp_extension.load` the first time it is
+needed and cached in torch's extensions directory (``TORCH_EXTENSIONS_DIR``, by default
+``~/.cache/torch_extensions``); ``TORCH_CUDA_ARCH_LIST`` chooses the GPU architectures as for any
+torch extension. Each request projects every Gaussian once per requested view, bins and sorts
+only the requested 16-px grid tiles, and emits the contribution lists of :mod:`contract`.
+
+Weights carry no autograd history to the geometry here (use the reference backend for geometry
+gradients); :func:`composite` offers a fused forward/backward to the colours for these lists.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+
+import torch
+from torch import Tensor
+
+from virgi_ns.raster.contract import Cameras, Contributions, Request
+from virgi_ns.raster.contract import composite as _plain_composite
+
+CSRC = Path(__file__).resolve().parents[2] / "csrc"
+SOURCES = ("extension.cpp", "raster_kernels.cu", "composite_kernels.cu")
+EXTENSION_NAME = "virgi_ns_raster"
+
+_LOCK = threading.Lock()
+_MODULE: ModuleType | None = None
+_FAILURE: str | None = None
+
+
+def cuda_home() -> str | None:
+    """A CUDA toolkit root holding both ``bin/nvcc`` and the runtime headers, or None."""
+    from torch.utils import cpp_extension
+
+    candidates = [os.environ.get("CUDA_HOME"), os.environ.get("CUDA_PATH"), cpp_extension.CUDA_HOME,
+                  "/usr/local/cuda"]
+    nvcc = shutil.which("nvcc")
+    if nvcc:
+        candidates.append(str(Path(os.path.realpath(nvcc)).parents[1]))
+    for root in candidates:
+        if root and (Path(root) / "bin" / "nvcc").exists() and \
+                (Path(root) / "include" / "cuda_runtime_api.h").exists():
+            return root
+    return None
+
+
+def _build_flags() -> dict:
+    return dict(
+        extra_cflags=["-O3"],
+        extra_cuda_cflags=["-O3", "-fmad=false"],
+    )
+
+
+def build(verbose: bool = False) -> ModuleType:
+    """Compile (or load the cached build of) the extension; needs nvcc, not a GPU."""
+    from torch.utils import cpp_extension
+
+    root = cuda_home()
+    if root is None:
+        raise RuntimeError("nvcc and the CUDA headers were not found (set CUDA_HOME)")
+    # torch guesses the toolkit from the nvcc on PATH, which may be a wrapper script outside it.
+    cpp_extension.CUDA_HOME = root
+    os.environ.setdefault("CUDA_HOME", root)
+    if not os.environ.get("TORCH_CUDA_ARCH_LIST") and not torch.cuda.is_available():
+        raise RuntimeError("no GPU to build for: set TORCH_CUDA_ARCH_LIST (e.g. 9.0) to build without one")
+    return cpp_extension.load(
+        name=EXTENSION_NAME,
+        sources=[str(CSRC / s) for s in SOURCES],
+        verbose=verbose,
+        **_build_flags(),
+    )
+
+
+def _load() -> ModuleType:
+    """The extension module, compiled on first use with a console notice."""
+    global _MODULE, _FAILURE
+    with _LOCK:
+        if _MODULE is not None:
+            return _MODULE
+        if _FAILURE is not None:
+            raise RuntimeError(_FAILURE)
+        try:
+            from rich.console import Console
+
+            console = Console(stderr=True)
+            with console.status("[bold]virgi-ns: loading the CUDA rasterizer "
+                                "(the first use compiles it, about a minute)..."):
+                _MODULE = build()
+        except Exception as e:  # noqa: BLE001 - the reason is reported to the caller
+            _FAILURE = f"building the CUDA rasterizer failed: {str(e).strip().splitlines()[-1] if str(e).strip() else e!r}"
+            raise RuntimeError(_FAILURE) from e
+        return _MODULE
+
+
+def available() -> tuple[bool, str]:
+    """(True, "") when a GPU is present and the extension builds/loads, else (False, reason)."""
+    if not torch.cuda.is_available():
+        return False, "no CUDA GPU is visible to torch"
+    if torch.version.cuda is None:
+        return False, "this torch build has no CUDA support"
+    if cuda_home() is None:
+        return False, "nvcc and the CUDA headers were not found (set CUDA_HOME)"
+    try:
+        _load()
+    except RuntimeError as e:
+        return False, str(e)
+    return True, ""
+
+
+@dataclass
+class CudaContributions(Contributions):
+    """Contributions plus each pixel's entry range (``pixel_offsets`` [P+1], int64), which the
+    fused :func:`composite` uses. Entry indices (``pixel``, ``pair``) are int32."""
+
+    pixel_offsets: Tensor | None = None
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    cameras: Cameras,
+    request: Request,
+) -> CudaContributions:
+    """Contributions of N Gaussians to the pixels of ``request`` (see :func:`virgi_ns.raster.rasterize`).
+
+    Computes in float32 on the Gaussians' device; the outputs do not track geometry gradients.
+    """
+    ext = _load()
+    dev = means.device
+    if dev.type != "cuda":
+        raise RuntimeError("the cuda rasterizer backend needs the Gaussians on a CUDA device")
+
+    def f32(t: Tensor) -> Tensor:
+        return t.detach().to(device=dev, dtype=torch.float32).contiguous()
+
+    n = means.shape[0]
+    out = ext.rasterize_contributions(
+        f32(means).reshape(n, 3), f32(quats).reshape(n, 4), f32(scales).reshape(n, 3),
+        f32(opacities).reshape(n), f32(cameras.Ks), f32(cameras.viewmats),
+        cameras.widths.contiguous(), cameras.heights.contiguous(),
+        request.views.contiguous(), request.x0.contiguous(), request.y0.contiguous(),
+        int(request.width), int(request.height),
+    )
+    pixel, pair, weight, transmittance, valid, offsets, pair_view, pair_gaussian, pair_depth = out
+    return CudaContributions(
+        request=request, num_gaussians=int(n), pair_view=pair_view, pair_gaussian=pair_gaussian,
+        pair_depth=pair_depth, pixel=pixel, pair=pair, weight=weight, transmittance=transmittance,
+        valid=valid, pixel_offsets=offsets,
+    )
+
+
+class _FusedComposite(torch.autograd.Function):
+    """images = sum_k w_k colors[pair_k] + T background, gradient to colours and background."""
+
+    @staticmethod
+    def forward(ctx, colors: Tensor, background: Tensor | None, contrib: CudaContributions) -> Tensor:
+        ext = _load()
+        bg = background if background is not None else torch.empty(0, device=colors.device)
+        out = ext.composite_forward(colors.contiguous(), contrib.pair, contrib.weight,
+                                    contrib.pixel_offsets, contrib.transmittance, bg.contiguous())
+        ctx.contrib = contrib
+        ctx.has_bg = background is not None
+        ctx.num_pairs = colors.shape[0]
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        c: CudaContributions = ctx.contrib
+        grad = grad.contiguous()
+        g_colors = g_bg = None
+        if ctx.needs_input_grad[0]:
+            g_colors = _load().composite_backward(grad, c.pixel, c.pair, c.weight, ctx.num_pairs)
+        if ctx.has_bg and ctx.needs_input_grad[1]:
+            g_bg = (c.transmittance[:, None] * grad).sum(0)
+        return g_colors, g_bg, None
+
+
+def composite(colors: Tensor, contrib: Contributions, background: Tensor | float | None = None) -> Tensor:
+    """Like :func:`virgi_ns.raster.composite`, fused on the GPU for this backend's lists
+    (float32 colours, weights without history); anything else takes the plain path."""
+    fused = (isinstance(contrib, CudaContributions) and contrib.pixel_offsets is not None
+             and colors.is_cuda and colors.dtype == torch.float32 and colors.dim() == 2
+             and not contrib.weight.requires_grad)
+    if not fused:
+        return _plain_composite(colors, contrib, background)
+    if colors.shape[0] != contrib.pair_view.shape[0]:
+        raise ValueError(f"composite: {colors.shape[0]} colours for {contrib.pair_view.shape[0]} pairs")
+    d = colors.shape[1]
+    bg = None
+    if background is not None:
+        bg = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(-1).expand(d)
+        bg = bg.contiguous()
+    out = _FusedComposite.apply(colors, bg, contrib)
+    t, h, w = contrib.shape
+    return out.reshape(t, h, w, d)
+
+
+__all__ = ["available", "build", "composite", "cuda_home", "rasterize", "CudaContributions"]
+
+if __name__ == "__main__":  # pragma: no cover - manual build check: python -m virgi_ns.raster.cuda
+    build(verbose=True)
+    print("built", file=sys.stderr)
