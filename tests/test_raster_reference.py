@@ -165,6 +165,7 @@ def _hard_pile():
     means, quats, scales, opac = random_scene(300, seed=3, scale=(0.005, 0.05))
     means[:, :2] = 0.01 * means[:, :2]  # hundreds on one pixel
     opac[:] = 0.3 + 0.6 * opac
+    means[250:300] = means[200:250]  # equal depths: ties are broken by Gaussian index
     return means, quats, scales, opac
 
 
