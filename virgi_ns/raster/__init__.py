@@ -6,7 +6,7 @@ the extension builds, otherwise ``"reference"`` (pure torch, the specification),
 
 from __future__ import annotations
 
-import warnings
+import sys
 
 import torch
 from torch import Tensor
@@ -16,6 +16,10 @@ from virgi_ns.raster.contract import Cameras, Contributions, Request, composite,
 __all__ = ["Cameras", "Contributions", "Request", "composite", "composite_depth", "rasterize", "resolve_backend"]
 
 _NOTICE_GIVEN = False
+
+
+def _notice(message: str) -> None:
+    print(f"virgi-ns: {message}", file=sys.stderr)
 
 
 def resolve_backend(backend: str, device: torch.device) -> str:
@@ -30,8 +34,7 @@ def resolve_backend(backend: str, device: torch.device) -> str:
             raise RuntimeError("the cuda rasterizer backend needs the Gaussians on a CUDA device")
         if not _NOTICE_GIVEN:
             _NOTICE_GIVEN = True
-            warnings.warn("virgi-ns: no GPU in use; rendering with the torch reference rasterizer (exact, slow)",
-                          stacklevel=3)
+            _notice("no GPU in use; rendering with the torch reference rasterizer (exact, slow)")
         return "reference"
     from virgi_ns.raster import cuda as cuda_backend
 
@@ -42,7 +45,7 @@ def resolve_backend(backend: str, device: torch.device) -> str:
         raise RuntimeError(f"the cuda rasterizer backend is unavailable: {why}")
     if not _NOTICE_GIVEN:
         _NOTICE_GIVEN = True
-        warnings.warn(f"virgi-ns: CUDA rasterizer unavailable ({why}); using the torch reference", stacklevel=3)
+        _notice(f"CUDA rasterizer unavailable ({why}); using the torch reference")
     return "reference"
 
 
