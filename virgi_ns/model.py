@@ -129,6 +129,10 @@ class VirgiModel(SplatfactoModel):
         self.colour_start = 0 if self.imported else cfg.geometry_steps
         self.colour_total = max(cfg.colour_steps, 1)
         self._train_cameras_fn = None
+        # the edit stack applied at render time (see set_edit_stack); not part of the checkpoint
+        self.edit_stack = None
+        self.segmentation_edit: Optional[int] = None
+        self._edited_cache: Optional[tuple] = None
         if self.imported:
             self.freeze_geometry()
 
@@ -301,45 +305,105 @@ class VirgiModel(SplatfactoModel):
             return rasterize(means, quats, scales, opac.reshape(-1), cams.to(self.device), request,
                              backend=self.config.raster_backend if self.geometry_frozen else "reference")
 
-    def pair_colours(self, contrib: Contributions, cams: Cameras, gated: bool = False) -> Dict[str, Tensor]:
-        """Per-pair ``rgb``, ``diffuse`` (sigmoid c_d), ``c_s`` for a contribution list.
+    def set_edit_stack(self, stack) -> None:
+        """Render through ``stack`` (a :class:`virgi_ns.edit_stack.EditStack`, or None for the base
+        colours) from now on: its enabled edits recolour ``c_d``, its ``specular_strength`` scales
+        ``c_s``."""
+        self.edit_stack = stack.to(self.device) if stack is not None else None
+        self._edited_cache = None
+
+    def fingerprint(self) -> str:
+        """The base run's fingerprint that every edit of it carries."""
+        from virgi_ns.edit_stack import field_fingerprint
+
+        return field_fingerprint(self.means.detach(), self.field,
+                                 [self.quats.detach(), torch.exp(self.scales.detach()),
+                                  torch.sigmoid(self.opacities.detach()).reshape(-1)])
+
+    def _active_stack(self):
+        st = self.edit_stack
+        return None if st is None or st.is_identity else st
+
+    def _edited_diffuse_cache(self, stack) -> Tensor:
+        """``c_d''`` of every Gaussian through ``stack``, recomputed when its enabled edits change."""
+        key = tuple((id(e.edit), e.enabled) for e in stack.entries)
+        if self._edited_cache is None or self._edited_cache[0] != key:
+            self._edited_cache = (key, stack.diffuse_all(self.field, self.means.detach()))
+        return self._edited_cache[1]
+
+    def pair_colours(self, contrib: Contributions, cams: Cameras, gated: bool = False,
+                     segmentation: bool = False) -> Dict[str, Tensor]:
+        """Per-pair ``rgb``, ``diffuse`` (sigmoid c_d), ``c_s`` (and ``segmentation``) for a
+        contribution list, through the edit stack when one is set.
 
         Hash features and MLP_diff run once per distinct Gaussian, MLP_spec once per pair. With
         ``gated``, MLP_spec runs only for gated Gaussians and cached diffuse colours serve the rest.
         """
         pg = contrib.pair_gaussian.to(self.device)
         pv = contrib.pair_view.to(self.device)
+        stack = self._active_stack()
         if pg.numel() == 0:
             z = torch.zeros(0, 3, device=self.device)
-            return {"rgb": z, "diffuse": z, "c_s": z}
+            return {"rgb": z, "diffuse": z, "c_s": z, "segmentation": z[:, :1]}
         means = self.means.detach()
         centres = cams.to(self.device).camera_centers().to(means.dtype)
         fld = self.field
+        uniq = inv = f = h2 = None
         if gated and self.gate_ready() and fld.decoupled:
-            c_d = self.diffuse_cache[pg]
+            cache = self._edited_diffuse_cache(stack) if stack is not None else self.diffuse_cache
+            c_d = cache[pg]
             c_s = torch.zeros_like(c_d)
             sel = self.spec_gate[pg].nonzero().flatten()
             if sel.numel() > 0:
                 g_sel = pg[sel]
-                uniq, inv = torch.unique(g_sel, return_inverse=True)
-                f = fld.encode(means[uniq])
-                h1, h2 = fld.diffuse_hidden(f)
+                u_sel, i_sel = torch.unique(g_sel, return_inverse=True)
+                fs = fld.encode(means[u_sel])
+                hs1, hs2 = fld.diffuse_hidden(fs)
                 d = torch.nn.functional.normalize(means[g_sel] - centres[pv[sel]], dim=-1)
-                c_s[sel] = fld.specular(f[inv], d, h1[inv], h2[inv]).to(c_s.dtype)
+                c_s[sel] = fld.specular(fs[i_sel], d, hs1[i_sel], hs2[i_sel]).to(c_s.dtype)
         else:
             uniq, inv = torch.unique(pg, return_inverse=True)
             f = fld.encode(means[uniq])
             d = torch.nn.functional.normalize(means[pg] - centres[pv], dim=-1)
             if fld.decoupled:
                 h1, h2 = fld.diffuse_hidden(f)
-                c_d = fld.diffuse(h2)[inv]
+                c_d_u = fld.diffuse(h2)
+                if stack is not None:
+                    c_d_u = stack.diffuse(f, h2, c_d_u)
+                c_d = c_d_u[inv]
                 c_s = fld.specular(f[inv], d, h1[inv], h2[inv])
             else:
-                h1, h2 = fld.diffuse_hidden(f[inv], d)
-                c_d = fld.diffuse(h2)
+                h1, h2p = fld.diffuse_hidden(f[inv], d)
+                c_d = fld.diffuse(h2p)
+                if stack is not None:
+                    c_d = stack.diffuse(f[inv], h2p, c_d)
                 c_s = torch.zeros_like(c_d)
-        diffuse = torch.sigmoid(c_d)
-        return {"rgb": torch.sigmoid(c_d + c_s), "diffuse": diffuse, "c_s": c_s}
+        k = stack.specular_strength if stack is not None else 1.0
+        out = {"rgb": torch.sigmoid(c_d + k * c_s), "diffuse": torch.sigmoid(c_d), "c_s": c_s}
+        if segmentation:
+            out["segmentation"] = self._pair_segmentation(pg, pv, cams, uniq, inv, f, h2)
+        return out
+
+    def _pair_segmentation(self, pg, pv, cams, uniq, inv, f, h2) -> Tensor:
+        """Per-pair alpha of ``segmentation_edit`` (or of all enabled edits together) [U,1];
+        zeros without edits."""
+        st = self.edit_stack
+        if st is None or len(st) == 0:
+            return torch.zeros(pg.shape[0], 1, device=self.device)
+        fld = self.field
+        if f is None:
+            uniq, inv = torch.unique(pg, return_inverse=True)
+            f = fld.encode(self.means.detach()[uniq])
+            h2 = None
+        if h2 is None or h2.shape[0] != f.shape[0]:
+            if fld.decoupled:
+                _, h2 = fld.diffuse_hidden(f)
+            else:  # the single MLP's hidden layers need a direction: use each pair's
+                centres = cams.to(self.device).camera_centers().to(f.dtype)
+                d = torch.nn.functional.normalize(self.means.detach()[pg] - centres[pv], dim=-1)
+                _, h2 = fld.diffuse_hidden(f[inv], d)
+                return st.segmentation(f[inv], h2, self.segmentation_edit).to(f.dtype)
+        return st.segmentation(f, h2, self.segmentation_edit)[inv].to(f.dtype)
 
     # ----------------------------------------------------------- specular gate
     def gate_ready(self) -> bool:
@@ -418,18 +482,23 @@ class VirgiModel(SplatfactoModel):
     def render_camera(self, camera: NSCameras, gated: bool = False, max_pixels: int = 1 << 20
                       ) -> Dict[str, Tensor]:
         """Whole-image ``rgb``, ``diffuse``, ``specular`` (rgb - diffuse, no background), ``depth``,
-        ``accumulation`` for one camera, rendered in bands of rows."""
+        ``accumulation`` (and ``segmentation`` when edits exist) for one camera, rendered in bands
+        of rows, through the edit stack when one is set."""
         cams = raster_cameras(camera[0:1] if len(camera.shape) else camera.reshape((1,)))
         W, H = int(cams.widths[0]), int(cams.heights[0])
         bg = self.background_color.to(self.device)
         rows = max(1, min(H, max_pixels // max(W, 1)))
-        parts: Dict[str, List[Tensor]] = {k: [] for k in ("rgb", "diffuse", "specular", "depth", "accumulation")}
+        with_seg = self.edit_stack is not None and len(self.edit_stack) > 0
+        names = ("rgb", "diffuse", "specular", "depth", "accumulation") + (("segmentation",) if with_seg else ())
+        parts: Dict[str, List[Tensor]] = {k: [] for k in names}
         for y0 in range(0, H, rows):
             h = min(rows, H - y0)
             req = Request(torch.zeros(1, dtype=torch.long), 0, y0, W, h)
             contrib = self._raster(cams, req)
-            cols = self.pair_colours(contrib, cams, gated=gated)
+            cols = self.pair_colours(contrib, cams, gated=gated, segmentation=with_seg)
             rgb = composite(cols["rgb"], contrib, bg)[0]
+            if with_seg:
+                parts["segmentation"].append(composite(cols["segmentation"], contrib)[0])
             diff = composite(cols["diffuse"], contrib, bg)[0]
             parts["rgb"].append(rgb)
             parts["diffuse"].append(diff)
