@@ -131,6 +131,7 @@ Plan make_plan(const torch::Tensor& widths, const torch::Tensor& heights,
   append(units, plan.units_at);
   append(tile_slot, plan.slots_at);
   append(sat, plan.sat_at);
+  if (plan.buf.empty()) plan.buf.assign(4, 0);  // an empty request still uploads something
   return plan;
 }
 
