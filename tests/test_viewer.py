@@ -1,0 +1,153 @@
+"""The viewer panel's actions called directly (no browser): save a view, upload, apply, toggle,
+undo, reset, errors. A tiny trained run on the CPU."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from virgi_ns.camera_json import read_camera_json
+from virgi_ns.viewer import ALL_EDITS, Upload, VirgiPanel, camera_from_spec, camera_spec, capture_frame
+
+from viewer_run import train_tiny
+from virgi_scene import make_scene
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    scene = make_scene(tmp_path_factory.mktemp("viewer_scene"))
+    _, pipeline = train_tiny(scene, steps=20)
+    return scene, pipeline
+
+
+def png(image: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def render(model, cam) -> np.ndarray:
+    return model.get_outputs_for_camera(cam)["rgb"].detach().cpu().numpy()
+
+
+def test_camera_json_round_trip_and_capture_frame(run):
+    """The saved camera sees the capture-frame splat where the model's camera sees the model's."""
+    scene, pipeline = run
+    model = pipeline.model
+    cam = pipeline.datamanager.train_dataset.cameras[2:3]
+    T, s = capture_frame(model)
+    assert s != 1.0 or not torch.allclose(T, torch.eye(4)[:3].double())  # a real transform is exercised
+    spec = camera_spec(cam, T, s)
+    vm = torch.as_tensor(spec.world_to_camera, dtype=torch.float64)
+    K = torch.tensor([[spec.fx, 0, spec.cx], [0, spec.fy, spec.cy], [0, 0, 1]], dtype=torch.float64)
+
+    def project(means, viewmat, K):
+        pc = means.double() @ viewmat[:3, :3].T + viewmat[:3, 3]
+        p = pc @ K.T
+        return p[:, :2] / p[:, 2:3]
+
+    from virgi_ns.nscams import raster_cameras
+
+    rc = raster_cameras(cam)
+    want = project(model.means.detach(), rc.viewmats[0].double(), rc.Ks[0].double())
+    got = project(scene.gaussians.means, vm, K)  # original capture-frame means, saved camera
+    torch.testing.assert_close(got, want, atol=1e-3, rtol=1e-5)
+    back = camera_from_spec(spec, T, s)
+    torch.testing.assert_close(back.camera_to_worlds.double(), cam.camera_to_worlds.double(), atol=1e-5, rtol=1e-5)
+
+
+def test_panel_save_upload_apply_undo(run, tmp_path):
+    scene, pipeline = run
+    model = pipeline.model
+    model.set_edit_stack(None)
+    panel = VirgiPanel(model, run_dir=tmp_path)
+
+    # no saved camera yet: errors land in the status line
+    panel._guard(lambda: panel.upload("view_001.png", png(np.zeros((40, 48, 3)))))
+    assert panel.status_is_error and "no saved camera" in panel.status
+    panel._guard(panel.apply_edit)
+    assert panel.status_is_error and "no saved camera" in panel.status
+
+    cam = pipeline.datamanager.train_dataset.cameras[1:2]
+    view = panel.save_view(cam)
+    assert not panel.status_is_error and view.png.is_file() and view.json.is_file()
+    before = render(model, cam)
+    saved = np.asarray(Image.open(view.png), dtype=np.float32) / 255.0
+    assert saved.shape == before.shape
+    assert np.abs(saved - before).max() <= 0.5 / 255 + 1e-6
+    spec = read_camera_json(view.json)  # virgi-render's reader accepts it
+    assert (spec.width, spec.height) == (48, 40)
+    assert json.loads(view.json.read_text())["frame"] == "capture"
+    assert [n for n, _ in panel.last_download] == ["view_001.png", "view_001.json"]
+    assert panel.last_download[0][1] == view.png.read_bytes()
+
+    # bad uploads: not an image, wrong size; the panel keeps working
+    up = panel.upload_element
+    up.value = Upload("notes.txt", b"hello, not a picture")
+    panel._on_upload(up)
+    assert panel.status_is_error and "not an image" in panel.status and panel.pending is None
+    panel._guard(lambda: panel.upload("view_001.png", png(np.zeros((20, 30, 3)))))
+    assert panel.status_is_error and "30x20" in panel.status and "48x40" in panel.status
+    panel._guard(panel.apply_edit)
+    assert panel.status_is_error and "upload" in panel.status
+
+    # an edit: swap red and green of the saved view (the red sphere turns green)
+    edited = saved[..., [1, 0, 2]].copy()
+    up.value = Upload("view_001 edited.png", png(edited))
+    panel._on_upload(up)
+    assert not panel.status_is_error, panel.status
+    panel.apply_edit(wait=True, steps=120)
+    assert not panel.status_is_error, panel.status
+    assert "edit 1 applied" in panel.status and panel.progress == 0.0
+    stack = model.edit_stack
+    assert len(stack) == 1 and (tmp_path / "edits" / "stack.json").is_file()
+    after = render(model, cam)
+    err_before = np.abs(before - edited).mean()
+    err_after = np.abs(after - edited).mean()
+    assert err_after < 0.5 * err_before, (err_before, err_after)
+    assert [e.name for e in panel._edit_boxes] == ["1: view_001 edited.png (view_001)"]
+    assert panel.selected.options == [ALL_EDITS, "edit 1"]
+    out = model.get_outputs_for_camera(cam)
+    assert out["segmentation"].shape == (40, 48, 1)
+    changed = torch.from_numpy(np.abs(edited - before).max(-1) > 0.1)
+    assert float(out["segmentation"][..., 0][changed].mean()) > 0.2  # the recoloured pixels are selected
+
+    # toggle off: back to the base colours; on again
+    panel.set_enabled(1, False)
+    np.testing.assert_allclose(render(model, cam), before, atol=1e-5)
+    panel.set_enabled(1, True)
+    np.testing.assert_allclose(render(model, cam), after, atol=1e-5)
+
+    # specular strength reaches the stack (and its file)
+    panel.set_specular_strength(0.0)
+    assert stack.specular_strength == 0.0
+    assert json.loads((tmp_path / "edits" / "stack.json").read_text())["specular_strength"] == 0.0
+
+    # the segmentation display needs edits; selecting one edit reaches the model
+    panel.select_edit("edit 1")
+    assert model.segmentation_edit == 1
+
+    # a new panel on the same run finds the saved edit and view
+    model.set_edit_stack(None)
+    other = VirgiPanel(model, run_dir=tmp_path)
+    assert len(other._stack()) == 1 and other._stack().specular_strength == 0.0
+    assert other._view_for("my view_001.png").number == 1
+    np.testing.assert_allclose(other._view_for("view_001.png").camera.camera_to_worlds.numpy(),
+                               cam.camera_to_worlds.numpy(), atol=1e-5)
+    panel = other
+
+    panel.undo()
+    assert len(model.edit_stack) == 0 and model.segmentation_edit is None
+    np.testing.assert_allclose(render(model, cam), before, atol=0.05)  # k is still 0
+    panel._guard(panel.undo)
+    assert panel.status_is_error and "nothing to undo" in panel.status
+    panel.reset()
+    assert model.edit_stack.specular_strength == 1.0
+    np.testing.assert_allclose(render(model, cam), before, atol=1e-5)
+    panel.set_display("segmentation")
+    assert panel.status_is_error and "needs an edit" in panel.status

@@ -1,0 +1,81 @@
+"""A tiny trained VIRGi run for the viewer tests: the procedural capture of :mod:`virgi_scene`,
+imported geometry, a few colour steps on the CPU; optionally saved as a nerfstudio run directory
+(``config.yml`` + ``nerfstudio_models/step-*.ckpt``) that ``ns-viewer --load-config`` opens."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import torch
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.optimizers import Optimizers
+
+from method_configs.virgi import virgi_trainer_config
+from virgi_ns.field import ColorFieldConfig
+
+from virgi_scene import Scene
+
+warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
+
+
+def tiny_config(scene: Scene, steps: int, output_dir: Path | None = None):
+    cfg = virgi_trainer_config("virgi", geometry_steps=0, colour_steps=steps)
+    cfg.max_num_iterations = steps
+    dm = cfg.pipeline.datamanager
+    dm.data = scene.root
+    dm.dataparser = NerfstudioDataParserConfig(data=scene.root, load_3D_points=False, eval_mode="interval",
+                                               eval_interval=8)
+    dm.tile_size = 16
+    dm.pixel_budget = 5 * 256 * 2
+    dm.cache_images = "gpu"  # keeps tensors on the manager's device (the CPU here)
+    m = cfg.pipeline.model
+    m.geometry_from = scene.ply.resolve()
+    m.background_color = "black"
+    m.color_field = ColorFieldConfig(log2_hashmap_size=12, levels=8)
+    m.raster_backend = "reference"
+    cfg.optimizers["field_mlp"]["optimizer"].lr = 5e-3
+    cfg.machine.device_type = "cpu"
+    if output_dir is not None:
+        cfg.output_dir = output_dir
+        cfg.experiment_name = "tiny"
+        cfg.timestamp = "run"
+        cfg.relative_model_dir = Path("nerfstudio_models")
+    return cfg
+
+
+def train_tiny(scene: Scene, steps: int = 30, output_dir: Path | None = None, seed: int = 0):
+    """(config, pipeline) after ``steps`` colour steps; with ``output_dir`` the run is saved too."""
+    torch.manual_seed(seed)
+    cfg = tiny_config(scene, steps, output_dir)
+    pipeline = cfg.pipeline.setup(device="cpu", test_mode="val")
+    pipeline.train()
+    optimizers = Optimizers(cfg.optimizers, pipeline.get_param_groups())
+
+    class FakeTrainer:  # what the model reads from nerfstudio's Trainer
+        config = cfg
+
+    cbs = pipeline.get_training_callbacks(TrainingCallbackAttributes(optimizers, None, pipeline, FakeTrainer()))
+    for step in range(steps):
+        for cb in cbs:
+            cb.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+        optimizers.zero_grad_all()
+        _, loss_dict, _ = pipeline.get_train_loss_dict(step)
+        sum(loss_dict.values()).backward()
+        optimizers.optimizer_step_all()
+        optimizers.scheduler_step_all(step)
+        for cb in cbs:
+            cb.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+    pipeline.eval()
+    if output_dir is not None:
+        base = cfg.get_base_dir()
+        base.mkdir(parents=True, exist_ok=True)
+        cfg.save_config()
+        ckpt_dir = cfg.get_checkpoint_dir()
+        ckpt_dir.mkdir(parents=True, exist_ok=True)
+        torch.save({"step": steps - 1, "pipeline": pipeline.state_dict(),
+                    "optimizers": {k: v.state_dict() for k, v in optimizers.optimizers.items()},
+                    "schedulers": {k: v.state_dict() for k, v in optimizers.schedulers.items()},
+                    "scalers": {}}, ckpt_dir / f"step-{steps - 1:09d}.ckpt")
+    return cfg, pipeline
