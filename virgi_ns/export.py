@@ -1,0 +1,349 @@
+"""Bake a VIRGi model into a plain 3DGS scene: SH degree 3 per Gaussian, in the capture's frame.
+
+The colour field gives every Gaussian a colour per view direction ``d`` (camera centre to the
+Gaussian's mean, as the model renders it)::
+
+    C(d) = sigmoid(c_d'' + k c_s(d))
+
+with ``c_d''`` the diffuse colour through the enabled edits of an :class:`EditStack` and ``k`` the
+specular strength. :func:`bake` samples ``C`` per Gaussian over a set of directions (the
+directions from which the training cameras see it, weighted by whether it is in their view, plus a
+Fibonacci sphere with a small weight so the fit stays sane everywhere) and fits SH coefficients by
+weighted least squares in the 3DGS convention, ``C(d) ~ SH(d) . coeffs + 0.5`` with
+:func:`virgi_ns.sh.sh_basis` (what ``virgi-render`` and other 3DGS viewers evaluate). Gaussians
+whose colour does not depend on the direction (below the model's specular gate, every Gaussian
+when ``k = 0``) get their exact colour in the DC coefficient alone, as the model renders them.
+
+Geometry is moved back into the capture's original frame with :class:`CaptureFrame`, the inverse
+of the frame change an imported splat goes through (:func:`virgi_ns.nscams.transform_gaussians`):
+the dataparser's ``x -> scale (R x + t)``, preceded for COLMAP captures by the COLMAP parser's
+world-axis swap. View directions are rotated the same way before the SH basis is evaluated, so the
+exported colours are those the model shows from the same physical camera.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from virgi_ns.errors import InputError
+from virgi_ns.gaussians import SH_C0, Gaussians
+from virgi_ns.nscams import COLMAP_TO_NS_WORLD, transform_gaussians
+from virgi_ns.raster import Cameras
+from virgi_ns.sh import sh_basis
+
+__all__ = ["BakeConfig", "CaptureFrame", "bake", "fibonacci_sphere", "fit_sh", "export_model"]
+
+SH_DEGREE = 3
+
+
+# ------------------------------------------------------------------------------------ frame
+@dataclass
+class CaptureFrame:
+    """The run's frame relative to the capture's: ``x_run = scale * (R x_capture + t)``
+    (``transform`` = [R | t], 3x4, R a rotation)."""
+
+    transform: Float[Tensor, "3 4"]
+    scale: float
+
+    @staticmethod
+    def identity() -> "CaptureFrame":
+        return CaptureFrame(torch.cat([torch.eye(3), torch.zeros(3, 1)], dim=1).double(), 1.0)
+
+    @staticmethod
+    def from_dataparser(transform: Tensor, scale: float, colmap_world: bool = False) -> "CaptureFrame":
+        """From a dataparser's ``transform`` (3x4 or 4x4) and ``scale``; ``colmap_world`` adds the
+        COLMAP parser's world-axis swap (applied to the capture before the transform)."""
+        T = torch.as_tensor(transform, dtype=torch.float64)[:3, :4]
+        R = COLMAP_TO_NS_WORLD.double() if colmap_world else torch.eye(3, dtype=torch.float64)
+        return CaptureFrame(torch.cat([T[:, :3] @ R, T[:, 3:4]], dim=1), float(scale))
+
+    @staticmethod
+    def from_transforms_json(path: str | Path, colmap_world: bool = False) -> "CaptureFrame":
+        """From a run's ``dataparser_transforms.json`` (``transform``, ``scale``)."""
+        path = Path(path)
+        try:
+            d = json.loads(path.read_text())
+            T = torch.tensor(d["transform"], dtype=torch.float64)
+            s = float(d["scale"])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise InputError(f"{path}: not a readable dataparser_transforms.json ({type(e).__name__})") from None
+        if T.shape not in ((3, 4), (4, 4)) or not torch.isfinite(T).all() or not (s > 0 and math.isfinite(s)):
+            raise InputError(f"{path}: transform must be 3x4 and scale a positive number")
+        return CaptureFrame.from_dataparser(T, s, colmap_world)
+
+    @staticmethod
+    def from_pipeline(pipeline) -> "CaptureFrame":
+        """The frame a VIRGi datamanager recorded for imports (``virgi_capture_transform``), or
+        else its dataparser's transform (with the COLMAP swap for the COLMAP parser)."""
+        dm = pipeline.datamanager
+        meta = getattr(getattr(dm, "train_dataset", None), "metadata", None) or {}
+        if meta.get("virgi_capture_transform") is not None:
+            return CaptureFrame(torch.as_tensor(meta["virgi_capture_transform"], dtype=torch.float64)[:3, :4],
+                                float(meta.get("virgi_capture_scale", 1.0)))
+        out = dm.train_dataparser_outputs
+        return CaptureFrame.from_dataparser(out.dataparser_transform, float(out.dataparser_scale),
+                                            uses_colmap_world(dm.config.dataparser))
+
+    # ---- maps run -> capture
+    @property
+    def rotation(self) -> Tensor:
+        """R of ``x_run = scale (R x + t)`` (float64)."""
+        return self.transform[:, :3].double()
+
+    def inverse_transform(self) -> tuple[Tensor, float]:
+        """([R' | t'], scale') with ``x_capture = scale' (R' x_run + t')``."""
+        R = self.rotation
+        t = self.transform[:, 3].double()
+        Rt = R.T
+        return torch.cat([Rt, (-self.scale * (Rt @ t))[:, None]], dim=1), 1.0 / self.scale
+
+    def points_to_capture(self, x: Tensor) -> Tensor:
+        T, s = self.inverse_transform()
+        return (s * (x.double() @ T[:, :3].T + T[:, 3])).to(x.dtype)
+
+    def directions_to_capture(self, d: Tensor) -> Tensor:
+        """Directions (any length) of the run's frame in the capture's (rotation only)."""
+        return d @ self.rotation.to(d)
+
+    def directions_to_run(self, d: Tensor) -> Tensor:
+        return d @ self.rotation.T.to(d)
+
+    def gaussians_to_capture(self, means: Tensor, log_scales: Tensor, quats: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Means, log-scales, wxyz quaternions of the run's frame in the capture's (float64 inside)."""
+        T, s = self.inverse_transform()
+        m, sc, q = transform_gaussians(means.double(), log_scales.double(), quats.double(), T, s)
+        return m.to(means.dtype), sc.to(log_scales.dtype), q.to(quats.dtype)
+
+    def viewmats_to_capture(self, viewmats: Tensor) -> Tensor:
+        """OpenCV world-to-camera [V,4,4] of the run's frame -> the same cameras in the capture's
+        frame (``p_cam`` divided by ``scale``, which no pinhole projection sees)."""
+        R = self.rotation.to(viewmats)
+        t = self.transform[:, 3].to(viewmats)
+        out = viewmats.clone()
+        out[:, :3, :3] = viewmats[:, :3, :3] @ R
+        out[:, :3, 3] = (viewmats[:, :3, :3] @ t) + viewmats[:, :3, 3] / self.scale
+        return out
+
+
+def uses_colmap_world(dataparser_config) -> bool:
+    """True for nerfstudio's COLMAP parser with its (default) world-axis swap."""
+    from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
+
+    return isinstance(dataparser_config, ColmapDataParserConfig) and bool(
+        getattr(dataparser_config, "assume_colmap_world_coordinate_convention", True))
+
+
+# ----------------------------------------------------------------------------- directions
+def fibonacci_sphere(n: int, dtype=torch.float32, device=None) -> Float[Tensor, "n 3"]:
+    """``n`` nearly uniform unit vectors (a Fibonacci lattice)."""
+    i = torch.arange(n, dtype=torch.float64, device=device) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = torch.sqrt((1.0 - z * z).clamp_min(0.0))
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    return torch.stack([r * torch.cos(phi), r * torch.sin(phi), z], dim=-1).to(dtype)
+
+
+@dataclass
+class BakeConfig:
+    """How colours are sampled and fitted."""
+
+    directions: int = 128
+    """Fibonacci-sphere directions per Gaussian (shared by all)."""
+    max_cameras: int = 64
+    """Training-camera directions per Gaussian (evenly strided when there are more cameras)."""
+    unseen_weight: float = 0.05
+    """Weight of a camera direction whose camera does not see the Gaussian (behind or outside)."""
+    sphere_floor: float = 0.01
+    """Weight of a sphere direction far from every camera direction."""
+    kernel: float = 0.03
+    """A sphere direction at angle a from a camera direction of weight w gets weight
+    ``w exp((cos a - 1) / kernel)`` (largest over the cameras), so the fit follows the model
+    closely around and between the views it was trained on (0.03: 1/e at about 14 degrees)."""
+    ridge: float = 1e-4
+    """Ridge on the non-DC coefficients, relative to each Gaussian's total weight."""
+    use_gate: bool = True
+    """Give Gaussians below the model's specular gate their exact (view-independent) colour in
+    the DC term, as the model renders them."""
+    pairs_per_chunk: int = 0
+    """(Gaussian, direction) pairs evaluated at once; 0: 4M on a GPU, 512k on a CPU."""
+
+
+def fit_sh(dirs: Float[Tensor, "N P 3"], colours: Float[Tensor, "N P 3"], weights: Float[Tensor, "N P"],
+           degree: int = SH_DEGREE, ridge: float = 1e-4) -> Float[Tensor, "N K 3"]:
+    """Weighted least-squares SH coefficients per row: ``min sum_p w_p |B(d_p) c + 0.5 - C_p|^2 +
+    ridge * sum_p w_p * |c_{k>0}|^2``, with ``B`` :func:`virgi_ns.sh.sh_basis` (3DGS signs)."""
+    B = sh_basis(degree, torch.nn.functional.normalize(dirs, dim=-1))  # [N,P,K]
+    Bw = B * weights[..., None]
+    A = Bw.transpose(1, 2) @ B  # [N,K,K]
+    rhs = Bw.transpose(1, 2) @ (colours - 0.5)  # [N,K,3]
+    k = B.shape[-1]
+    reg = torch.full((k,), ridge, dtype=A.dtype, device=A.device)
+    reg[0] = ridge * 1e-3
+    A = A + torch.diag_embed(weights.sum(1, keepdim=True).clamp_min(1e-12) * reg)
+    L, info = torch.linalg.cholesky_ex(A)
+    if bool((info != 0).any()):  # degenerate rows (no weight at all): fall back to a solve with more ridge
+        bad = info != 0
+        A[bad] = A[bad] + torch.eye(k, dtype=A.dtype, device=A.device)
+        L[bad] = torch.linalg.cholesky(A[bad])
+    return torch.cholesky_solve(rhs, L)
+
+
+def _camera_weights(means: Tensor, cams: Cameras, unseen: float) -> Tensor:
+    """[N,V]: 1 where camera v sees mean n inside its image (in front of it), else ``unseen``."""
+    R = cams.viewmats[:, :3, :3].to(means)
+    t = cams.viewmats[:, :3, 3].to(means)
+    pc = torch.einsum("vij,nj->nvi", R, means) + t[None]
+    z = pc[..., 2]
+    K = cams.Ks.to(means)
+    u = K[None, :, 0, 0] * pc[..., 0] / z.clamp_min(1e-9) + K[None, :, 0, 2]
+    v = K[None, :, 1, 1] * pc[..., 1] / z.clamp_min(1e-9) + K[None, :, 1, 2]
+    W = cams.widths.to(means.device, means.dtype)[None]
+    H = cams.heights.to(means.device, means.dtype)[None]
+    seen = (z > 1e-6) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    return torch.where(seen, torch.ones_like(z), torch.full_like(z, unseen))
+
+
+# -------------------------------------------------------------------------------- baking
+@torch.no_grad()
+def bake(
+    model,
+    stack=None,
+    specular_strength: Optional[float] = None,
+    frame: Optional[CaptureFrame] = None,
+    cameras: Optional[Cameras] = None,
+    cfg: Optional[BakeConfig] = None,
+    progress: Optional[Callable[[int, int], None]] = None,
+) -> Gaussians:
+    """The model's Gaussians with baked SH degree 3 colours, in ``frame``'s capture frame.
+
+    ``model``: a :class:`virgi_ns.model.VirgiModel` (frozen ``means/scales/quats/opacities`` and a
+    ``field``). ``stack``: an :class:`~virgi_ns.edit_stack.EditStack` whose enabled edits recolour
+    the diffuse term (None: the base colours). ``specular_strength``: ``k`` (default: the stack's,
+    else 1). ``cameras``: the training cameras in the run's frame (rasterizer :class:`Cameras`),
+    whose directions are sampled; without them only the sphere is. ``progress(done, total)`` is
+    called per chunk of Gaussians.
+    """
+    cfg = cfg or BakeConfig()
+    frame = frame or CaptureFrame.identity()
+    k = float(specular_strength if specular_strength is not None
+              else (stack.specular_strength if stack is not None else 1.0))
+    if not (k >= 0.0 and math.isfinite(k)):
+        raise InputError(f"specular strength must be a finite number >= 0, got {k}")
+    active = stack is not None and len(stack.active) > 0
+    fld = model.field
+    means = model.means.detach()
+    dev = means.device
+    n = means.shape[0]
+    if active:
+        stack.to(dev)
+    K = (SH_DEGREE + 1) ** 2
+    sh = torch.zeros(n, K, 3, device=dev, dtype=torch.float32)
+
+    # which Gaussians need a view-dependent fit
+    if not fld.decoupled:
+        varying = torch.ones(n, dtype=torch.bool, device=dev)
+    elif k == 0.0:
+        varying = torch.zeros(n, dtype=torch.bool, device=dev)
+    elif cfg.use_gate and model.gate_ready():
+        varying = model.spec_gate.to(dev)
+    else:
+        varying = torch.ones(n, dtype=torch.bool, device=dev)
+
+    sphere_cap = fibonacci_sphere(max(cfg.directions, 0), device=dev)
+    sphere_run = frame.directions_to_run(sphere_cap.double()).float()
+    cams = None
+    if cameras is not None and len(cameras) > 0:
+        sel = torch.linspace(0, len(cameras) - 1, min(cfg.max_cameras, len(cameras))).round().long().unique()
+        cams = cameras.index(sel).to(dev, torch.float32)
+    P = (len(cams) if cams is not None else 0) + sphere_cap.shape[0]
+    if P == 0:
+        varying.zero_()
+    budget = cfg.pairs_per_chunk or ((4 << 20) if dev.type == "cuda" else (512 << 10))
+    chunk = max(1, budget // max(P, 1))
+    fixed_chunk = 1 << 16
+    total = n
+    done = 0
+
+    # view-independent Gaussians: exact colour in the DC term
+    fixed = (~varying).nonzero().flatten()
+    for s in range(0, fixed.numel(), fixed_chunk):
+        idx = fixed[s : s + fixed_chunk]
+        f = fld.encode(means[idx])
+        _, h2 = fld.diffuse_hidden(f)
+        c_d = fld.diffuse(h2)
+        if active:
+            c_d = stack.diffuse(f, h2, c_d)
+        sh[idx, 0] = ((torch.sigmoid(c_d) - 0.5) / SH_C0).float()
+        done += idx.numel()
+        if progress is not None:
+            progress(done, total)
+
+    vary = varying.nonzero().flatten()
+    centres = cams.camera_centers().to(means.dtype) if cams is not None else None
+    for s in range(0, vary.numel(), chunk):
+        idx = vary[s : s + chunk]
+        m = means[idx]
+        b = idx.numel()
+        parts, wparts = [], []
+        if cams is not None:
+            parts.append(torch.nn.functional.normalize(m[:, None, :] - centres[None], dim=-1))
+            w_cam = _camera_weights(m, cams, cfg.unseen_weight)
+            wparts.append(w_cam)
+        if sphere_cap.shape[0]:
+            sph = sphere_run[None].expand(b, -1, -1).to(m.dtype)
+            parts.append(sph)
+            w_s = torch.full((b, sph.shape[1]), cfg.sphere_floor if cams is not None else 1.0, device=dev)
+            if cams is not None:
+                cos = sph @ parts[0].transpose(1, 2)  # [b,S,V]
+                near = (torch.exp((cos - 1.0) / max(cfg.kernel, 1e-6)) * w_cam[:, None, :]).amax(-1)
+                w_s = torch.maximum(w_s, near.to(w_s))
+            wparts.append(w_s)
+        d_run = torch.cat(parts, dim=1)  # [b,P,3]
+        w = torch.cat(wparts, dim=1)
+        flat = d_run.reshape(-1, 3)
+        f = fld.encode(m)
+        rep = torch.arange(b, device=dev).repeat_interleave(P)
+        if fld.decoupled:
+            h1, h2 = fld.diffuse_hidden(f)
+            c_d = fld.diffuse(h2)
+            if active:
+                c_d = stack.diffuse(f, h2, c_d)
+            c_s = fld.specular(f[rep], flat, h1[rep], h2[rep])
+            colour = torch.sigmoid(c_d[rep] + k * c_s)
+        else:  # the single view-dependent MLP: its hidden layers read the direction
+            h1, h2 = fld.diffuse_hidden(f[rep], flat)
+            c = fld.diffuse(h2)
+            if active:
+                c = stack.diffuse(f[rep], h2, c)
+            colour = torch.sigmoid(c)
+        d_cap = frame.directions_to_capture(d_run.double()).float()
+        sh[idx] = fit_sh(d_cap, colour.reshape(b, P, 3).float(), w.float(), SH_DEGREE, cfg.ridge)
+        done += b
+        if progress is not None:
+            progress(done, total)
+
+    m_cap, s_cap, q_cap = frame.gaussians_to_capture(means.float(), model.scales.detach().float(),
+                                                     model.quats.detach().float())
+    return Gaussians(m_cap.contiguous(), s_cap.contiguous(), q_cap.contiguous(),
+                     model.opacities.detach().float().reshape(-1).clone(), sh)
+
+
+def export_model(pipeline, stack=None, specular_strength: Optional[float] = None,
+                 frame: Optional[CaptureFrame] = None, cfg: Optional[BakeConfig] = None,
+                 progress: Optional[Callable[[int, int], None]] = None) -> Gaussians:
+    """:func:`bake` a pipeline's model with its training cameras' directions, in the capture's
+    frame (``frame`` defaults to :meth:`CaptureFrame.from_pipeline`)."""
+    from virgi_ns.nscams import raster_cameras
+
+    frame = frame or CaptureFrame.from_pipeline(pipeline)
+    dm = pipeline.datamanager
+    cams = raster_cameras(dm.train_dataset.cameras) if getattr(dm, "train_dataset", None) is not None else None
+    return bake(pipeline.model, stack, specular_strength, frame, cams, cfg, progress)
