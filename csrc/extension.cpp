@@ -242,24 +242,22 @@ std::vector<torch::Tensor> rasterize_contributions(
   auto px_count = torch::zeros({P}, i32);
   VIRGI_CUDA_CHECK(launch_raster(false, plan.num_units, d_units, d_items, d_views, iw, ih, ranges.data_ptr<int>(),
                 sorted_vals.data_ptr<int>(), r0, r1, px_count.data_ptr<int>(),
-                transmittance.data_ptr<float>(), nullptr, nullptr, nullptr, nullptr, nullptr,
-                stream));
+                transmittance.data_ptr<float>(), nullptr, nullptr, nullptr, stream));
   auto offsets = torch::zeros({P + 1}, i64);
   if (P > 0) offsets.narrow(0, 1, P).copy_(torch::cumsum(px_count, 0, torch::kInt64));
   const int64_t M = P > 0 ? offsets[P].item<int64_t>() : 0;
 
-  // Pass 2: the entries, grouped by pixel in compositing order.
-  auto pixel = torch::empty({M}, i32);
-  auto pair = torch::empty({M}, i32);
-  auto weight = torch::empty({M}, f32);
+  // Pass 2: the entries, grouped by pixel in compositing order, as packed (flat id, weight).
+  auto packed = torch::empty({M, 2}, i32);
   auto mark = torch::zeros({std::max<int64_t>(VN, 1)}, f32.dtype(torch::kUInt8));
-  VIRGI_CUDA_CHECK(launch_raster(true, plan.num_units, d_units, d_items, d_views, iw, ih, ranges.data_ptr<int>(),
-                sorted_vals.data_ptr<int>(), r0, r1, nullptr, nullptr, offsets.data_ptr<int64_t>(),
-                pixel.data_ptr<int>(), pair.data_ptr<int>(), weight.data_ptr<float>(),
-                mark.data_ptr<uint8_t>(), stream));
+  VIRGI_CUDA_CHECK(launch_raster(true, plan.num_units, d_units, d_items, d_views, iw, ih,
+                                 ranges.data_ptr<int>(), sorted_vals.data_ptr<int>(), r0, r1,
+                                 nullptr, nullptr, offsets.data_ptr<int64_t>(),
+                                 reinterpret_cast<int2*>(packed.data_ptr<int>()),
+                                 mark.data_ptr<uint8_t>(), stream));
 
   // Distinct (view, Gaussian) pairs, ascending in view * N + gaussian (the rows are ascending
-  // in view), and each entry's pair rank.
+  // in view), each entry's pair rank and weight, and each entry's pixel.
   int64_t U = 0;
   torch::Tensor rank;
   if (M > 0) {
@@ -269,11 +267,18 @@ std::vector<torch::Tensor> rasterize_contributions(
   auto pair_view = torch::empty({U}, i64);
   auto pair_gaussian = torch::empty({U}, i64);
   auto pair_depth = torch::empty({U}, f32);
+  auto pixel = torch::empty({M}, i32);
+  auto pair = torch::empty({M}, i32);
+  auto weight = torch::empty({M}, f32);
   if (M > 0) {
-    VIRGI_CUDA_CHECK(launch_pairs(VN, mark.data_ptr<uint8_t>(), rank.data_ptr<int>(), N, d_views, r0,
-                 pair_view.data_ptr<int64_t>(), pair_gaussian.data_ptr<int64_t>(),
-                 pair_depth.data_ptr<float>(), stream));
-    VIRGI_CUDA_CHECK(launch_remap(M, rank.data_ptr<int>(), pair.data_ptr<int>(), stream));
+    VIRGI_CUDA_CHECK(launch_pairs(VN, mark.data_ptr<uint8_t>(), rank.data_ptr<int>(), N, d_views,
+                                  r0, pair_view.data_ptr<int64_t>(),
+                                  pair_gaussian.data_ptr<int64_t>(), pair_depth.data_ptr<float>(),
+                                  stream));
+    VIRGI_CUDA_CHECK(launch_split(M, reinterpret_cast<const int2*>(packed.data_ptr<int>()),
+                                  rank.data_ptr<int>(), pair.data_ptr<int>(),
+                                  weight.data_ptr<float>(), stream));
+    VIRGI_CUDA_CHECK(launch_pixel_fill(P, offsets.data_ptr<int64_t>(), pixel.data_ptr<int>(), stream));
   }
   // (The pinned host buffer's allocator waits on the upload's event before reusing it.)
   return {pixel, pair, weight, transmittance, valid, offsets, pair_view, pair_gaussian, pair_depth};

@@ -41,12 +41,13 @@ cudaError_t launch_raster(bool fill, int num_units, const int* units, const int*
                           const int* views, int item_w, int item_h, const int* ranges,
                           const int* sorted_vals, const float4* rec0, const float4* rec1,
                           int* px_count, float* px_trans, const int64_t* px_offsets,
-                          int* out_pixel, int* out_flat, float* out_weight, uint8_t* mark,
-                          cudaStream_t stream);
+                          int2* out_entry, uint8_t* mark, cudaStream_t stream);
 cudaError_t launch_pairs(int64_t n, const uint8_t* mark, const int* rank_incl, int N,
                          const int* views, const float4* rec0, int64_t* pair_view,
                          int64_t* pair_gaussian, float* pair_depth, cudaStream_t stream);
-cudaError_t launch_remap(int64_t M, const int* rank_incl, int* ids, cudaStream_t stream);
+cudaError_t launch_split(int64_t M, const int2* entry, const int* rank_incl, int* pair,
+                         float* weight, cudaStream_t stream);
+cudaError_t launch_pixel_fill(int64_t P, const int64_t* offsets, int* pixel, cudaStream_t stream);
 
 // images[P, D] = sum over each pixel's entries of weight * colors[pair] (+ T * background).
 cudaError_t launch_composite_forward(int64_t P, int D, const float* colors, const int* pair,

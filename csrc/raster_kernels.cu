@@ -216,11 +216,11 @@ __global__ void __launch_bounds__(kTile* kTile)
                   const int* __restrict__ ranges, const int* __restrict__ sorted_vals,
                   const float4* __restrict__ rec0, const float4* __restrict__ rec1,
                   int* __restrict__ px_count, float* __restrict__ px_trans,
-                  const int64_t* __restrict__ px_offsets, int* __restrict__ out_pixel,
-                  int* __restrict__ out_flat, float* __restrict__ out_weight,
+                  const int64_t* __restrict__ px_offsets, int2* __restrict__ out_entry,
                   uint8_t* __restrict__ mark) {
   constexpr int B = kTile * kTile;
   __shared__ int s_id[B];
+  __shared__ int s_used[B];
   __shared__ float4 s_r0[B];
   __shared__ float4 s_r1[B];
 
@@ -255,14 +255,20 @@ __global__ void __launch_bounds__(kTile* kTile)
   float T = 1.f;
   int k = 0;
 
+  // FILL: a Gaussian used by any pixel of the batch is marked once per block (s_used), after
+  // the batch, by the thread that loaded it.
+  bool loaded = false;
   for (int b0 = start; b0 < end; b0 += B) {
     if (__syncthreads_count(done) == B) break;
+    if (FILL && loaded && s_used[tid]) mark[s_id[tid]] = 1;
     const int j = b0 + tid;
-    if (j < end) {
+    loaded = j < end;
+    if (loaded) {
       const int f = sorted_vals[j];
       s_id[tid] = f;
       s_r0[tid] = rec0[f];
       s_r1[tid] = rec1[f];
+      if (FILL) s_used[tid] = 0;
     }
     __syncthreads();
     const int nb = min(B, end - b0);
@@ -280,17 +286,18 @@ __global__ void __launch_bounds__(kTile* kTile)
         break;
       }
       if (FILL) {
-        const int64_t e = base + k;
-        const int f = s_id[t];
-        out_pixel[e] = static_cast<int>(p);
-        out_flat[e] = f;
-        out_weight[e] = alpha * T;
-        mark[f] = 1;
+        // one 8-byte store per entry; split into the pair / weight arrays by split_kernel
+        out_entry[base + k] = make_int2(s_id[t], __float_as_int(alpha * T));
+        s_used[t] = 1;
         if (k + 1 == n_out) done = true;
       }
       ++k;
       T = next_T;
     }
+  }
+  if (FILL) {
+    __syncthreads();
+    if (loaded && s_used[tid]) mark[s_id[tid]] = 1;
   }
   if (!FILL && inside) {
     px_count[p] = k;
@@ -313,10 +320,39 @@ __global__ void pairs_kernel(int64_t n, const uint8_t* __restrict__ mark,
   pair_depth[r] = rec0[i].z;
 }
 
-__global__ void remap_kernel(int64_t M, const int* __restrict__ rank_incl, int* __restrict__ ids) {
+// Packed (flat id, weight bits) entries -> pair rank and weight arrays (coalesced).
+__global__ void split_kernel(int64_t M, const int2* __restrict__ entry,
+                             const int* __restrict__ rank_incl, int* __restrict__ pair,
+                             float* __restrict__ weight) {
   const int64_t e = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (e >= M) return;
-  ids[e] = rank_incl[ids[e]] - 1;
+  const int2 v = entry[e];
+  pair[e] = rank_incl[v.x] - 1;
+  weight[e] = __int_as_float(v.y);
+}
+
+// pixel[e] for every entry: a warp owns 32 consecutive pixels, whose entries are one contiguous
+// range; each lane finds its entry's pixel among the 32 offsets by a shuffle binary search, so
+// the stores are coalesced.
+__global__ void pixel_fill_kernel(int64_t P, const int64_t* __restrict__ offsets,
+                                  int* __restrict__ pixel) {
+  const int64_t p = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  const int lane = threadIdx.x & 31;
+  const int64_t p0 = p - lane;
+  if (p0 >= P) return;  // whole warp out of range (P rounds the grid up by < one block)
+  const int64_t my_off = offsets[p < P ? p : P];
+  const int64_t start = __shfl_sync(0xffffffffu, my_off, 0);
+  const int64_t end = offsets[p0 + 32 < P ? p0 + 32 : P];
+  for (int64_t b = start; b < end; b += 32) {
+    const int64_t e = b + lane;
+    int lo = 0;
+#pragma unroll
+    for (int step = 16; step > 0; step >>= 1) {
+      const int64_t o = __shfl_sync(0xffffffffu, my_off, lo + step);
+      if (o <= e) lo += step;
+    }
+    if (e < end) pixel[e] = static_cast<int>(p0 + lo);
+  }
 }
 
 inline unsigned blocks_for(int64_t n) { return static_cast<unsigned>((n + kThreads - 1) / kThreads); }
@@ -369,17 +405,16 @@ cudaError_t launch_raster(bool fill, int num_units, const int* units, const int*
                           const int* views, int item_w, int item_h, const int* ranges,
                           const int* sorted_vals, const float4* rec0, const float4* rec1,
                           int* px_count, float* px_trans, const int64_t* px_offsets,
-                          int* out_pixel, int* out_flat, float* out_weight, uint8_t* mark,
-                          cudaStream_t stream) {
+                          int2* out_entry, uint8_t* mark, cudaStream_t stream) {
   if (num_units == 0) return cudaSuccess;
   if (fill) {
     raster_kernel<true><<<num_units, kTile * kTile, 0, stream>>>(
         units, items, views, item_w, item_h, ranges, sorted_vals, rec0, rec1, px_count, px_trans,
-        px_offsets, out_pixel, out_flat, out_weight, mark);
+        px_offsets, out_entry, mark);
   } else {
     raster_kernel<false><<<num_units, kTile * kTile, 0, stream>>>(
         units, items, views, item_w, item_h, ranges, sorted_vals, rec0, rec1, px_count, px_trans,
-        px_offsets, out_pixel, out_flat, out_weight, mark);
+        px_offsets, out_entry, mark);
   }
   return cudaGetLastError();
 }
@@ -393,9 +428,16 @@ cudaError_t launch_pairs(int64_t n, const uint8_t* mark, const int* rank_incl, i
   return cudaGetLastError();
 }
 
-cudaError_t launch_remap(int64_t M, const int* rank_incl, int* ids, cudaStream_t stream) {
+cudaError_t launch_split(int64_t M, const int2* entry, const int* rank_incl, int* pair,
+                         float* weight, cudaStream_t stream) {
   if (M == 0) return cudaSuccess;
-  remap_kernel<<<blocks_for(M), kThreads, 0, stream>>>(M, rank_incl, ids);
+  split_kernel<<<blocks_for(M), kThreads, 0, stream>>>(M, entry, rank_incl, pair, weight);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_pixel_fill(int64_t P, const int64_t* offsets, int* pixel, cudaStream_t stream) {
+  if (P == 0) return cudaSuccess;
+  pixel_fill_kernel<<<blocks_for(P), kThreads, 0, stream>>>(P, offsets, pixel);
   return cudaGetLastError();
 }
 

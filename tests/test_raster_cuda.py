@@ -26,7 +26,9 @@ from virgi_ns.raster.contract import Cameras, Request, composite
 REPO = Path(__file__).resolve().parents[1]
 CSRC = REPO / "csrc"
 IMG_TOL = 1e-5
-W_TOL = 2e-6
+# Weights are products of up to hundreds of rounded factors: equal to float32 rounding means a
+# relative error of a few 1e-6 (the reference on the GPU builds T with a parallel cumprod).
+W_RTOL, W_ATOL = 2e-5, 1e-6
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -53,9 +55,11 @@ def assert_same_contributions(cu, ref):
     e_ref, w_ref = _canonical(ref)
     assert e_cu.shape == e_ref.shape, f"{len(e_cu)} entries vs the reference's {len(e_ref)}"
     assert torch.equal(e_cu, e_ref)
-    assert (w_cu - w_ref).abs().max() <= W_TOL if len(w_cu) else True
-    t_err = (cu.transmittance.cpu().double() - ref.transmittance.detach().cpu().double()).abs().max()
-    assert t_err <= W_TOL
+    if len(w_cu):
+        err = ((w_cu - w_ref).abs() - W_RTOL * w_ref.abs()).max()
+        assert err <= W_ATOL, f"weights differ by {float((w_cu - w_ref).abs().max()):.3g}"
+    t_cu, t_ref = cu.transmittance.cpu().double(), ref.transmittance.detach().cpu().double()
+    assert ((t_cu - t_ref).abs() - W_RTOL * t_ref.abs()).max() <= W_ATOL
     # contract order: grouped by pixel ascending, front to back inside a pixel
     pix = cu.pixel.long().cpu()
     assert torch.all(pix[1:] >= pix[:-1])
@@ -114,13 +118,13 @@ def test_cuda_matches_reference(name, kind):
     scene = SCENES[name]()
     req = _request(kind, cams)
     cu, ref = _run_both(scene, cams, req)
-    assert_same_contributions(cu, ref)
-    if name in ("random", "pile", "large") and kind == "whole":
-        assert ref.weight.numel() > 100  # the comparison is not vacuous
     dev = torch.device("cuda")
     colors = torch.rand(2, scene[0].shape[0], 3, device=dev, generator=torch.Generator(dev).manual_seed(1))
     bg = torch.tensor([0.2, 0.5, 0.9], device=dev)
     assert (_images(cu, colors, bg) - _images(ref, colors, bg)).abs().max() <= IMG_TOL
+    assert_same_contributions(cu, ref)
+    if name in ("random", "pile", "large") and kind == "whole":
+        assert ref.weight.numel() > 100  # the comparison is not vacuous
 
 
 @pytest.mark.gpu
@@ -131,6 +135,9 @@ def test_cuda_matches_reference_larger_scene(seed):
     cams = make_cams(173, 98, views=3, f=120.0)
     scene = random_scene(4000, seed=seed, spread=1.0, scale=(0.005, 0.08))
     cu, ref = _run_both(scene, cams, Request.whole_images(cams))
+    dev = torch.device("cuda")
+    colors = torch.rand(3, 4000, 3, device=dev, generator=torch.Generator(dev).manual_seed(seed))
+    assert (_images(cu, colors, None) - _images(ref, colors, None)).abs().max() <= IMG_TOL
     assert_same_contributions(cu, ref)
     assert ref.weight.numel() > 10_000
     views = torch.randint(0, 3, (40,), generator=g)
@@ -140,8 +147,6 @@ def test_cuda_matches_reference_larger_scene(seed):
     cu_t, ref_t = _run_both(scene, cams, req)
     assert_same_contributions(cu_t, ref_t)
     # a tile equals the same pixels cut from the whole images
-    dev = torch.device("cuda")
-    colors = torch.rand(3, 4000, 3, device=dev, generator=torch.Generator(dev).manual_seed(seed))
     whole = _images(cu, colors, None).cpu()
     tiles = _images(cu_t, colors, None).cpu().reshape(-1, 3)
     pv, px, py = req.pixel_coords()
