@@ -1,0 +1,295 @@
+"""The edit engine and the edit stack on a tiny procedural scene with known albedo (CPU)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import edit_scene as es  # noqa: E402
+
+from virgi_ns.edit import EditConfig, EditEngine, _pixel_batches, _SparseRender, render_view  # noqa: E402
+from virgi_ns.edit_stack import Edit, EditStack  # noqa: E402
+from virgi_ns.errors import InputError  # noqa: E402
+from virgi_ns.raster import Request, composite  # noqa: E402
+from virgi_ns.recolor import RecolorRule, recolor  # noqa: E402
+
+BLUE_TO_RED = RecolorRule(h0=190, h1=260, shift=135, s_min=0.3, v_min=0.1)
+EDIT_VIEW, HELD_OUT = 0, (1, 7)
+
+
+@pytest.fixture(scope="module")
+def world():
+    """The scene, every view's contributions, unedited renders, and one fitted blue -> red edit."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny tensors: threads only add contention on a shared machine
+    try:
+        S = es.build()
+        cams = S.cameras
+        contrib = [S.scene.contributions(cams.index(v), Request.whole_images(cams.index(v))) for v in range(len(cams))]
+        before = [render_view(S.scene, cams, v, contrib=contrib[v]) for v in range(len(cams))]
+        edited, _ = recolor(before[EDIT_VIEW]["rgb"], BLUE_TO_RED)
+        eng = EditEngine(S.scene, cams.index(EDIT_VIEW), edited, EditStack(S.scene.fingerprint()))
+        edit, timing = eng.fit()
+        # per-pixel coverage of each object, from the known labels
+        onehot = torch.nn.functional.one_hot(S.labels, 3).float()
+        cover = [composite(c.gather(onehot), c)[0] for c in contrib]
+        yield {"S": S, "contrib": contrib, "before": before, "edited": edited, "edit": edit, "timing": timing,
+               "cover": cover, "engine": eng}
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _stack(world, *edits: Edit, directory=None) -> EditStack:
+    st = EditStack(world["S"].scene.fingerprint(), directory)
+    for e in edits:
+        st.add(e)
+    return st
+
+
+def _render(world, v: int, stack=None, **kw):
+    S = world["S"]
+    return render_view(S.scene, S.cameras, v, stack, contrib=world["contrib"][v], **kw)
+
+
+# ----------------------------------------------------------------------- engine parts
+def test_sparse_pixel_batches_reproduce_composite(world):
+    """The engine's CSR operators, split into random pixel sets, equal the contract's composite."""
+    c = world["contrib"][EDIT_VIEW]
+    U = c.pair_gaussian.shape[0]
+    g = torch.Generator().manual_seed(3)
+    colours = torch.rand(U, 3, generator=g, requires_grad=True)
+    bg = torch.tensor([0.2, 0.3, 0.4])
+    target = torch.rand(c.num_pixels, 3, generator=g)
+    ref = composite(colours, c, bg).reshape(-1, 3)
+    batches = _pixel_batches(c, target, bg, 3, seed=5)
+    assert sum(b.target.shape[0] for b in batches) == c.num_pixels
+    got = torch.cat([_SparseRender.apply(colours, b.A, b.At) + b.background for b in batches])
+    tgt = torch.cat([b.target for b in batches])
+    # each batch's targets are its pixels' targets, so matching rows by target identifies the pixels
+    idx = torch.cat([torch.nonzero((target[None] == t[:, None]).all(-1))[:, 1] for t in tgt.split(1000)])
+    assert sorted(idx.tolist()) == list(range(c.num_pixels))
+    torch.testing.assert_close(got, ref[idx], atol=1e-6, rtol=1e-5)
+    # gradients through A^T equal autograd through the scatter composite
+    w = torch.rand(c.num_pixels, 3, generator=g)
+    (gr,) = torch.autograd.grad((ref * w).sum(), colours)
+    (gs,) = torch.autograd.grad((got * w[idx]).sum(), colours)
+    torch.testing.assert_close(gs, gr, atol=1e-5, rtol=1e-5)
+
+
+def test_fresh_edit_changes_nothing(world):
+    """Before any step the edit's c_d' is the base head, so the preview is the unedited render."""
+    S = world["S"]
+    eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), world["edited"])
+    prev = eng.preview()
+    torch.testing.assert_close(prev["rgb"], world["before"][EDIT_VIEW]["rgb"], atol=1e-6, rtol=0)
+    # alpha starts near sigmoid(-4) on the object
+    inside = world["cover"][EDIT_VIEW].sum(-1) > 0.99
+    a = prev["alpha"][inside]
+    assert 0.005 < float(a.mean()) < 0.05
+
+
+def test_engine_refuses_bad_inputs(world):
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    with pytest.raises(InputError, match="64x48"):
+        EditEngine(S.scene, cam, torch.zeros(40, 64, 3))
+    with pytest.raises(InputError, match="H x W x 3"):
+        EditEngine(S.scene, cam, torch.zeros(48, 64))
+    away = cam.viewmats.clone()
+    away[0, 2, 3] -= 100.0  # scene now behind the camera
+    from virgi_ns.raster import Cameras
+
+    with pytest.raises(InputError, match="sees none"):
+        EditEngine(S.scene, Cameras(cam.Ks, away, cam.widths, cam.heights), world["edited"])
+
+
+# --------------------------------------------------------------------- propagation
+def test_recolour_reaches_held_out_views(world):
+    """One edited view moves the blue object towards the rule's red in other views."""
+    stack = _stack(world, world["edit"])
+    for v in HELD_OUT:
+        before = world["before"][v]["rgb"]
+        truth, mask = recolor(before, BLUE_TO_RED)
+        after = _render(world, v, stack)["rgb"]
+        assert int(mask.sum()) > 100
+        miss_before = float((before - truth).abs()[mask].mean())
+        miss_after = float((after - truth).abs()[mask].mean())
+        assert miss_before > 0.3
+        assert miss_after < 0.1 * miss_before, (v, miss_before, miss_after)
+        # the object's mean colour is now red-dominant
+        mean = after[mask].mean(0)
+        assert mean[0] > 2 * mean[2]
+
+
+def test_other_objects_unchanged(world):
+    stack = _stack(world, world["edit"])
+    for v in (EDIT_VIEW, *HELD_OUT):
+        cov = world["cover"][v]
+        others = (cov[..., es.BLUE] < 1e-3) & (cov.sum(-1) > 0.5)
+        assert int(others.sum()) > 100
+        diff = (_render(world, v, stack)["rgb"] - world["before"][v]["rgb"]).abs()[others]
+        assert float(diff.mean()) < 0.01 and float(diff.max()) < 0.1, (v, float(diff.mean()), float(diff.max()))
+
+
+def test_highlight_keeps_position_and_strength(world):
+    """The near-white highlight on the recoloured object stays where it was, as white as it was."""
+    stack = _stack(world, world["edit"])
+    for v in (EDIT_VIEW, *HELD_OUT):
+        before = world["before"][v]["rgb"]
+        after = _render(world, v, stack)["rgb"]
+        on_blue = world["cover"][v][..., es.BLUE] > 0.9
+        wb = torch.where(on_blue, before.min(-1).values, torch.zeros(()))
+        wa = torch.where(on_blue, after.min(-1).values, torch.zeros(()))
+        assert float(wb.max()) > 0.8  # the scene has a real highlight there
+        pb, pa = divmod(int(wb.argmax()), wb.shape[1]), divmod(int(wa.argmax()), wa.shape[1])
+        assert abs(pb[0] - pa[0]) <= 1 and abs(pb[1] - pa[1]) <= 1, (v, pb, pa)
+        assert abs(float(wa.max()) - float(wb.max())) < 0.06
+        # near-white pixels stay near-white (the albedo under a partial highlight may show through)
+        hl = wb > 0.8
+        assert float((after - before).abs()[hl].mean()) < 0.08
+        core = wb > 0.9
+        assert int(core.sum()) > 0 and float((after - before).abs()[core].max()) < 0.12
+
+
+def test_segmentation_selects_the_object(world):
+    S = world["S"]
+    stack = _stack(world, world["edit"])
+    f = S.scene.field.encode(S.scene.means)
+    _, h2 = S.scene.field.diffuse_hidden(f)
+    with torch.no_grad():
+        a = stack.segmentation(f, h2, 1)[:, 0]
+        combined = stack.segmentation(f, h2)[:, 0]
+    torch.testing.assert_close(a, combined)
+    seen = world["contrib"][EDIT_VIEW].pair_gaussian
+    blue = torch.zeros_like(S.labels, dtype=torch.bool)
+    blue[seen] = S.labels[seen] == es.BLUE
+    assert float(a[blue].mean()) > 0.8
+    assert float(a[S.labels != es.BLUE].mean()) < 0.1
+    img = _render(world, EDIT_VIEW, stack, seg_index=1)["segmentation"][..., 0]
+    on_blue = world["cover"][EDIT_VIEW][..., es.BLUE] > 0.9
+    assert float(img[on_blue].mean()) > 0.8
+
+
+def test_pixel_subsampling_fits_too(world):
+    S = world["S"]
+    eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), world["edited"], cfg=EditConfig(pixel_batches=4))
+    assert len(eng.batches) == 4
+    edit, timing = eng.fit()
+    assert timing.steps == EditConfig().steps and timing.setup_s > 0 and timing.steps_s > 0
+    v = HELD_OUT[0]
+    truth, mask = recolor(world["before"][v]["rgb"], BLUE_TO_RED)
+    after = _render(world, v, _stack(world, edit))["rgb"]
+    assert float((after - truth).abs()[mask].mean()) < 0.05
+
+
+# --------------------------------------------------------------------------- stack
+def test_undo_disable_reset_restore_exact_renders(world, tmp_path):
+    run = tmp_path / "run"
+    stack = EditStack.open(run, world["S"].scene.fingerprint())
+    stack.add(world["edit"])
+    v = HELD_OUT[0]
+    base = world["before"][v]["rgb"]
+    assert not torch.equal(_render(world, v, stack)["rgb"], base)
+    stack.set_enabled(1, False)
+    assert torch.equal(_render(world, v, stack)["rgb"], base)
+    stack.set_enabled(1, True)
+    stack.undo()
+    assert len(stack) == 0 and torch.equal(_render(world, v, stack)["rgb"], base)
+    assert not (run / "edits" / "edit_0001.pt").exists()
+    with pytest.raises(InputError, match="nothing to undo"):
+        stack.undo()
+    stack.add(world["edit"])
+    stack.add(world["edit"])
+    stack.set_specular_strength(0.5)
+    assert stack.reset() == 2 and stack.specular_strength == 1.0
+    assert torch.equal(_render(world, v, EditStack.open(run, stack.fingerprint))["rgb"], base)
+    assert sorted(p.name for p in (run / "edits").iterdir()) == ["stack.json"]
+
+
+def test_stack_persists_and_reloads(world, tmp_path):
+    fp = world["S"].scene.fingerprint()
+    stack = EditStack.open(tmp_path, fp)
+    stack.add(world["edit"])
+    stack.set_specular_strength(1.5)
+    again = EditStack.open(tmp_path, fp)
+    assert len(again) == 1 and again.specular_strength == 1.5
+    assert again.rows()[0]["info"]["steps"] == world["timing"].steps
+    v = HELD_OUT[1]
+    torch.testing.assert_close(_render(world, v, again)["rgb"], _render(world, v, stack)["rgb"], atol=1e-6, rtol=0)
+    man = json.loads((tmp_path / "edits" / "stack.json").read_text())
+    assert man["fingerprint"] == fp and man["edits"][0]["enabled"] is True
+    # files hold only small tensors and strings
+    assert (tmp_path / "edits" / "edit_0001.pt").stat().st_size < 64_000
+
+
+def test_foreign_and_damaged_edit_files_are_refused(world, tmp_path):
+    fp = world["S"].scene.fingerprint()
+    stack = EditStack.open(tmp_path / "run", fp)
+    stack.add(world["edit"])
+    listing = sorted(p.name for p in (tmp_path / "run" / "edits").iterdir())
+    # an edit of another base run
+    other = Edit(world["edit"].head_weight, world["edit"].head_bias, world["edit"].seg, world["edit"].source,
+                 "0123456789abcdef")
+    other.save(tmp_path / "other.pt")
+    with pytest.raises(InputError, match="another base run"):
+        stack.import_file(tmp_path / "other.pt")
+    # not an edit at all
+    (tmp_path / "notes.pt").write_text("hello")
+    with pytest.raises(InputError, match="not a virgi edit file"):
+        stack.import_file(tmp_path / "notes.pt")
+    torch.save({"format": "something-else"}, tmp_path / "tensor.pt")
+    with pytest.raises(InputError, match="not a virgi edit file"):
+        Edit.load(tmp_path / "tensor.pt")
+    assert sorted(p.name for p in (tmp_path / "run" / "edits").iterdir()) == listing and len(stack) == 1
+    # the whole stack opened against another run is refused
+    with pytest.raises(InputError, match="another base run"):
+        EditStack.open(tmp_path / "run", "ffffffffffffffff")
+    # and a good import works
+    world["edit"].save(tmp_path / "mine.pt")
+    assert stack.import_file(tmp_path / "mine.pt") == 2
+    with pytest.raises(InputError, match="no edit number 5"):
+        stack.set_enabled(5, False)
+
+
+def test_specular_strength_scales_highlights(world):
+    v = EDIT_VIEW
+    k0 = EditStack(world["S"].scene.fingerprint(), specular_strength=0.0)
+    k15 = EditStack(world["S"].scene.fingerprint(), specular_strength=1.5)
+    r0 = _render(world, v, k0)
+    torch.testing.assert_close(r0["rgb"], r0["diffuse"])  # k = 0: no highlight left
+    base = world["before"][v]
+    torch.testing.assert_close(r0["diffuse"], base["diffuse"])
+    on_blue = world["cover"][v][..., es.BLUE] > 0.9
+    hl = on_blue & (base["rgb"].min(-1).values > 0.6)
+    assert int(hl.sum()) > 0
+    spec = lambda r: (r["rgb"] - r["diffuse"])[hl].sum(-1).mean()  # noqa: E731
+    assert float(spec(_render(world, v, k15))) > 1.05 * float(spec(base)) > 0
+    assert float(r0["rgb"][hl].min(-1).values.max()) < 0.5  # the white is gone
+
+
+def test_later_edit_overrides_earlier(world):
+    """A second edit on top of the first (red -> green) wins where it applies."""
+    S = world["S"]
+    first = _stack(world, world["edit"])
+    red_view = _render(world, EDIT_VIEW, first)["rgb"]
+    red_to_green = RecolorRule(h0=330, h1=30, shift=120, s_min=0.3, v_min=0.1)
+    edited2, _ = recolor(red_view, red_to_green)
+    eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), edited2, first)
+    # starts from the stack (c_d' starts as the base head, weighted by alpha ~ sigmoid(-4))
+    assert float((eng.preview()["rgb"] - red_view).abs().max()) < 0.03
+    second, _ = eng.fit()
+    first.add(second)
+    v = HELD_OUT[0]
+    after = _render(world, v, first)["rgb"]
+    truth, mask = recolor(recolor(world["before"][v]["rgb"], BLUE_TO_RED)[0], red_to_green)
+    on_blue = world["cover"][v][..., es.BLUE] > 0.99
+    assert float((after - truth).abs()[on_blue & mask].mean()) < 0.06
+    mean = after[on_blue].mean(0)
+    assert mean[1] > 2 * mean[0]
+    first.set_enabled(2, False)  # disabling the second brings back the first's red
+    torch.testing.assert_close(_render(world, v, first)["rgb"], _render(world, v, _stack(world, world["edit"]))["rgb"])

@@ -1,0 +1,341 @@
+"""The edit engine: one edited image of one view recolours the whole scene.
+
+Geometry is frozen, so the edited view's pixels are a fixed linear map of per-Gaussian colours
+(``pixel = A C + T bg``, :mod:`virgi_ns.raster.contract`). :class:`EditEngine` computes, once:
+the view's contributions as a sparse matrix ``A`` (and ``A^T`` for the backward pass), the hash
+features ``f`` and ``h_diff`` of the Gaussians the view sees, the colour ``c_d`` the current
+stack gives them, and their specular ``c_s`` for this camera. Each optimisation step then trains
+only a copy of the diffuse head and a segmentation head::
+
+    c_d'  = W h_diff + b                       (W, b start as the base diffuse head)
+    alpha = sigmoid(MLP_seg([f, h_diff]))      (starts near 0)
+    c_d'' = alpha c_d' + (1 - alpha) c_d
+    C'    = sigmoid(c_d'' + k c_s)
+    loss  = L1(A C' + T bg, I_edit)            (Adam; optionally on a subset of pixels per step)
+
+and the result is an :class:`~virgi_ns.edit_stack.Edit` for the :class:`EditStack`.
+
+:class:`FrozenScene` bundles what the engine reads from a trained model (geometry, colour field,
+background); :func:`render_view` renders a view through a stack with the full colour model,
+including each pixel's segmentation, for tests and benchmarks.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+import warnings
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from virgi_ns.edit_stack import Edit, EditSource, EditStack, SegmentationHead, field_fingerprint, new_edit_info
+from virgi_ns.errors import InputError
+from virgi_ns.field import DecoupledColorField, view_directions
+from virgi_ns.raster import Cameras, Contributions, Request, composite, rasterize
+
+
+# --------------------------------------------------------------------------- scene
+@dataclass
+class FrozenScene:
+    """Frozen Gaussians (``scales`` are standard deviations, ``opacities`` probabilities [N]),
+    their colour field, the render background [3], and the rasterizer backend to use."""
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    field: DecoupledColorField
+    background: Tensor
+    backend: str = "auto"
+
+    @property
+    def device(self) -> torch.device:
+        return self.means.device
+
+    @staticmethod
+    def from_model(model) -> "FrozenScene":
+        """From a trained :class:`virgi_ns.model.VirgiModel` (or anything with splatfacto's
+        ``means/quats/scales/opacities``, a ``field`` and a ``background_color``)."""
+        dev = model.means.device
+        backend = getattr(getattr(model, "config", None), "raster_backend", "auto")
+        return FrozenScene(model.means.detach(), model.quats.detach(), torch.exp(model.scales.detach()),
+                           torch.sigmoid(model.opacities.detach()).reshape(-1), model.field,
+                           torch.as_tensor(model.background_color, dtype=torch.float32).to(dev).reshape(3), backend)
+
+    def fingerprint(self) -> str:
+        """The base run's fingerprint that every edit of it carries."""
+        return field_fingerprint(self.means, self.field, [self.quats, self.scales, self.opacities])
+
+    def contributions(self, cameras: Cameras, request: Request) -> Contributions:
+        with torch.no_grad():
+            return rasterize(self.means, self.quats, self.scales, self.opacities, cameras.to(self.device), request,
+                             backend=self.backend)
+
+
+# -------------------------------------------------------------- sparse rendering
+class _SparseRender(torch.autograd.Function):
+    """``A @ C`` with ``A`` a constant CSR matrix; the backward pass uses a precomputed ``A^T``
+    (CSR too), so no scatter with atomics runs in either direction."""
+
+    @staticmethod
+    def forward(ctx, colours: Tensor, A: Tensor, At: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.At = At
+        return A @ colours
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):  # type: ignore[override]
+        return ctx.At @ grad.contiguous(), None, None
+
+
+def _csr(rows: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int]) -> Tensor:
+    """CSR matrix from entries already sorted by row."""
+    crow = torch.zeros(shape[0] + 1, dtype=torch.long, device=rows.device)
+    crow[1:] = torch.cumsum(torch.bincount(rows, minlength=shape[0]), 0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return torch.sparse_csr_tensor(crow, cols, vals, shape, check_invariants=False)
+
+
+@dataclass
+class _PixelBatch:
+    A: Tensor  # [p, U] CSR
+    At: Tensor  # [U, p] CSR
+    background: Tensor  # [p, 3] T * bg
+    target: Tensor  # [p, 3]
+
+
+def _pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches: int, seed: int
+                   ) -> list[_PixelBatch]:
+    """Split the view's pixels into ``n_batches`` random, equally sized sets, each with its own
+    rows of ``A`` (pixels ascending within a set) and its own ``A^T``."""
+    dev, dt = target.device, target.dtype
+    P = contrib.num_pixels
+    U = int(contrib.pair_gaussian.shape[0])
+    gen = torch.Generator().manual_seed(seed)
+    batch_of = torch.empty(P, dtype=torch.long)
+    batch_of[torch.randperm(P, generator=gen)] = torch.arange(P) % n_batches
+    batch_of = batch_of.to(dev)
+    # local row of each pixel: its rank among its batch's pixels, in ascending pixel order
+    order = torch.argsort(batch_of, stable=True)
+    counts = torch.bincount(batch_of, minlength=n_batches)
+    starts = torch.cumsum(counts, 0) - counts
+    local = torch.empty(P, dtype=torch.long, device=dev)
+    local[order] = torch.arange(P, device=dev) - starts[batch_of[order]]
+    pix, pair = contrib.pixel.to(dev), contrib.pair.to(dev)
+    w = contrib.weight.detach().to(dev, dt)
+    eb = batch_of[pix]
+    e_order = torch.argsort(eb, stable=True)  # entries stay in pixel order within a batch
+    e_counts = torch.bincount(eb, minlength=n_batches).tolist()
+    T = contrib.transmittance.detach().to(dev, dt)
+    out = []
+    e0 = 0
+    for b in range(n_batches):
+        sel = e_order[e0 : e0 + e_counts[b]]
+        e0 += e_counts[b]
+        rows, cols, vals = local[pix[sel]], pair[sel], w[sel]
+        p_b = int(counts[b])
+        A = _csr(rows, cols, vals, (p_b, U))
+        t_order = torch.argsort(cols * max(p_b, 1) + rows)
+        At = _csr(cols[t_order], rows[t_order], vals[t_order], (U, p_b))
+        pixels = order[int(starts[b]) : int(starts[b]) + p_b]
+        out.append(_PixelBatch(A, At, T[pixels, None] * bg[None, :], target[pixels]))
+    return out
+
+
+# -------------------------------------------------------------------------- engine
+@dataclass
+class EditConfig:
+    """Knobs of one edit."""
+
+    steps: int = 150
+    """Adam steps."""
+    lr: float = 2e-2
+    """Learning rate of both heads."""
+    seg_width: int = 64
+    """Hidden width of the segmentation head."""
+    seg_init_bias: float = -4.0
+    """Initial output bias of the segmentation head (alpha starts at sigmoid of it)."""
+    pixel_batches: int = 1
+    """Split the view's pixels into this many random sets and use one per step (1: the whole
+    image every step)."""
+    seed: int = 0
+    """Seeds the segmentation head's initialisation and the pixel sets."""
+
+
+@dataclass
+class EditTiming:
+    setup_s: float
+    steps_s: float
+    steps: int
+    final_loss: float
+
+    @property
+    def total_s(self) -> float:
+        return self.setup_s + self.steps_s
+
+
+def _sync(dev: torch.device) -> None:
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+
+
+class EditEngine:
+    """Fits one edit of ``scene`` from ``edited`` [H,W,3] (float, [0,1]) seen by ``camera`` (one
+    view). The stack's current edits and specular strength are the starting point; see the
+    module docstring. Usage: ``edit, timing = EditEngine(...).fit()``."""
+
+    def __init__(
+        self,
+        scene: FrozenScene,
+        camera: Cameras,
+        edited: Float[Tensor, "H W 3"],
+        stack: Optional[EditStack] = None,
+        cfg: Optional[EditConfig] = None,
+        source: Optional[EditSource] = None,
+    ) -> None:
+        self.scene = scene
+        self.cfg = cfg or EditConfig()
+        self.stack = stack
+        if len(camera) != 1:
+            raise ValueError(f"EditEngine: one camera expected, got {len(camera)}")
+        W, H = int(camera.widths[0]), int(camera.heights[0])
+        if edited.ndim != 3 or edited.shape[-1] != 3:
+            raise InputError(f"the edited image must be H x W x 3, got shape {tuple(edited.shape)}")
+        if tuple(edited.shape[:2]) != (H, W):
+            raise InputError(f"the edited image is {edited.shape[1]}x{edited.shape[0]} but the camera renders "
+                             f"{W}x{H}")
+        self.camera = camera
+        self.source = source or EditSource("", camera.Ks[0], camera.viewmats[0], W, H, "")
+        self.fingerprint = stack.fingerprint if stack is not None else scene.fingerprint()
+        dev = scene.device
+        _sync(dev)
+        t0 = time.perf_counter()
+        self._setup(edited.to(dev, torch.float32))
+        _sync(dev)
+        self.setup_s = time.perf_counter() - t0
+
+    # ------------------------------------------------------------------ setup
+    @torch.no_grad()
+    def _setup(self, edited: Tensor) -> None:
+        sc, cfg = self.scene, self.cfg
+        dev = sc.device
+        cams = self.camera.to(dev, torch.float32)
+        contrib = sc.contributions(cams, Request.whole_images(cams))
+        if contrib.pair_gaussian.numel() == 0:
+            raise InputError("the edit's camera sees none of the scene")
+        self.contrib = contrib
+        g = contrib.pair_gaussian.to(dev)
+        self.gaussians = g
+        fld = sc.field
+        means = sc.means[g].float()
+        self.feats = fld.encode(means).float()
+        h1, h2 = fld.diffuse_hidden(self.feats)
+        self.h_diff = h2.float()
+        c_d = fld.diffuse(h2).float()
+        self.c_d_base = c_d
+        self.c_d = self.stack.diffuse(self.feats, self.h_diff, c_d) if self.stack is not None else c_d
+        dirs = view_directions(means, cams.camera_centers()[0].to(means).expand_as(means))
+        self.c_s = fld.specular(self.feats, dirs, h1, h2).float()
+        self.k = self.stack.specular_strength if self.stack is not None else 1.0
+        bg = sc.background.to(dev, torch.float32).reshape(3)
+        self.batches = _pixel_batches(contrib, edited.reshape(-1, 3), bg, max(1, cfg.pixel_batches), cfg.seed)
+        # trainable copies
+        head = fld.diffuse_head
+        self.weight = head.weight.detach().float().clone().requires_grad_(True)
+        self.bias = head.bias.detach().float().clone().requires_grad_(True)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(cfg.seed)
+            self.seg = SegmentationHead(self.feats.shape[1], self.h_diff.shape[1], cfg.seg_width,
+                                        cfg.seg_init_bias).to(dev)
+        self.opt = torch.optim.Adam([self.weight, self.bias, *self.seg.parameters()], lr=cfg.lr)
+
+    # ------------------------------------------------------------------ steps
+    def colours(self) -> tuple[Tensor, Tensor]:
+        """(C' [U,3], alpha [U,1]) of the view's Gaussians under the current heads."""
+        alpha = self.seg(self.feats, self.h_diff)
+        c_dp = torch.nn.functional.linear(self.h_diff, self.weight, self.bias)
+        c_dd = alpha * c_dp + (1.0 - alpha) * self.c_d
+        return torch.sigmoid(c_dd + self.k * self.c_s), alpha
+
+    def step(self, batch: _PixelBatch) -> Tensor:
+        self.opt.zero_grad(set_to_none=True)
+        C, _ = self.colours()
+        img = _SparseRender.apply(C, batch.A, batch.At) + batch.background
+        loss = (img - batch.target).abs().mean()
+        loss.backward()
+        self.opt.step()
+        return loss.detach()
+
+    def fit(self, steps: Optional[int] = None, progress: Optional[Callable[[int, int], None]] = None
+            ) -> tuple[Edit, EditTiming]:
+        """Run the steps; returns the edit and its timing. ``progress(done, total)`` is called
+        every 10 steps (it never forces a GPU sync)."""
+        n = self.cfg.steps if steps is None else int(steps)
+        dev = self.scene.device
+        _sync(dev)
+        t0 = time.perf_counter()
+        loss = torch.zeros((), device=dev)
+        nb = len(self.batches)
+        for i in range(n):
+            loss = self.step(self.batches[i % nb])
+            if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
+                progress(i + 1, n)
+        _sync(dev)
+        steps_s = time.perf_counter() - t0
+        timing = EditTiming(self.setup_s, steps_s, n, float(loss))
+        return self.edit(timing), timing
+
+    def edit(self, timing: Optional[EditTiming] = None) -> Edit:
+        """The current heads as an :class:`Edit` (copies)."""
+        info = new_edit_info(k=self.k, **({"steps": timing.steps, "setup_s": timing.setup_s,
+                                            "steps_s": timing.steps_s, "loss": timing.final_loss}
+                                           if timing is not None else {}))
+        return Edit(self.weight.detach().clone(), self.bias.detach().clone(), copy.deepcopy(self.seg).eval(),
+                    self.source, self.fingerprint, info)
+
+    @torch.no_grad()
+    def preview(self) -> dict[str, Tensor]:
+        """The edited view under the current heads: ``rgb`` [H,W,3] and ``alpha`` [H,W,1]."""
+        C, alpha = self.colours()
+        bg = self.scene.background.to(C)
+        return {"rgb": composite(C, self.contrib, bg)[0], "alpha": composite(alpha, self.contrib)[0]}
+
+
+# ------------------------------------------------------------------------ rendering
+@torch.no_grad()
+def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional[EditStack] = None,
+                seg_index: Optional[int] = None, contrib: Optional[Contributions] = None) -> dict[str, Tensor]:
+    """Render view ``view`` of ``cameras`` with the full (ungated) colour model through ``stack``:
+    ``rgb`` [H,W,3] (``sigmoid(c_d'' + k c_s)``), ``diffuse`` (``sigmoid(c_d'')``), ``specular``
+    (rgb - diffuse) and ``segmentation`` [H,W,1] (alpha of edit ``seg_index``, or the combined
+    share of all enabled edits; zeros with no stack). ``contrib``: the view's contributions when
+    the caller has them already (:meth:`FrozenScene.contributions` of the one-view camera)."""
+    cams = cameras.index(view).to(scene.device, torch.float32)
+    if contrib is None:
+        contrib = scene.contributions(cams, Request.whole_images(cams))
+    fld = scene.field
+    g = contrib.pair_gaussian.to(scene.device)
+    m = scene.means[g].float()
+    f = fld.encode(m).float()
+    h1, h2 = fld.diffuse_hidden(f)
+    c_d = fld.diffuse(h2).float()
+    dirs = view_directions(m, cams.camera_centers()[0].to(m).expand_as(m))
+    c_s = fld.specular(f, dirs, h1, h2).float()
+    k = 1.0
+    seg = torch.zeros_like(c_d[:, :1])
+    if stack is not None:
+        c_d = stack.diffuse(f, h2.float(), c_d)
+        k = stack.specular_strength
+        if len(stack):
+            seg = stack.segmentation(f, h2.float(), seg_index).float()
+    bg = scene.background.to(scene.device, torch.float32)
+    rgb = composite(torch.sigmoid(c_d + k * c_s), contrib, bg)[0]
+    diff = composite(torch.sigmoid(c_d), contrib, bg)[0]
+    return {"rgb": rgb, "diffuse": diff, "specular": rgb - diff, "segmentation": composite(seg, contrib)[0]}
+
+
+__all__ = ["EditConfig", "EditEngine", "EditTiming", "FrozenScene", "render_view"]
