@@ -76,43 +76,56 @@ class ContributionCache:
         dev = means.device
         N = self.num_gaussians
         valid = request.valid_mask(self.cameras)
-        pv, px, py = request.pixel_coords()
-        P = len(pv)
-        out_pixel, entry_gauss, entry_w, entry_view = [], [], [], []
+        hh, ww = request.height, request.width
+        rr = torch.arange(hh).view(-1, 1)
+        cc = torch.arange(ww).view(1, -1)
+        P = request.num_pixels
         T = torch.ones(P)
-        for v in torch.unique(request.views).tolist():
+        pix_parts, idx_parts, view_parts = [], [], []
+        for i in range(len(request)):  # item by item: output pixels stay in ascending order
+            v = int(request.views[i])
             view = self.views[v]
-            sel = ((pv == v) & valid).nonzero().flatten()  # output pixels on view v, ascending
-            if sel.numel() == 0:
-                continue
-            src = py[sel] * view.width + px[sel]
-            T[sel] = view.transmittance[src]
-            start, stop = view.ptr[src], view.ptr[src + 1]
-            n = stop - start
+            x, y = int(request.x0[i]) + cc, int(request.y0[i]) + rr
+            inside = ((x >= 0) & (x < view.width) & (y >= 0) & (y < view.height)).reshape(-1)
+            out = (i * hh * ww + torch.arange(hh * ww))[inside]
+            src = (y * view.width + x).reshape(-1)[inside]
+            T[out] = view.transmittance[src]
+            start = view.ptr[src]
+            n = view.ptr[src + 1] - start
             total = int(n.sum())
             if total == 0:
                 continue
-            rep = torch.repeat_interleave(torch.arange(len(sel)), n)
+            rep = torch.repeat_interleave(n)
             first = torch.cumsum(n, 0) - n
-            idx = start[rep] + (torch.arange(total) - first[rep])
-            out_pixel.append(sel[rep])
-            entry_gauss.append(view.gaussian[idx].long())
-            entry_w.append(view.weight[idx])
-            entry_view.append(torch.full((total,), v, dtype=torch.long))
-        if out_pixel:
-            pix = torch.cat(out_pixel)
-            order = torch.argsort(pix, stable=True)  # views were visited in turn: regroup by pixel
-            pix, g = pix[order], torch.cat(entry_gauss)[order]
-            w, ev = torch.cat(entry_w)[order], torch.cat(entry_view)[order]
+            pix_parts.append(out[rep])
+            idx_parts.append(start[rep] + (torch.arange(total) - first[rep]))
+            view_parts.append((v, total))
+        used = sorted({v for v, _ in view_parts})
+        slot = {v: k for k, v in enumerate(used)}
+        g_parts, w_parts, key_parts = [], [], []
+        for (v, total), idx in zip(view_parts, idx_parts):
+            g = self.views[v].gaussian[idx].long()
+            g_parts.append(g)
+            w_parts.append(self.views[v].weight[idx])
+            key_parts.append(g + slot[v] * N)
+        if pix_parts:
+            pix, key, w = torch.cat(pix_parts), torch.cat(key_parts), torch.cat(w_parts)
         else:
-            pix = g = ev = torch.zeros(0, dtype=torch.long)
+            pix = key = torch.zeros(0, dtype=torch.long)
             w = torch.zeros(0)
-        keys, pair = torch.unique(ev * N + g, return_inverse=True)
-        pair_view, pair_gaussian = keys // N, keys % N
+        # distinct (view, Gaussian) pairs, ascending by view * N + gaussian, without a sort
+        present = torch.zeros(max(len(used), 1) * N, dtype=torch.bool)
+        present[key] = True
+        keys = present.nonzero().flatten()
+        rank = torch.cumsum(present, 0) - 1
+        pair = rank[key]
+        used_t = torch.tensor(used, dtype=torch.long) if used else torch.zeros(0, dtype=torch.long)
+        pair_view, pair_gaussian = used_t[keys // N] if len(keys) else keys, keys % N
         vm = self.cameras.viewmats.to(dev, means.dtype)
         m = means.detach()[pair_gaussian.to(dev)]
-        depth = (vm[pair_view.to(dev), 2, :3] * m).sum(-1) + vm[pair_view.to(dev), 2, 3]
-        return Contributions(request, N, pair_view.to(dev), pair_gaussian.to(dev), depth, pix.to(dev), pair.to(dev),
+        pvd = pair_view.to(dev)
+        depth = (vm[pvd, 2, :3] * m).sum(-1) + vm[pvd, 2, 3]
+        return Contributions(request, N, pvd, pair_gaussian.to(dev), depth, pix.to(dev), pair.to(dev),
                              w.to(dev, means.dtype), T.to(dev, means.dtype), valid.to(dev))
 
 
