@@ -222,6 +222,8 @@ class EditStack:
             fp = str(m["fingerprint"])
         except Exception as e:  # noqa: BLE001
             raise InputError(f"{man} is not a virgi edit stack ({type(e).__name__})") from None
+        if fp == "" and not items:  # a manifest written before the run's fingerprint was known
+            fp = fingerprint
         if fp != fingerprint:
             raise InputError(f"the edits in {d} were made for another base run (fingerprint {fp}, this run {fingerprint})")
         stack._k = k

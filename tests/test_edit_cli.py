@@ -1,0 +1,187 @@
+"""``virgi-edit`` on a tiny saved run (CPU): apply / list / undo / enable / specular, and every
+bad input of the issue answered with one line, exit 2, nothing saved."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from rich.console import Console
+
+from virgi_ns.cli.edit import Apply, Disable, Enable, Import, List, Reset, Specular, Undo, run
+from virgi_ns.errors import InputError
+from virgi_ns.recolor import RecolorRule, recolor
+
+from viewer_run import train_tiny
+from virgi_scene import make_scene
+
+REPO = Path(__file__).resolve().parents[1]
+EXE = REPO / ".venv" / "bin" / "virgi-edit"
+RULE = RecolorRule(h0=0, h1=360, shift=120, s_min=0.2, v_min=0.05)
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    root = tmp_path_factory.mktemp("edit_cli")
+    scene = make_scene(root / "scene")
+    cfg, pipeline = train_tiny(scene, steps=20, output_dir=root / "outputs")
+    config = cfg.get_base_dir() / "config.yml"
+    model = pipeline.model
+    cam = pipeline.datamanager.train_dataset.cameras[0:1]
+    with torch.no_grad():
+        rgb = model.get_outputs_for_camera(cam)["rgb"].cpu()
+    edited, mask = recolor(rgb, RULE)
+    assert int(mask.sum()) > 50
+    png = root / "edited.png"
+    Image.fromarray((edited.numpy() * 255 + 0.5).astype(np.uint8)).save(png)
+    return {"config": config, "pipeline": pipeline, "png": png, "root": root, "edited": edited}
+
+
+def _quiet() -> Console:
+    return Console(file=open(os.devnull, "w"), stderr=False)
+
+
+def _listing(config: Path) -> list[str]:
+    d = config.parent / "edits"
+    return sorted(p.name for p in d.iterdir()) if d.is_dir() else []
+
+
+def _run_hash(config: Path) -> str:
+    h = hashlib.sha256(config.read_bytes())
+    for p in sorted((config.parent / "nerfstudio_models").glob("*.ckpt")):
+        h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def _apply(saved, **kw) -> Apply:
+    args = {"load_config": saved["config"], "image": saved["png"], "steps": 15}
+    args.update(kw)
+    if not any(k in kw for k in ("camera_index", "image_name", "camera_json")):
+        args["camera_index"] = 0
+    return Apply(**args)
+
+
+def test_apply_list_undo_through_the_console_script(saved):
+    cfg = str(saved["config"])
+    before = _run_hash(saved["config"])
+    p = subprocess.run([str(EXE), "apply", "--load-config", cfg, "--image", str(saved["png"]), "--camera-index", "0",
+                        "--steps", "15"], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    assert "edit 1 saved" in p.stdout and "setup" in p.stdout
+    assert _listing(saved["config"]) == ["edit_0001.pt", "stack.json"]
+    p = subprocess.run([str(EXE), "list", "--load-config", cfg], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0 and "1 edit(s)" in p.stdout and "edited.png" in p.stdout
+    p = subprocess.run([str(EXE), "undo", "--load-config", cfg], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0 and "0 edit(s) left" in p.stdout
+    assert _listing(saved["config"]) == ["stack.json"]
+    assert _run_hash(saved["config"]) == before  # the run itself is never written
+
+
+def test_bad_input_is_one_line_and_exit_2(saved, tmp_path):
+    txt = tmp_path / "notes.png"
+    txt.write_text("not an image")
+    listing = _listing(saved["config"])
+    p = subprocess.run([str(EXE), "apply", "--load-config", str(saved["config"]), "--image", str(txt),
+                        "--camera-index", "0"], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 2
+    assert p.stderr.strip().count("\n") == 0 and "is not an image" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr and _listing(saved["config"]) == listing
+
+
+def test_python_api_apply_moves_the_render_and_undo_restores_it(saved):
+    pl = saved["pipeline"]
+    model = pl.model
+    cam = pl.datamanager.train_dataset.cameras[0:1]
+    base = model.get_outputs_for_camera(cam)["rgb"].detach().clone()
+    out = run(_apply(saved, steps=60), _quiet(), pl)
+    assert out.startswith("edit 1 saved")
+    from virgi_ns.edit_stack import EditStack
+
+    model.set_edit_stack(EditStack.open(saved["config"].parent, model.fingerprint()))
+    after = model.get_outputs_for_camera(cam)["rgb"]
+    err_before = float((base - saved["edited"]).abs().mean())
+    err_after = float((after - saved["edited"]).abs().mean())
+    assert err_after < 0.5 * err_before, (err_before, err_after)
+    assert "edit 1 disabled" == run(Disable(saved["config"], 1), _quiet(), pl)
+    assert "edit 1 enabled" == run(Enable(saved["config"], 1), _quiet(), pl)
+    assert run(Specular(saved["config"], 1.5), _quiet(), pl) == "specular strength 1.5"
+    assert "specular strength 1.5" in run(List(saved["config"]), _quiet(), pl)
+    run(Undo(saved["config"]), _quiet(), pl)
+    model.set_edit_stack(EditStack.open(saved["config"].parent, model.fingerprint()))
+    model.edit_stack.set_specular_strength(1.0)
+    assert torch.equal(model.get_outputs_for_camera(cam)["rgb"], base)
+    run(Reset(saved["config"]), _quiet(), pl)
+    model.set_edit_stack(None)
+
+
+def _refused(saved, cmd, match: str) -> None:
+    listing = _listing(saved["config"])
+    before = _run_hash(saved["config"])
+    with pytest.raises(InputError, match=match):
+        run(cmd, _quiet(), saved["pipeline"])
+    assert _listing(saved["config"]) == listing
+    assert _run_hash(saved["config"]) == before
+
+
+def test_bad_inputs_refused_with_nothing_saved(saved, tmp_path):
+    ed = saved["edited"].numpy()
+    h, w = ed.shape[:2]
+    small = tmp_path / "small.png"
+    Image.fromarray((ed[: h - 4, : w - 6] * 255).astype(np.uint8)).save(small)
+    _refused(saved, _apply(saved, image=small), rf"is {w - 6}x{h - 4} but the camera renders {w}x{h}.*--resize")
+    grey = tmp_path / "grey.png"
+    Image.fromarray((ed.mean(-1) * 255).astype(np.uint8), mode="L").save(grey)
+    _refused(saved, _apply(saved, image=grey), "grayscale")
+    bad = tmp_path / "bad.jpg"
+    bad.write_bytes(b"\x00\x01garbage")
+    _refused(saved, _apply(saved, image=bad), "is not an image")
+    n = len(saved["pipeline"].datamanager.train_dataset)
+    _refused(saved, _apply(saved, camera_index=n), rf"out of range.*{n} training images")
+    _refused(saved, _apply(saved, camera_index=-1), "out of range")
+    _refused(saved, _apply(saved, image_name="no_such_frame.png"), "no image named 'no_such_frame.png'")
+    _refused(saved, Apply(saved["config"], saved["png"], camera_index=0, image_name="x"), "exactly one of")
+    _refused(saved, Apply(saved["config"], saved["png"]), "exactly one of")
+    _refused(saved, _apply(saved, image=tmp_path / "missing.png"), "no such image")
+    # an edit file of another base run
+    from virgi_ns.edit_stack import Edit, EditSource, SegmentationHead
+
+    model = saved["pipeline"].model
+    foreign = Edit(model.field.diffuse_head.weight.detach(), model.field.diffuse_head.bias.detach(),
+                   SegmentationHead(model.field.feature_dim, model.field.cfg.hidden),
+                   EditSource("x.png", torch.eye(3), torch.eye(4), w, h), "0000000000000000")
+    foreign.save(tmp_path / "foreign.pt")
+    _refused(saved, Import(saved["config"], tmp_path / "foreign.pt"), "another base run")
+    _refused(saved, Import(saved["config"], bad), "not a virgi edit file")
+    _refused(saved, Enable(saved["config"], 3), "no edit number 3")
+    _refused(saved, Specular(saved["config"], -1.0), ">= 0")
+
+
+def test_rgba_is_accepted_with_a_note_and_resize_and_image_name_work(saved, tmp_path):
+    ed = saved["edited"].numpy()
+    rgba = np.concatenate([ed, np.full(ed.shape[:2] + (1,), 0.5, np.float32)], -1)
+    p = tmp_path / "rgba.png"
+    Image.fromarray((rgba * 255 + 0.5).astype(np.uint8), mode="RGBA").save(p)
+    import io
+
+    buf = io.StringIO()
+    out = run(_apply(saved, image=p, steps=5), Console(file=buf), saved["pipeline"])
+    assert "alpha channel ignored" in buf.getvalue() and out.startswith("edit 1 saved")
+    big = tmp_path / "big.png"
+    h, w = ed.shape[:2]
+    Image.fromarray((ed * 255).astype(np.uint8)).resize((2 * w, 2 * h)).save(big)
+    name = Path(saved["pipeline"].datamanager.train_dataset.image_filenames[2]).name
+    buf = io.StringIO()
+    out = run(_apply(saved, image=big, image_name=name, resize=True, steps=5), Console(file=buf), saved["pipeline"])
+    assert out.startswith("edit 2 saved") and f"image {name}" in out and "resized" in buf.getvalue()
+    assert run(Reset(saved["config"]), _quiet(), saved["pipeline"]).startswith("reset: removed 2")
+
+
+if __name__ == "__main__":
+    sys.exit(pytest.main([__file__, "-q"]))

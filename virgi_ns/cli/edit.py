@@ -1,0 +1,331 @@
+"""``virgi-edit``: recolour a trained VIRGi run from one edited image, and manage its edit stack.
+
+    virgi-edit apply --load-config CFG --image EDITED.png (--camera-index I | --image-name NAME | --camera-json CAM.json)
+    virgi-edit list --load-config CFG
+    virgi-edit undo --load-config CFG
+    virgi-edit reset --load-config CFG
+    virgi-edit enable --load-config CFG N        (and disable)
+    virgi-edit specular --load-config CFG K      (0 removes highlights, 1.5 strengthens them)
+    virgi-edit import --load-config CFG --edit-file EDIT.pt
+
+Edits live in ``<run>/edits`` (beside ``config.yml``); the run itself is never written. ``apply``
+and ``import`` load the run and refuse edits of another base run; the other commands work on the
+edit files alone. Bad input is one line on stderr, exit 2, nothing saved.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Optional, Union
+
+import numpy as np
+import torch
+import tyro
+from rich.console import Console
+
+from virgi_ns.errors import InputError, cli_entry
+
+GREY_MODES = ("1", "L", "LA", "I", "I;16", "I;16B", "I;16L", "F")
+
+
+# ------------------------------------------------------------------------- commands
+@dataclass
+class Apply:
+    """Fit an edit from EDITED (an image of the run seen from one camera) and add it to the stack."""
+
+    load_config: Path
+    """The run's config.yml."""
+    image: Path
+    """The edited image (PNG, JPEG, ...), the same size as the camera's render."""
+    camera_index: Optional[int] = None
+    """Camera: index among the run's training images."""
+    image_name: Optional[str] = None
+    """Camera: the training (or evaluation) image of this file name (with or without extension)."""
+    camera_json: Optional[Path] = None
+    """Camera: a CAM.json as the viewer's 'Save this view' and virgi-render use."""
+    steps: Optional[int] = None
+    """Optimisation steps (default: the engine's)."""
+    resize: bool = False
+    """Resize an image of another size to the camera's instead of refusing it."""
+    pixel_batches: int = 1
+    """Use 1/N of the pixels per step (N random sets)."""
+
+
+@dataclass
+class List:
+    """List the edits of a run."""
+
+    load_config: Path
+
+
+@dataclass
+class Undo:
+    """Remove the last edit."""
+
+    load_config: Path
+
+
+@dataclass
+class Reset:
+    """Remove every edit and set the specular strength back to 1."""
+
+    load_config: Path
+
+
+@dataclass
+class Enable:
+    """Enable edit N (as ``list`` numbers them)."""
+
+    load_config: Path
+    number: Annotated[int, tyro.conf.Positional, tyro.conf.arg(metavar="N")]
+
+
+@dataclass
+class Disable:
+    """Disable edit N (it stays in the stack)."""
+
+    load_config: Path
+    number: Annotated[int, tyro.conf.Positional, tyro.conf.arg(metavar="N")]
+
+
+@dataclass
+class Specular:
+    """Set the specular strength k applied at render time (0 removes highlights, 1.5 strengthens them)."""
+
+    load_config: Path
+    strength: Annotated[float, tyro.conf.Positional, tyro.conf.arg(metavar="K")]
+
+
+@dataclass
+class Import:
+    """Add an edit file made elsewhere for this same run (refused for another base run)."""
+
+    load_config: Path
+    edit_file: Path
+
+
+Command = Union[
+    Annotated[Apply, tyro.conf.subcommand("apply")],
+    Annotated[List, tyro.conf.subcommand("list")],
+    Annotated[Undo, tyro.conf.subcommand("undo")],
+    Annotated[Reset, tyro.conf.subcommand("reset")],
+    Annotated[Enable, tyro.conf.subcommand("enable")],
+    Annotated[Disable, tyro.conf.subcommand("disable")],
+    Annotated[Specular, tyro.conf.subcommand("specular")],
+    Annotated[Import, tyro.conf.subcommand("import")],
+]
+
+
+# --------------------------------------------------------------------------- inputs
+def load_edited_image(path: Path) -> tuple[np.ndarray, list[str]]:
+    """[H,W,3] float32 in [0,1] and notes for the user. Non-images and grayscale images raise
+    :class:`InputError`; an alpha channel is dropped with a note."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"no such image: {path}")
+    notes: list[str] = []
+    try:
+        with Image.open(path) as im:
+            im.load()
+            mode = im.mode
+            if mode == "P":
+                im = im.convert("RGBA" if "transparency" in im.info else "RGB")
+                mode = im.mode
+            if mode in GREY_MODES:
+                raise InputError(f"{path} is a grayscale image ({mode}); an edit needs a colour (RGB) image")
+            if mode in ("RGBA", "RGBa", "PA"):
+                notes.append(f"{path.name}: alpha channel ignored (only RGB is used)")
+            rgb = np.asarray(im.convert("RGB"), dtype=np.float32) / 255.0
+    except (UnidentifiedImageError, OSError, ValueError, Image.DecompressionBombError, SyntaxError):
+        raise InputError(f"{path} is not an image (PNG, JPEG, ...)") from None
+    return rgb, notes
+
+
+def fit_size(image: np.ndarray, width: int, height: int, resize: bool, name: str) -> tuple[np.ndarray, list[str]]:
+    """The image at the camera's size: unchanged, resized (``resize``), or refused."""
+    h, w = image.shape[:2]
+    if (w, h) == (width, height):
+        return image, []
+    if not resize:
+        raise InputError(f"{name} is {w}x{h} but the camera renders {width}x{height} (pass --resize to resize it)")
+    from PIL import Image
+
+    im = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)).resize((width, height),
+                                                                                  Image.Resampling.LANCZOS)
+    return np.asarray(im, dtype=np.float32) / 255.0, [f"{name}: resized from {w}x{h} to {width}x{height}"]
+
+
+def _datasets(pipeline) -> list:
+    dm = pipeline.datamanager
+    return [d for d in (getattr(dm, "train_dataset", None), getattr(dm, "eval_dataset", None)) if d is not None]
+
+
+def resolve_camera(pipeline, args: Apply):
+    """(raster Cameras of one view, a description) for the chosen camera of ``args``."""
+    from virgi_ns.nscams import raster_cameras
+
+    chosen = [x is not None for x in (args.camera_index, args.image_name, args.camera_json)]
+    if sum(chosen) != 1:
+        raise InputError("choose the edited image's camera with exactly one of --camera-index, --image-name, "
+                         "--camera-json")
+    if args.camera_index is not None:
+        train = pipeline.datamanager.train_dataset
+        n = len(train)
+        i = args.camera_index
+        if not 0 <= i < n:
+            raise InputError(f"--camera-index {i} is out of range: the run has {n} training images (0..{n - 1})")
+        return raster_cameras(train.cameras[i : i + 1]), f"train index {i} ({Path(train.image_filenames[i]).name})"
+    if args.image_name is not None:
+        want = args.image_name
+        for ds in _datasets(pipeline):
+            for i, fn in enumerate(ds.image_filenames):
+                p = Path(fn)
+                if want in (p.name, p.stem, str(p)):
+                    return raster_cameras(ds.cameras[i : i + 1]), f"image {p.name}"
+        some = [Path(f).name for f in pipeline.datamanager.train_dataset.image_filenames[:3]]
+        raise InputError(f"no image named {want!r} in the run (e.g. {', '.join(some)})")
+    return camera_from_json(pipeline.model, Path(args.camera_json)), f"camera {Path(args.camera_json).name}"
+
+
+def camera_from_json(model, path: Path):
+    """Raster Cameras of a CAM.json; ``"frame": "dataparser"`` means the run's own frame, anything
+    else the capture's (as the viewer saves views)."""
+    from virgi_ns.camera_json import read_camera_json
+    from virgi_ns.nscams import raster_cameras
+    from virgi_ns.viewer import camera_from_spec, capture_frame
+
+    spec = read_camera_json(path)
+    frame = json.loads(path.read_text(encoding="utf-8")).get("frame", "capture")
+    if frame == "dataparser":
+        T, s = torch.eye(4)[:3].double(), 1.0
+    else:
+        T, s = capture_frame(model)
+    return raster_cameras(camera_from_spec(spec, T, s))
+
+
+def _edits_stack(load_config: Path):
+    """The stack of a run from its files alone (no model): trusts the manifest's fingerprint."""
+    from virgi_ns.edit_stack import MANIFEST, EditStack
+
+    load_config = Path(load_config)
+    if not load_config.is_file():
+        raise InputError(f"no such config: {load_config}")
+    d = EditStack.edits_dir(load_config.parent)
+    fp = ""
+    if (d / MANIFEST).is_file():
+        try:
+            fp = str(json.loads((d / MANIFEST).read_text())["fingerprint"])
+        except Exception as e:  # noqa: BLE001
+            raise InputError(f"{d / MANIFEST} is not a virgi edit stack ({type(e).__name__})") from None
+    return EditStack.open(load_config.parent, fp)
+
+
+# -------------------------------------------------------------------------- running
+def load_run(config: Path):
+    """(config, pipeline) of a VIRGi run; see :func:`virgi_ns.cli.export.load_run`."""
+    from virgi_ns.cli.export import load_run as _load
+
+    if not Path(config).is_file():
+        raise InputError(f"no such config: {config}")
+    return _load(Path(config))
+
+
+def apply(args: Apply, console: Console, pipeline=None) -> str:
+    """Fit and save one edit; returns the summary line. ``pipeline``: an already loaded run."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from virgi_ns.edit import EditConfig, EditEngine, FrozenScene
+    from virgi_ns.edit_stack import EditSource, EditStack
+
+    if args.steps is not None and args.steps < 1:
+        raise InputError(f"--steps must be >= 1, got {args.steps}")
+    if args.pixel_batches < 1:
+        raise InputError(f"--pixel-batches must be >= 1, got {args.pixel_batches}")
+    if not Path(args.load_config).is_file():
+        raise InputError(f"no such config: {args.load_config}")
+    image, notes = load_edited_image(args.image)
+    if pipeline is None:
+        with console.status(f"loading {args.load_config}"):
+            _, pipeline = load_run(args.load_config)
+    model = pipeline.model
+    stack = EditStack.open(Path(args.load_config).parent, model.fingerprint())
+    cams, where = resolve_camera(pipeline, args)
+    W, H = int(cams.widths[0]), int(cams.heights[0])
+    image, more = fit_size(image, W, H, args.resize, Path(args.image).name)
+    for n in notes + more:
+        console.print(f"note: {n}")
+    cams = cams.to(model.device)
+    scene = FrozenScene.from_model(model)
+    source = EditSource(str(Path(args.image).resolve()), cams.Ks[0].cpu(), cams.viewmats[0].cpu(), W, H, where)
+    cfg = EditConfig(pixel_batches=args.pixel_batches)
+    if args.steps is not None:
+        cfg.steps = args.steps
+    with torch.no_grad():
+        engine = EditEngine(scene, cams, torch.from_numpy(image), stack.to(model.device), cfg, source)
+    with Progress(TextColumn("fitting the edit"), BarColumn(), TextColumn("{task.completed}/{task.total} steps"),
+                  TimeElapsedColumn(), console=console, transient=True) as bar:
+        task = bar.add_task("edit", total=cfg.steps)
+        edit, timing = engine.fit(progress=lambda done, total: bar.update(task, completed=done))
+    number = stack.add(edit)
+    return (f"edit {number} saved to {stack.directory / stack.entries[-1].file} ({where}; {timing.steps} steps, "
+            f"setup {timing.setup_s:.3f} s + steps {timing.steps_s:.3f} s, L1 {timing.final_loss:.4f})")
+
+
+def run(cmd: object, console: Optional[Console] = None, pipeline=None) -> str:
+    """Run one parsed command; returns the line to print."""
+    console = console or Console(stderr=True)
+    if isinstance(cmd, Apply):
+        return apply(cmd, console, pipeline)
+    if isinstance(cmd, Import):
+        from virgi_ns.edit_stack import EditStack
+
+        if not Path(cmd.edit_file).is_file():
+            raise InputError(f"no such edit file: {cmd.edit_file}")
+        if pipeline is None:
+            with console.status(f"loading {cmd.load_config}"):
+                _, pipeline = load_run(cmd.load_config)
+        stack = EditStack.open(Path(cmd.load_config).parent, pipeline.model.fingerprint())
+        n = stack.import_file(cmd.edit_file)
+        return f"edit {n} imported from {cmd.edit_file}"
+    stack = _edits_stack(cmd.load_config)  # type: ignore[attr-defined]
+    if isinstance(cmd, List):
+        if not len(stack):
+            return f"no edits (specular strength {stack.specular_strength:g})"
+        lines = [f"{len(stack)} edit(s), specular strength {stack.specular_strength:g}"]
+        for r in stack.rows():
+            info = r["info"]
+            t = f", {info['setup_s'] + info['steps_s']:.2f} s" if "setup_s" in info else ""
+            lines.append(f"  {r['number']:>3}  {'on ' if r['enabled'] else 'off'}  {r['file']}  "
+                         f"{Path(r['image']).name or '-'}  [{r['camera'] or '-'}{t}]")
+        return "\n".join(lines)
+    if isinstance(cmd, Undo):
+        stack.undo()
+        return f"undone: {len(stack)} edit(s) left"
+    if isinstance(cmd, Reset):
+        n = stack.reset()
+        return f"reset: removed {n} edit(s), specular strength 1"
+    if isinstance(cmd, (Enable, Disable)):
+        stack.set_enabled(cmd.number, isinstance(cmd, Enable))
+        return f"edit {cmd.number} {'enabled' if isinstance(cmd, Enable) else 'disabled'}"
+    if isinstance(cmd, Specular):
+        stack.set_specular_strength(cmd.strength)
+        return f"specular strength {cmd.strength:g}"
+    raise InputError(f"unknown command {cmd!r}")
+
+
+def main(argv: Optional[list[str]] = None) -> None:
+    cmd = tyro.cli(Command, args=argv)  # type: ignore[arg-type]
+    print(run(cmd))
+
+
+def entrypoint() -> None:
+    cli_entry(lambda: main(sys.argv[1:]))
+
+
+if __name__ == "__main__":
+    entrypoint()
