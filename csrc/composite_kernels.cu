@@ -67,6 +67,74 @@ __global__ void composite_bwd_kernel(int64_t M, int d_rt, const float* __restric
   }
 }
 
+// Per work unit (16x16 grid tile of one item), as the rasterizer's pass: each thread owns a
+// pixel and steps through its entries while the block walks the tile's depth-sorted list in
+// batches; the entry of list element t is accumulated into shared memory, and the block adds
+// one atomic per (list element, channel) to the pair's gradient: a Gaussian covering many
+// pixels costs one global atomic per tile instead of one per pixel.
+template <int D>
+__global__ void __launch_bounds__(kTile* kTile)
+    composite_bwd_tile_kernel(const int* __restrict__ units, const int* __restrict__ items,
+                              const int* __restrict__ views, int item_w, int item_h,
+                              const int* __restrict__ ranges, const int* __restrict__ list_pair,
+                              const int64_t* __restrict__ offsets, const int* __restrict__ pair,
+                              const float* __restrict__ weight, const float* __restrict__ grad,
+                              float* __restrict__ grad_colors) {
+  constexpr int B = kTile * kTile;
+  __shared__ int s_pair[B];
+  __shared__ float s_acc[B * D];
+  const int* u = units + blockIdx.x * kUnitInts;
+  const int item = u[0], slot = u[1], gx = u[2], gy = u[3];
+  const int* it = items + item * kItemInts;
+  const int* vt = views + it[0] * kViewInts;
+  const int ix0 = it[1], iy0 = it[2], W = vt[1], H = vt[2];
+  const int tid = threadIdx.x;
+  const int X = gx * kTile + tid % kTile, Y = gy * kTile + tid / kTile;
+  const bool inside = X >= max(ix0, 0) && X < min(ix0 + item_w, W) && Y >= max(iy0, 0) &&
+                      Y < min(iy0 + item_h, H);
+  int64_t e = 0, e_end = 0;
+  int q = -1;
+  float gv[D];
+#pragma unroll
+  for (int d = 0; d < D; ++d) gv[d] = 0.f;
+  if (inside) {
+    const int64_t p = (static_cast<int64_t>(item) * item_h + (Y - iy0)) * item_w + (X - ix0);
+    e = offsets[p];
+    e_end = offsets[p + 1];
+    if (e < e_end) q = pair[e];
+#pragma unroll
+    for (int d = 0; d < D; ++d) gv[d] = grad[p * D + d];
+  }
+  bool done = e >= e_end;
+  const int start = ranges[2 * slot], end = ranges[2 * slot + 1];
+  for (int b0 = start; b0 < end; b0 += B) {
+    if (__syncthreads_count(done) == B) break;
+    const int j = b0 + tid;
+    s_pair[tid] = j < end ? list_pair[j] : -1;
+#pragma unroll
+    for (int d = 0; d < D; ++d) s_acc[tid * D + d] = 0.f;
+    __syncthreads();
+    const int nb = min(B, end - b0);
+    for (int t = 0; t < nb && !done; ++t) {
+      if (s_pair[t] != q) continue;
+      const float w = weight[e];
+#pragma unroll
+      for (int d = 0; d < D; ++d) atomicAdd(&s_acc[t * D + d], w * gv[d]);
+      if (++e == e_end) done = true;
+      else q = pair[e];
+    }
+    __syncthreads();
+    const int qt = s_pair[tid];
+    if (qt >= 0) {
+#pragma unroll
+      for (int d = 0; d < D; ++d) {
+        const float v = s_acc[tid * D + d];
+        if (v != 0.f) atomicAdd(grad_colors + static_cast<int64_t>(qt) * D + d, v);
+      }
+    }
+  }
+}
+
 inline unsigned blocks_for(int64_t n) { return static_cast<unsigned>((n + kThreads - 1) / kThreads); }
 
 }  // namespace
@@ -103,6 +171,27 @@ cudaError_t launch_composite_backward(int64_t M, int D, const float* grad, const
     default: VIRGI_BWD(0); break;
   }
 #undef VIRGI_BWD
+  return cudaGetLastError();
+}
+
+cudaError_t launch_composite_backward_tiles(int num_units, int D, const int* units,
+                                            const int* items, const int* views, int item_w,
+                                            int item_h, const int* ranges, const int* list_pair,
+                                            const int64_t* offsets, const int* pair,
+                                            const float* weight, const float* grad,
+                                            float* grad_colors, cudaStream_t stream) {
+  if (num_units == 0) return cudaSuccess;
+#define VIRGI_BWDT(DD)                                                                        \
+  composite_bwd_tile_kernel<DD><<<num_units, kTile * kTile, 0, stream>>>(                     \
+      units, items, views, item_w, item_h, ranges, list_pair, offsets, pair, weight, grad, \
+      grad_colors)
+  switch (D) {
+    case 1: VIRGI_BWDT(1); break;
+    case 3: VIRGI_BWDT(3); break;
+    case 4: VIRGI_BWDT(4); break;
+    default: return cudaErrorInvalidValue;
+  }
+#undef VIRGI_BWDT
   return cudaGetLastError();
 }
 

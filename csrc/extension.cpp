@@ -145,7 +145,10 @@ void check_input(const torch::Tensor& t, const char* name, int64_t cols) {
 }  // namespace
 
 // Returns {pixel i32[M], pair i32[M], weight f32[M], transmittance f32[P], valid bool[P],
-//          pixel_offsets i64[P+1], pair_view i64[U], pair_gaussian i64[U], pair_depth f32[U]}.
+//          pixel_offsets i64[P+1], pair_view i64[U], pair_gaussian i64[U], pair_depth f32[U],
+//          and the tile lists for composite_backward_tiles: plan i32 (device), meta i64[6] (cpu:
+//          units/items/views offsets in plan, number of units, item width, height),
+//          ranges i32[2S], list_pair i32[n_isect]}.
 std::vector<torch::Tensor> rasterize_contributions(
     torch::Tensor means, torch::Tensor quats, torch::Tensor scales, torch::Tensor opacities,
     torch::Tensor Ks, torch::Tensor viewmats, torch::Tensor widths, torch::Tensor heights,
@@ -280,8 +283,17 @@ std::vector<torch::Tensor> rasterize_contributions(
                                   weight.data_ptr<float>(), stream));
     VIRGI_CUDA_CHECK(launch_pixel_fill(P, offsets.data_ptr<int64_t>(), pixel.data_ptr<int>(), stream));
   }
+  // The tile lists as pair ranks, for the per-tile gradient of the fused composite.
+  auto list_pair = torch::empty({M > 0 ? n_isect : 0}, i32);
+  if (M > 0)
+    VIRGI_CUDA_CHECK(launch_list_pair(n_isect, sorted_vals.data_ptr<int>(), mark.data_ptr<uint8_t>(),
+                                      rank.data_ptr<int>(), list_pair.data_ptr<int>(), stream));
+  auto meta = torch::tensor({plan.units_at, plan.items_at, plan.views_at,
+                             static_cast<int64_t>(plan.num_units), item_w, item_h},
+                            torch::TensorOptions().dtype(torch::kInt64));
   // (The pinned host buffer's allocator waits on the upload's event before reusing it.)
-  return {pixel, pair, weight, transmittance, valid, offsets, pair_view, pair_gaussian, pair_depth};
+  return {pixel,         pair,      weight, transmittance, valid, offsets, pair_view,
+          pair_gaussian, pair_depth, dev,    meta,          ranges, list_pair};
 }
 
 namespace {
@@ -348,6 +360,35 @@ torch::Tensor composite_backward(torch::Tensor grad_images, torch::Tensor pixel,
   return grad_colors;
 }
 
+// d colors [U, D] from d images [P, D], per tile from the rasterizer's tile lists.
+torch::Tensor composite_backward_tiles(torch::Tensor grad_images, torch::Tensor pixel_offsets,
+                                       torch::Tensor pair, torch::Tensor weight, int64_t num_pairs,
+                                       torch::Tensor plan, torch::Tensor meta, torch::Tensor ranges,
+                                       torch::Tensor list_pair) {
+  check_f32(grad_images, "grad_images");
+  check_i32(pair, "pair");
+  check_f32(weight, "weight");
+  check_i32(plan, "plan");
+  check_i32(ranges, "ranges");
+  check_i32(list_pair, "list_pair");
+  TORCH_CHECK(meta.device().is_cpu() && meta.scalar_type() == torch::kInt64 && meta.numel() == 6,
+              "meta must be 6 cpu int64");
+  const c10::cuda::CUDAGuard guard(grad_images.device());
+  const int D = static_cast<int>(grad_images.size(1));
+  TORCH_CHECK(D == 1 || D == 3 || D == 4, "composite_backward_tiles handles 1, 3 or 4 channels");
+  auto m = meta.accessor<int64_t, 1>();
+  auto grad_colors = torch::zeros({num_pairs, D}, grad_images.options());
+  if (weight.numel() == 0) return grad_colors;
+  const int* pl = plan.data_ptr<int>();
+  VIRGI_CUDA_CHECK(launch_composite_backward_tiles(
+      static_cast<int>(m[3]), D, pl + m[0], pl + m[1], pl + m[2], static_cast<int>(m[4]),
+      static_cast<int>(m[5]), ranges.data_ptr<int>(), list_pair.data_ptr<int>(),
+      pixel_offsets.data_ptr<int64_t>(), pair.data_ptr<int>(), weight.data_ptr<float>(),
+      grad_images.data_ptr<float>(), grad_colors.data_ptr<float>(),
+      c10::cuda::getCurrentCUDAStream()));
+  return grad_colors;
+}
+
 }  // namespace virgi
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -356,4 +397,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "Contribution lists of N Gaussians for a request of equally sized items");
   m.def("composite_forward", &virgi::composite_forward, "Segmented sum of weighted pair colours");
   m.def("composite_backward", &virgi::composite_backward, "Gradient of composite_forward to colours");
+  m.def("composite_backward_tiles", &virgi::composite_backward_tiles,
+        "Gradient of composite_forward to colours, per tile from the tile lists");
 }

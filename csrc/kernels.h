@@ -59,4 +59,15 @@ cudaError_t launch_composite_backward(int64_t M, int D, const float* grad, const
                                       const int* pair, const float* weight, float* grad_colors,
                                       cudaStream_t stream);
 
+// The same gradient per work unit, from the tile lists (D in {1, 3, 4}); list_pair[i] is the
+// pair rank of sorted list element i, -1 where that Gaussian contributes nowhere.
+cudaError_t launch_composite_backward_tiles(int num_units, int D, const int* units,
+                                            const int* items, const int* views, int item_w,
+                                            int item_h, const int* ranges, const int* list_pair,
+                                            const int64_t* offsets, const int* pair,
+                                            const float* weight, const float* grad,
+                                            float* grad_colors, cudaStream_t stream);
+cudaError_t launch_list_pair(int64_t n, const int* sorted_vals, const uint8_t* mark,
+                             const int* rank_incl, int* list_pair, cudaStream_t stream);
+
 }  // namespace virgi

@@ -72,6 +72,7 @@ __global__ void project_count_kernel(int N, int Vr, const float* __restrict__ me
       {2.f * (qx * qy + qw * qz), 1.f - 2.f * (qx * qx + qz * qz), 2.f * (qy * qz - qw * qx)},
       {2.f * (qx * qz - qw * qy), 2.f * (qy * qz + qw * qx), 1.f - 2.f * (qx * qx + qy * qy)}};
   const float s[3] = {scales[3 * g], scales[3 * g + 1], scales[3 * g + 2]};
+  const float smax = fmaxf(fabsf(s[0]), fmaxf(fabsf(s[1]), fabsf(s[2])));
   const float opac = opacities[g];
 
   for (int v = 0; v < Vr; ++v) {
@@ -104,6 +105,27 @@ __global__ void project_count_kernel(int N, int Vr, const float* __restrict__ me
         JW[0][k] = j00 * vm[k] + j02 * vm[8 + k];
         JW[1][k] = j11 * vm[4 + k] + j12 * vm[8 + k];
       }
+      const float mx = fx * x * rz + cx, my = fy * y * rz + cy;
+      const int* st = sat + sat_base;
+      const int w1 = gw + 1;
+      // Cheap conservative cull first: lambda_max(cov2d) <= |J W|_F^2 smax^2 + eps2d (R is a
+      // rotation), and the radius formula adds at most 0.1 to lambda_max; a rectangle from this
+      // larger radius holds the true one, so if it holds no requested tile, neither does the true.
+      {
+        float F2 = 0.f;
+#pragma unroll
+        for (int k = 0; k < 3; ++k) F2 += JW[0][k] * JW[0][k] + JW[1][k] * JW[1][k];
+        const float rb = ceilf(3.f * sqrtf(F2 * smax * smax * 1.001f + 0.5f)) + 2.f;
+        if (isfinite(rb) && isfinite(mx) && isfinite(my)) {
+          int x0, x1, y0, y1;
+          tile_rect(mx, my, rb, gw, gh, x0, x1, y0, y1);
+          if (x1 <= x0 || y1 <= y0 ||
+              st[y1 * w1 + x1] - st[y0 * w1 + x1] - st[y1 * w1 + x0] + st[y0 * w1 + x0] == 0) {
+            counts[idx] = 0;
+            continue;
+          }
+        }
+      }
       float A[2][3];
 #pragma unroll
       for (int i = 0; i < 2; ++i)
@@ -119,7 +141,6 @@ __global__ void project_count_kernel(int N, int Vr, const float* __restrict__ me
       const float det0 = m01 * m01 + m02 * m02 + m12 * m12;
       const float a = a0 + kEps2d, c = c0 + kEps2d;
       const float det = det0 + kEps2d * (a0 + c0) + kEps2d * kEps2d;
-      const float mx = fx * x * rz + cx, my = fy * y * rz + cy;
       if (det > 0.f) {
         const float mid = 0.5f * (a + c);
         const float v1 = mid + sqrtf(fmaxf(mid * mid - det, 0.01f));
@@ -131,8 +152,6 @@ __global__ void project_count_kernel(int N, int Vr, const float* __restrict__ me
           int x0, x1, y0, y1;
           tile_rect(mx, my, r_int, gw, gh, x0, x1, y0, y1);
           if (x1 > x0 && y1 > y0) {
-            const int* st = sat + sat_base;
-            const int w1 = gw + 1;
             count = st[y1 * w1 + x1] - st[y0 * w1 + x1] - st[y1 * w1 + x0] + st[y0 * w1 + x0];
           }
           if (count > 0) {
@@ -331,6 +350,15 @@ __global__ void split_kernel(int64_t M, const int2* __restrict__ entry,
   weight[e] = __int_as_float(v.y);
 }
 
+__global__ void list_pair_kernel(int64_t n, const int* __restrict__ sorted_vals,
+                                 const uint8_t* __restrict__ mark, const int* __restrict__ rank_incl,
+                                 int* __restrict__ list_pair) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= n) return;
+  const int f = sorted_vals[i];
+  list_pair[i] = mark[f] ? rank_incl[f] - 1 : -1;
+}
+
 // pixel[e] for every entry: a warp owns 32 consecutive pixels, whose entries are one contiguous
 // range; each lane finds its entry's pixel among the 32 offsets by a shuffle binary search, so
 // the stores are coalesced.
@@ -432,6 +460,13 @@ cudaError_t launch_split(int64_t M, const int2* entry, const int* rank_incl, int
                          float* weight, cudaStream_t stream) {
   if (M == 0) return cudaSuccess;
   split_kernel<<<blocks_for(M), kThreads, 0, stream>>>(M, entry, rank_incl, pair, weight);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_list_pair(int64_t n, const int* sorted_vals, const uint8_t* mark,
+                             const int* rank_incl, int* list_pair, cudaStream_t stream) {
+  if (n == 0) return cudaSuccess;
+  list_pair_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, sorted_vals, mark, rank_incl, list_pair);
   return cudaGetLastError();
 }
 

@@ -27,8 +27,9 @@ REPO = Path(__file__).resolve().parents[1]
 CSRC = REPO / "csrc"
 IMG_TOL = 1e-5
 # Weights are products of up to hundreds of rounded factors: equal to float32 rounding means a
-# relative error of a few 1e-6 (the reference on the GPU builds T with a parallel cumprod).
-W_RTOL, W_ATOL = 2e-5, 1e-6
+# relative error up to a few 1e-5 over ~40 factors (the reference on the GPU builds T with a
+# parallel cumprod); images are held to 1e-5 absolute.
+W_RTOL, W_ATOL = 1e-4, 1e-6
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -175,19 +176,23 @@ def test_cuda_empty_cases():
 
 
 @pytest.mark.gpu
-@pytest.mark.parametrize("d", [3, 1, 5])
-def test_fused_composite_matches_plain(d):
+@pytest.mark.parametrize("kind", ["whole", "tiles"])
+@pytest.mark.parametrize("d", [3, 1, 4, 5])
+def test_fused_composite_matches_plain(d, kind):
+    """Fused forward and both backward paths (per tile for 1/3/4 channels, per entry otherwise)."""
     from virgi_ns.raster import cuda
 
     dev = torch.device("cuda")
     cams = make_cams(96, 64, views=2)
     m, q, s, o = (a.float().to(dev) for a in random_scene(800, seed=7, scale=(0.01, 0.15)))
-    c = cuda.rasterize(m, q, s, o, cams.to(dev, torch.float32), Request.whole_images(cams))
+    req = Request.whole_images(cams) if kind == "whole" else \
+        Request.tiles([0, 1, 0, 0, 1], [5, -7, 40, 5, 80], [3, 30, 20, 3, 50], 32)  # overlap, repeat, border
+    c = cuda.rasterize(m, q, s, o, cams.to(dev, torch.float32), req)
     assert c.weight.numel() > 1000
     gen = torch.Generator(dev).manual_seed(d)
     colors = torch.rand(len(c.pair_view), d, device=dev, generator=gen).requires_grad_(True)
     bg = torch.rand(d, device=dev, generator=gen).requires_grad_(True)
-    up = torch.randn(2, 64, 96, d, device=dev, generator=gen)
+    up = torch.randn(*c.shape, d, device=dev, generator=gen)
     fused = cuda.composite(colors, c, bg)
     (g_c, g_b) = torch.autograd.grad((fused * up).sum(), (colors, bg))
     plain = composite(colors, c, bg)

@@ -117,9 +117,12 @@ def available() -> tuple[bool, str]:
 @dataclass
 class CudaContributions(Contributions):
     """Contributions plus each pixel's entry range (``pixel_offsets`` [P+1], int64), which the
-    fused :func:`composite` uses. Entry indices (``pixel``, ``pair``) are int32."""
+    fused :func:`composite` uses. Entry indices (``pixel``, ``pair``) are int32. ``tile_lists``
+    (the request's plan and its depth-sorted tile lists as pair ranks) lets the fused backward
+    reduce per tile; it is dropped by anything that rebuilds the object."""
 
     pixel_offsets: Tensor | None = None
+    tile_lists: tuple | None = None
 
 
 def rasterize(
@@ -150,11 +153,11 @@ def rasterize(
         request.views.contiguous(), request.x0.contiguous(), request.y0.contiguous(),
         int(request.width), int(request.height),
     )
-    pixel, pair, weight, transmittance, valid, offsets, pair_view, pair_gaussian, pair_depth = out
+    pixel, pair, weight, transmittance, valid, offsets, pair_view, pair_gaussian, pair_depth = out[:9]
     return CudaContributions(
         request=request, num_gaussians=int(n), pair_view=pair_view, pair_gaussian=pair_gaussian,
         pair_depth=pair_depth, pixel=pixel, pair=pair, weight=weight, transmittance=transmittance,
-        valid=valid, pixel_offsets=offsets,
+        valid=valid, pixel_offsets=offsets, tile_lists=tuple(out[9:]),
     )
 
 
@@ -178,7 +181,11 @@ class _FusedComposite(torch.autograd.Function):
         grad = grad.contiguous()
         g_colors = g_bg = None
         if ctx.needs_input_grad[0]:
-            g_colors = _load().composite_backward(grad, c.pixel, c.pair, c.weight, ctx.num_pairs)
+            if c.tile_lists is not None and grad.shape[1] in (1, 3, 4):
+                g_colors = _load().composite_backward_tiles(grad, c.pixel_offsets, c.pair, c.weight,
+                                                            ctx.num_pairs, *c.tile_lists)
+            else:
+                g_colors = _load().composite_backward(grad, c.pixel, c.pair, c.weight, ctx.num_pairs)
         if ctx.has_bg and ctx.needs_input_grad[1]:
             g_bg = (c.transmittance[:, None] * grad).sum(0)
         return g_colors, g_bg, None
