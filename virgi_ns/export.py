@@ -39,7 +39,8 @@ from virgi_ns.nscams import COLMAP_TO_NS_WORLD, transform_gaussians
 from virgi_ns.raster import Cameras
 from virgi_ns.sh import sh_basis
 
-__all__ = ["BakeConfig", "CaptureFrame", "bake", "fibonacci_sphere", "fit_sh", "export_model"]
+__all__ = ["BakeConfig", "CaptureFrame", "bake", "bake_pipeline", "export_model", "fibonacci_sphere", "fit_sh",
+           "frame_of_model", "write_splat"]
 
 SH_DEGREE = 3
 
@@ -186,7 +187,7 @@ def fit_sh(dirs: Float[Tensor, "N P 3"], colours: Float[Tensor, "N P 3"], weight
     rhs = Bw.transpose(1, 2) @ (colours - 0.5)  # [N,K,3]
     k = B.shape[-1]
     reg = torch.full((k,), ridge, dtype=A.dtype, device=A.device)
-    reg[0] = ridge * 1e-3
+    reg[0] = 0.0  # the DC term is never shrunk
     A = A + torch.diag_embed(weights.sum(1, keepdim=True).clamp_min(1e-12) * reg)
     L, info = torch.linalg.cholesky_ex(A)
     if bool((info != 0).any()):  # degenerate rows (no weight at all): fall back to a solve with more ridge
@@ -336,9 +337,9 @@ def bake(
                      model.opacities.detach().float().reshape(-1).clone(), sh)
 
 
-def export_model(pipeline, stack=None, specular_strength: Optional[float] = None,
-                 frame: Optional[CaptureFrame] = None, cfg: Optional[BakeConfig] = None,
-                 progress: Optional[Callable[[int, int], None]] = None) -> Gaussians:
+def bake_pipeline(pipeline, stack=None, specular_strength: Optional[float] = None,
+                  frame: Optional[CaptureFrame] = None, cfg: Optional[BakeConfig] = None,
+                  progress: Optional[Callable[[int, int], None]] = None) -> Gaussians:
     """:func:`bake` a pipeline's model with its training cameras' directions, in the capture's
     frame (``frame`` defaults to :meth:`CaptureFrame.from_pipeline`)."""
     from virgi_ns.nscams import raster_cameras
@@ -347,3 +348,58 @@ def export_model(pipeline, stack=None, specular_strength: Optional[float] = None
     dm = pipeline.datamanager
     cams = raster_cameras(dm.train_dataset.cameras) if getattr(dm, "train_dataset", None) is not None else None
     return bake(pipeline.model, stack, specular_strength, frame, cams, cfg, progress)
+
+
+def frame_of_model(model) -> CaptureFrame:
+    """The capture frame a VIRGi datamanager recorded in the model's metadata (identity if none)."""
+    meta = (getattr(model, "kwargs", None) or {}).get("metadata") or {}
+    T = meta.get("virgi_capture_transform")
+    if T is None:
+        return CaptureFrame.identity()
+    return CaptureFrame(torch.as_tensor(T, dtype=torch.float64)[:3, :4], float(meta.get("virgi_capture_scale", 1.0)))
+
+
+def write_splat(g: Gaussians, out: str | Path) -> Path:
+    """Write ``.ply`` (INRIA) or ``.spz`` by the name's suffix, atomically."""
+    from virgi_ns.io import save_ply, save_spz
+
+    out = Path(out)
+    check_output_path(out)
+    (save_spz if out.suffix.lower() == ".spz" else save_ply)(g, out)
+    return out
+
+
+def check_output_path(out: Path) -> None:
+    if out.suffix.lower() not in (".ply", ".spz") or out.name.lower().endswith(".compressed.ply"):
+        raise InputError(f"output {out} must end in .ply (INRIA layout) or .spz")
+    if out.is_dir():
+        raise InputError(f"output {out} is a directory")
+
+
+_MODEL_STACK = "model"
+
+
+def export_model(model_or_pipeline, out: str | Path, stack=_MODEL_STACK, specular_strength: Optional[float] = None,
+                 frame: Optional[CaptureFrame] = None, cfg: Optional[BakeConfig] = None,
+                 progress: Optional[Callable[[int, int], None]] = None) -> Gaussians:
+    """Bake a model (or a pipeline's) and write it to ``out`` (.ply or .spz); returns the Gaussians.
+
+    ``stack`` defaults to the edit stack the model renders with (``model.edit_stack``); None
+    exports the base colours. With a pipeline the training cameras' directions are sampled and the
+    frame comes from its datamanager; with a bare model, from its metadata (and the cameras its
+    training callbacks recorded, if any)."""
+    check_output_path(Path(out))
+    if hasattr(model_or_pipeline, "datamanager"):
+        pipeline, model = model_or_pipeline, model_or_pipeline.model
+    else:
+        pipeline, model = None, model_or_pipeline
+    if isinstance(stack, str) and stack == _MODEL_STACK:
+        stack = getattr(model, "edit_stack", None)
+    if pipeline is not None:
+        g = bake_pipeline(pipeline, stack, specular_strength, frame, cfg, progress)
+    else:
+        cams_fn = getattr(model, "_train_cameras_fn", None)
+        cams = cams_fn() if cams_fn is not None else None
+        g = bake(model, stack, specular_strength, frame or frame_of_model(model), cams, cfg, progress)
+    write_splat(g, out)
+    return g

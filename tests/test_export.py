@@ -1,0 +1,304 @@
+"""Export: bake the colour field into SH degree 3 in the capture's frame (CPU, tiny scene).
+
+The exported Gaussians are rendered with ``virgi-render``'s path (reference rasterizer + SH
+colours) from held-out cameras given in the capture's ORIGINAL frame (the procedural scene's own
+cameras, independent of any frame code) and compared with the model's own renders."""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from test_model_train import build, scene, train  # noqa: F401  (fixture re-exported)
+from virgi_ns.camera_json import CameraSpec
+from virgi_ns.cli.render import render_image
+from virgi_ns.edit_stack import Edit, EditSource, EditStack, SegmentationHead
+from virgi_ns.errors import InputError
+from virgi_ns.export import BakeConfig, CaptureFrame, bake_pipeline, fibonacci_sphere, fit_sh, frame_of_model
+from virgi_ns.gaussians import SH_C0
+from virgi_ns.nscams import COLMAP_TO_NS_WORLD, rotmat_to_quat, transform_gaussians
+from virgi_ns.sh import sh_basis
+from virgi_ns.io import save_ply
+from virgi_ns.raster import Cameras
+from virgi_scene import Scene, lobe
+
+warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
+
+HELD_OUT = [0, 8]  # the nerfstudio dataparser's eval frames (interval 8) of the 16-view scene
+MIN_PSNR = 35.0
+
+
+def fit_field_to_scene(model, frame: CaptureFrame, sc, steps: int = 150, gain: float = 2.0) -> None:
+    """Fit the colour field directly to the scene's albedo and a strong specular lobe (known per
+    Gaussian and direction, no rendering): a realistic, clearly view-dependent field in seconds."""
+    fld = model.field
+    means = model.means.detach()
+    n, per = means.shape[0], 8
+    target_d = sc.albedo.clamp(0.02, 0.98)
+    opt = torch.optim.Adam(fld.parameters(), lr=1e-2)
+    gen = torch.Generator().manual_seed(0)
+    rep = torch.arange(n).repeat_interleave(per)
+    for _ in range(steps):
+        d_cap = torch.nn.functional.normalize(torch.randn(n, per, 3, generator=gen), dim=-1)
+        d_run = frame.directions_to_run(d_cap.double()).float().reshape(-1, 3)
+        target = (target_d[:, None] + gain * lobe(d_cap)[..., None] * sc.glossy[:, None, None]).clamp(0.02, 0.98)
+        f = fld.encode(means)
+        h1, h2 = fld.diffuse_hidden(f)
+        c_d = fld.diffuse(h2)
+        c_s = fld.specular(f[rep], d_run, h1[rep], h2[rep]).reshape(n, per, 3)
+        loss = (torch.sigmoid(c_d[:, None] + c_s) - target).abs().mean() + (torch.sigmoid(c_d) - target_d).abs().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    for p in fld.parameters():
+        p.grad = None
+
+
+def axis_angle(axis, degrees: float) -> torch.Tensor:
+    a = torch.nn.functional.normalize(torch.tensor(axis, dtype=torch.float64), dim=0)
+    Kx = torch.tensor([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]], dtype=torch.float64)
+    t = math.radians(degrees)
+    return torch.eye(3, dtype=torch.float64) + math.sin(t) * Kx + (1 - math.cos(t)) * Kx @ Kx
+
+
+def rotated_copy(sc: Scene, root: Path, R0: torch.Tensor, shift=(0.3, -0.2, 0.5)) -> Scene:
+    """The same capture (same images) expressed in a rotated and shifted world frame, so that the
+    dataparser's transform back to its frame is far from the identity."""
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "images").symlink_to(sc.root / "images")
+    t0 = torch.tensor(shift, dtype=torch.float64)
+    meta = json.loads((sc.root / "transforms.json").read_text())
+    for fr in meta["frames"]:
+        c2w = torch.tensor(fr["transform_matrix"], dtype=torch.float64)
+        c2w[:3, :3] = R0 @ c2w[:3, :3]
+        c2w[:3, 3] = R0 @ c2w[:3, 3] + t0
+        fr["transform_matrix"] = c2w.tolist()
+    (root / "transforms.json").write_text(json.dumps(meta))
+    g = sc.gaussians
+    R0f = R0.float()
+    qR = rotmat_to_quat(R0f)
+    from virgi_ns.nscams import quat_multiply
+
+    g2 = g.replace(means=g.means @ R0f.T + t0.float(),
+                   quats=quat_multiply(qR.expand(len(g), 4), torch.nn.functional.normalize(g.quats, dim=-1)))
+    save_ply(g2, root / "scene.ply")
+    inv = torch.eye(4, dtype=torch.float64)
+    inv[:3, :3] = R0.T
+    inv[:3, 3] = -R0.T @ t0
+    vms = (sc.cameras.viewmats.double() @ inv).float()
+    cams = Cameras(sc.cameras.Ks, vms, sc.cameras.widths, sc.cameras.heights)
+    return Scene(g2, sc.albedo, sc.glossy, cams, sc.images, root, root / "scene.ply")
+
+
+@pytest.fixture(scope="module")
+def rscene(scene, tmp_path_factory):  # noqa: F811
+    return rotated_copy(scene, tmp_path_factory.mktemp("rotated_scene"), axis_angle((1.0, 2.0, 0.5), 50.0))
+
+
+@pytest.fixture(scope="module")
+def fitted(rscene):
+    scene = rscene
+    torch.manual_seed(0)
+    _, pipeline, _, _ = build(scene, steps=1)
+    model = pipeline.model
+    frame = CaptureFrame.from_pipeline(pipeline)
+    fit_field_to_scene(model, frame, scene)
+    pipeline.eval()
+    model.build_specular_gate(pipeline.datamanager.train_raster_cameras())
+    return pipeline
+
+
+def spec_of(cams, i: int) -> CameraSpec:
+    K = cams.Ks[i]
+    return CameraSpec(int(cams.widths[i]), int(cams.heights[i]), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
+                      float(K[1, 2]), cams.viewmats[i].double().numpy())
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float(-10 * torch.log10(((a.clamp(0, 1) - b.clamp(0, 1)) ** 2).mean().clamp_min(1e-12)))
+
+
+def fidelity(pipeline, sc, g) -> list[float]:
+    """PSNR of the exported Gaussians (capture frame, scene cameras) against the model's renders."""
+    model = pipeline.model
+    bg = tuple(float(x) for x in model.background_color)
+    ev = pipeline.datamanager.eval_dataset.cameras
+    out = []
+    for j, i in enumerate(HELD_OUT):
+        got = torch.from_numpy(render_image(g, spec_of(sc.cameras, i), "reference", bg))
+        want = model.render_camera(ev[j : j + 1], gated=True)["rgb"]
+        out.append(psnr(got, want))
+    return out
+
+
+def synthetic_edit(model, red_shift: float, selected: torch.Tensor) -> Edit:
+    """Shift the diffuse head's red output where ``selected`` (a bool per Gaussian): the
+    segmentation head's first unit is a least-squares fit of +-1 labels from ``[f, h_diff]``,
+    sharpened, so alpha is ~1 there and ~0 elsewhere."""
+    head = model.field.diffuse_head
+    seg = SegmentationHead(model.field.feature_dim, head.in_features)
+    with torch.no_grad():
+        f = model.field.encode(model.means.detach())
+        _, h2 = model.field.diffuse_hidden(f)
+        x = torch.cat([f, h2], dim=-1)
+        label = selected.float() * 2 - 1
+        w = torch.linalg.lstsq(x, label[:, None]).solution[:, 0]
+        seg.l1.weight.zero_()
+        seg.l1.bias.zero_()
+        seg.l1.weight[0] = w
+        seg.l2.weight.zero_()
+        seg.l2.weight[0, 0] = 40.0
+        seg.l2.bias.fill_(-10.0)
+    bias = head.bias.detach().clone()
+    bias[0] += red_shift
+    src = EditSource("synthetic.png", torch.eye(3), torch.eye(4), 8, 8)
+    return Edit(head.weight.detach().clone(), bias, seg, src, model.fingerprint())
+
+
+# ------------------------------------------------------------------------------ frames
+def test_capture_frame_inverts_the_import_and_matches_the_saved_json(fitted, rscene, tmp_path):
+    scene = rscene
+    pipeline = fitted
+    frame = CaptureFrame.from_pipeline(pipeline)
+    out = pipeline.datamanager.train_dataparser_outputs
+    # the same frame from the dataparser's outputs and from dataparser_transforms.json
+    out.save_dataparser_transform(tmp_path / "dataparser_transforms.json")
+    for other in (CaptureFrame.from_dataparser(out.dataparser_transform, out.dataparser_scale),
+                  CaptureFrame.from_transforms_json(tmp_path / "dataparser_transforms.json"),
+                  frame_of_model(pipeline.model)):
+        torch.testing.assert_close(other.transform.double(), frame.transform.double(), atol=1e-6, rtol=0)
+        assert other.scale == pytest.approx(frame.scale)
+    # the model's (imported, then frozen) geometry goes back onto the source splat
+    model = pipeline.model
+    m, s, q = frame.gaussians_to_capture(model.means.detach(), model.scales.detach(), model.quats.detach())
+    torch.testing.assert_close(m, scene.gaussians.means, atol=1e-5, rtol=0)
+    torch.testing.assert_close(s, scene.gaussians.scales, atol=1e-5, rtol=0)
+    q = q * torch.sign(q[:, :1])
+    torch.testing.assert_close(q, torch.nn.functional.normalize(scene.gaussians.quats, dim=-1), atol=1e-5, rtol=0)
+    # cameras: the run's held-out viewmats in the capture frame project the source means as the
+    # scene's own cameras do
+    vm_run = pipeline.datamanager.eval_dataset.cameras
+    from virgi_ns.nscams import raster_cameras
+
+    vm = frame.viewmats_to_capture(raster_cameras(vm_run).viewmats)
+    want = scene.cameras.viewmats[HELD_OUT]
+    torch.testing.assert_close(vm, want, atol=1e-4, rtol=0)
+
+
+def test_frame_round_trip_with_the_colmap_axis_swap():
+    gen = torch.Generator().manual_seed(3)
+    n = 50
+    means = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    scales = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=gen, dtype=torch.float64), dim=-1)
+    A = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))[0]
+    A = A * torch.sign(torch.linalg.det(A))
+    T = torch.cat([A, torch.randn(3, 1, generator=gen, dtype=torch.float64)], dim=1)
+    frame = CaptureFrame.from_dataparser(T, 0.37, colmap_world=True)
+    # what the datamanager hands an import: [T_R @ swap | t], then nscams moves the splat
+    cap = torch.cat([T[:, :3] @ COLMAP_TO_NS_WORLD.double(), T[:, 3:]], dim=1)
+    fm, fs, fq = transform_gaussians(means, scales, quats, cap, 0.37)
+    bm, bs, bq = frame.gaussians_to_capture(fm, fs, fq)
+    torch.testing.assert_close(bm, means, atol=1e-12, rtol=0)
+    torch.testing.assert_close(bs, scales, atol=1e-12, rtol=0)
+    torch.testing.assert_close(bq * torch.sign(bq[:, :1]), quats * torch.sign(quats[:, :1]), atol=1e-12, rtol=0)
+    # the swap is nerfstudio's COLMAP convention: COLMAP (x, y, z) is (x, z, -y) before the transform
+    ident = CaptureFrame.from_dataparser(torch.eye(4), 1.0, colmap_world=True)
+    p = torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64)
+    torch.testing.assert_close(ident.points_to_capture(torch.tensor([[1.0, 3.0, -2.0]], dtype=torch.float64)), p)
+    # directions rotate with the frame; rotations of the Gaussians too
+    d = torch.randn(7, 3, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(frame.directions_to_capture(frame.directions_to_run(d)), d)
+    R = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))[0]
+    R = R * torch.sign(torch.linalg.det(R))
+    q1 = rotmat_to_quat(R)
+    assert torch.allclose(q1.norm(), torch.tensor(1.0, dtype=torch.float64))
+
+
+# ------------------------------------------------------------------------------- fitting
+def test_fit_sh_recovers_degree_3_coefficients_and_the_sphere_is_uniform():
+    gen = torch.Generator().manual_seed(0)
+    dirs = fibonacci_sphere(200, torch.float64)
+    torch.testing.assert_close(dirs.norm(dim=-1), torch.ones(200, dtype=torch.float64))
+    assert dirs.mean(0).abs().max() < 0.02  # balanced
+    coeffs = torch.randn(4, 16, 3, generator=gen, dtype=torch.float64) * 0.1
+    colours = torch.einsum("pk,nkc->npc", sh_basis(3, dirs), coeffs) + 0.5
+    got = fit_sh(dirs.expand(4, -1, -1), colours, torch.ones(4, 200, dtype=torch.float64), ridge=0.0)
+    torch.testing.assert_close(got, coeffs, atol=1e-8, rtol=0)
+    # a constant colour is the DC term alone, in the 3DGS convention (0.2820948 f_dc + 0.5)
+    flat = fit_sh(dirs[None], torch.full((1, 200, 3), 0.8, dtype=torch.float64), torch.ones(1, 200, dtype=torch.float64))
+    torch.testing.assert_close(flat[0, 0], torch.full((3,), (0.8 - 0.5) / SH_C0, dtype=torch.float64), atol=1e-6,
+                               rtol=0)
+    assert flat[0, 1:].abs().max() < 1e-6
+
+
+# ------------------------------------------------------------------------------ fidelity
+def test_export_matches_the_model_from_held_out_cameras(fitted, rscene):
+    scene = rscene
+    pipeline = fitted
+    model = pipeline.model
+    model.set_edit_stack(None)
+    assert model.spec_gate.float().mean() > 0.3  # the field is clearly view dependent
+    g = bake_pipeline(pipeline)
+    assert g.sh_degree == 3 and len(g) == model.num_points
+    torch.testing.assert_close(g.means, scene.gaussians.means, atol=1e-5, rtol=0)
+    torch.testing.assert_close(g.opacities, scene.gaussians.opacities, atol=1e-6, rtol=0)
+    scores = fidelity(pipeline, scene, g)
+    assert min(scores) >= MIN_PSNR, scores
+    # the yardstick can fail: the same export without its view-dependent bands is far off
+    dc_only = g.replace(sh=torch.cat([g.sh[:, :1], torch.zeros_like(g.sh[:, 1:])], dim=1))
+    assert min(fidelity(pipeline, scene, dc_only)) < MIN_PSNR - 5
+    # ... and so is an export whose directions were left in the run's frame
+    wrong = bake_pipeline(pipeline, frame=CaptureFrame.identity())
+    wrong = g.replace(sh=wrong.sh)
+    assert min(fidelity(pipeline, scene, wrong)) < MIN_PSNR - 5
+
+
+def test_export_with_an_edit_and_without_specular(fitted, rscene):
+    scene = rscene
+    pipeline = fitted
+    model = pipeline.model
+    base = bake_pipeline(pipeline, stack=None)
+    stack = EditStack(model.fingerprint())
+    stack.add(synthetic_edit(model, red_shift=2.5, selected=scene.glossy))
+    model.set_edit_stack(stack)
+    try:
+        g = bake_pipeline(pipeline, stack)
+        scores = fidelity(pipeline, scene, g)
+        assert min(scores) >= MIN_PSNR, scores
+        # the edit moved the glossy sphere's red, and left the matte one alone
+        red = (g.sh[:, 0, 0] - base.sh[:, 0, 0]) * SH_C0
+        assert red[scene.glossy].mean() > 0.1
+        assert red[~scene.glossy].abs().mean() < 0.01
+        # k = 0: no view dependence left; colours are the edited diffuse ones exactly
+        stack.set_specular_strength(0.0)
+        g0 = bake_pipeline(pipeline, stack)
+        assert g0.sh[:, 1:].abs().max() == 0
+        scores0 = fidelity(pipeline, scene, g0)
+        assert min(scores0) >= 50, scores0
+        with torch.no_grad():
+            want = torch.sigmoid(stack.diffuse_all(model.field, model.means.detach()))
+        torch.testing.assert_close(SH_C0 * g0.sh[:, 0] + 0.5, want, atol=1e-5, rtol=0)
+    finally:
+        model.set_edit_stack(None)
+
+
+def test_bake_without_cameras_uses_the_sphere_and_rejects_bad_strength(fitted, rscene):
+    scene = rscene
+    from virgi_ns.export import bake
+
+    pipeline = fitted
+    frame = CaptureFrame.from_pipeline(pipeline)
+    g = bake(pipeline.model, None, None, frame, None, BakeConfig(directions=256))
+    assert torch.isfinite(g.sh).all()
+    assert min(fidelity(pipeline, scene, g)) > 25  # a looser fit (whole sphere), still the same scene
+    with pytest.raises(InputError):
+        bake(pipeline.model, None, -1.0, frame)
+    with pytest.raises(InputError):
+        bake(pipeline.model, None, math.inf, frame)

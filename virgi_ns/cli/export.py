@@ -1,0 +1,125 @@
+"""``virgi-export --load-config CFG --out OUT.ply``: bake a trained VIRGi run into a standard splat.
+
+The run's edits (``<run>/edits``, as the viewer panel and the edit tools keep them) and its
+specular strength are applied unless ``--no-edits``; ``--specular-strength`` overrides ``k``.
+Colours are fitted to SH degree 3 per Gaussian (:mod:`virgi_ns.export`); geometry is put back in
+the capture's original frame (the run's ``dataparser_transforms.json``, and the COLMAP parser's
+axis swap), so the file lines up with the source data and any splat imported from it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+import tyro
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+from virgi_ns.errors import InputError, cli_entry
+
+
+@dataclass
+class Export:
+    """Bake a VIRGi run (with its edits) into an INRIA .ply (SH degree 3) or .spz."""
+
+    load_config: Path
+    """The run's config.yml."""
+    out: Path
+    """Output splat: .ply (INRIA layout) or .spz."""
+    specular_strength: Optional[float] = None
+    """k, the factor on the specular colour (default: the edit stack's, else 1; 0 removes highlights)."""
+    no_edits: bool = False
+    """Export the base colours, ignoring the run's edits."""
+    directions: int = 128
+    """Sphere directions sampled per Gaussian (added to the training cameras' directions)."""
+    frame: Literal["capture", "dataparser"] = "capture"
+    """capture: the capture's original frame (lines up with the source data); dataparser: the run's frame."""
+
+
+def _validate(args: Export) -> None:
+    from virgi_ns.export import check_output_path
+
+    check_output_path(args.out)
+    if args.directions < 0:
+        raise InputError(f"--directions must be >= 0, got {args.directions}")
+    k = args.specular_strength
+    if k is not None and not (k >= 0.0 and k < float("inf")):
+        raise InputError(f"--specular-strength must be a finite number >= 0, got {k}")
+    if not args.load_config.is_file():
+        raise InputError(f"no such config: {args.load_config}")
+
+
+def load_run(config_path: Path):
+    """``eval_setup`` of a VIRGi run, with its problems as :class:`InputError`."""
+    import yaml
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    from virgi_ns.model import VirgiModel
+
+    try:
+        cfg = yaml.load(config_path.read_text(), Loader=yaml.Loader)
+    except Exception as e:  # noqa: BLE001 - any unreadable config is the same user error
+        raise InputError(f"{config_path}: not a nerfstudio config ({type(e).__name__})") from None
+    model_cfg = getattr(getattr(cfg, "pipeline", None), "model", None)
+    from virgi_ns.model import VirgiModelConfig
+
+    if not isinstance(model_cfg, VirgiModelConfig):
+        raise InputError(f"{config_path}: not a virgi run (method {getattr(cfg, 'method_name', '?')})")
+    ckpt_dir = cfg.get_checkpoint_dir()
+    if not ckpt_dir.is_dir() or not any(ckpt_dir.glob("step-*.ckpt")):
+        raise InputError(f"{config_path}: no checkpoint (step-*.ckpt) in {ckpt_dir} (nerfstudio looks where the "
+                         "run was trained, relative to the current directory)")
+    _, pipeline, _, _ = eval_setup(config_path, test_mode="inference")
+    if not isinstance(pipeline.model, VirgiModel):
+        raise InputError(f"{config_path}: not a virgi run")
+    return cfg, pipeline
+
+
+def run(args: Export) -> str:
+    """Do the export; returns the one-line summary."""
+    _validate(args)
+    from virgi_ns.edit_stack import EditStack
+    from virgi_ns.export import BakeConfig, CaptureFrame, bake_pipeline, uses_colmap_world, write_splat
+
+    console = Console(stderr=True)
+    with console.status(f"loading {args.load_config}"):
+        cfg, pipeline = load_run(args.load_config)
+    model = pipeline.model
+    run_dir = args.load_config.parent
+    stack = None if args.no_edits else EditStack.open(run_dir, model.fingerprint())
+    if args.frame == "dataparser":
+        frame = CaptureFrame.identity()
+    elif (run_dir / "dataparser_transforms.json").is_file():
+        frame = CaptureFrame.from_transforms_json(run_dir / "dataparser_transforms.json",
+                                                  uses_colmap_world(cfg.pipeline.datamanager.dataparser))
+    else:
+        frame = CaptureFrame.from_pipeline(pipeline)
+    k = args.specular_strength if args.specular_strength is not None else (
+        stack.specular_strength if stack is not None else 1.0)
+    n_edits = len(stack.active) if stack is not None else 0
+    t0 = time.perf_counter()
+    with Progress(TextColumn("baking colours"), BarColumn(), TextColumn("{task.completed:,}/{task.total:,} Gaussians"),
+                  TimeElapsedColumn(), console=console, transient=True) as bar:
+        task = bar.add_task("bake", total=model.num_points)
+        g = bake_pipeline(pipeline, stack, k, frame, BakeConfig(directions=args.directions),
+                          progress=lambda done, total: bar.update(task, completed=done))
+    with console.status(f"writing {args.out}"):
+        write_splat(g, args.out)
+    secs = time.perf_counter() - t0
+    return (f"{args.out}: {g.summary()}; {n_edits} edit(s), specular strength {k:g}, {args.frame} frame, "
+            f"{secs:.1f} s")
+
+
+def main() -> None:
+    print(run(tyro.cli(Export)))
+
+
+def entrypoint() -> None:
+    cli_entry(main)
+
+
+if __name__ == "__main__":
+    entrypoint()
