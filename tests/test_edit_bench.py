@@ -1,0 +1,78 @@
+"""``virgi-bench recolor`` / ``accuracy-time`` on a tiny trained run (CPU): files, figures, trends."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import pytest
+import torch
+from rich.console import Console
+
+from virgi_ns.bench.recolor import AccuracyTime, Recolor, RuleArgs, psnr, run_accuracy_time, run_recolor, summary
+from virgi_ns.errors import InputError
+
+from viewer_run import train_tiny
+from virgi_scene import make_scene
+
+
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory):
+    scene = make_scene(tmp_path_factory.mktemp("bench_scene"))
+    _, pl = train_tiny(scene, steps=20)
+    return pl
+
+
+# a short colour stage leaves dull colours: select every saturated pixel
+BROAD = RuleArgs(h0=0.0, h1=360.0, shift=120.0, s_min=0.1, v_min=0.05)
+
+
+def _quiet() -> Console:
+    return Console(file=open(os.devnull, "w"))
+
+
+def test_psnr_helper_against_direct_formula():
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.rand(5, 7, 3, generator=g), torch.rand(5, 7, 3, generator=g)
+    mse = float(((a - b) ** 2).mean())
+    assert psnr(a, b) == pytest.approx(-10 * math.log10(mse), rel=1e-5)
+    m = torch.zeros(5, 7, dtype=torch.bool)
+    m[1:3, 2:5] = True
+    mse_m = float(((a[1:3, 2:5] - b[1:3, 2:5]) ** 2).mean())
+    assert psnr(a, b, m) == pytest.approx(-10 * math.log10(mse_m), rel=1e-5)
+    assert math.isnan(psnr(a, b, torch.zeros(5, 7, dtype=torch.bool)))
+
+
+def test_recolor_bench_writes_results_and_pictures(pipeline, tmp_path):
+    out = tmp_path / "r" / "results.json"
+    args = Recolor(load_config=tmp_path / "unused.yml", out=out, rule=BROAD, edit_source="render", steps=40, repeats=1,
+                   pictures=1, lpips=False)
+    res = run_recolor(args, pipeline, _quiet())
+    assert json.loads(out.read_text())["timing"]["steps"] == 40
+    assert (tmp_path / "r" / "results_view0.png").is_file() and (tmp_path / "r" / "results_edit.png").is_file()
+    m = res["mean"]
+    assert 0 < m["mask_fraction"] < 1
+    for k in ("recolour_psnr", "unedited_psnr", "propagation_psnr", "miss_psnr", "leak_psnr"):
+        assert math.isfinite(m[k]), k
+    assert res["timing"]["setup_s"] > 0 and res["timing"]["steps_s"] > 0
+    assert "propagation" in summary({**res, "mean": {**m, "recolour_lpips": math.nan}})
+
+
+def test_accuracy_time_sweep_more_steps_help(pipeline, tmp_path):
+    out = tmp_path / "at.json"
+    args = AccuracyTime(load_config=tmp_path / "unused.yml", out=out, rule=BROAD, edit_source="render", steps=(1, 60),
+                        pixel_batches=(1,), repeats=1)
+    res = run_accuracy_time(args, pipeline, _quiet())
+    assert out.is_file() and out.with_suffix(".png").stat().st_size > 1000
+    p1, p60 = res["points"]
+    assert p60["miss_psnr"] > p1["miss_psnr"] + 3.0, (p1["miss_psnr"], p60["miss_psnr"])
+
+
+def test_bad_bench_arguments(pipeline, tmp_path):
+    with pytest.raises(InputError, match="hue"):
+        run_recolor(Recolor(tmp_path / "x.yml", rule=RuleArgs(h0=400)), pipeline, _quiet())
+    with pytest.raises(InputError, match="out of range"):
+        run_recolor(Recolor(tmp_path / "x.yml", edit_view=999), pipeline, _quiet())
+    with pytest.raises(InputError, match="edit-source"):
+        run_recolor(Recolor(tmp_path / "x.yml", edit_source="paint"), pipeline, _quiet())

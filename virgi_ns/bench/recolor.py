@@ -1,0 +1,349 @@
+"""``virgi-bench recolor`` and ``virgi-bench accuracy-time``: how well and how fast one edited view
+recolours a trained run, measured with the deterministic HSV rule of :mod:`virgi_ns.recolor`.
+
+The rule applied to one training view (its photo, or the model's render of it) is the edit;
+applied to the held-out views it is the truth. Figures, per held-out view and averaged:
+
+- **recolour** PSNR / SSIM / LPIPS: edited render vs the rule applied to the held-out *photo*,
+  beside the same model's **unedited** PSNR (render vs photo), which bounds it;
+- **propagation** PSNR: edited render vs the rule applied to the model's own *unedited render*,
+  which isolates the edit from reconstruction error; split into inside the rule's mask
+  (**miss**: recolour not done) and outside it (**leak**: recolour where none belongs);
+- the edit's setup and step times (median over ``--repeats`` after one warm-up fit).
+
+``accuracy-time`` sweeps the number of steps (and the pixel subsampling) and writes a JSON and a
+PNG plot of recolour and propagation PSNR against edit wall time. Nothing of the run is written:
+edits live in memory only.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Annotated, Optional, Union
+
+import numpy as np
+import torch
+import tyro
+from rich.console import Console
+
+from virgi_ns.errors import InputError, atomic_path, cli_entry
+from virgi_ns.recolor import RecolorRule, recolor
+
+
+# ---------------------------------------------------------------------------- options
+@dataclass
+class RuleArgs:
+    """The recolouring rule (degrees for hues)."""
+
+    h0: float = 190.0
+    h1: float = 250.0
+    shift: float = 150.0
+    s_min: float = 0.35
+    v_min: float = 0.15
+    sat_scale: float = 1.0
+
+    def rule(self) -> RecolorRule:
+        try:
+            return RecolorRule(self.h0, self.h1, self.shift, self.s_min, self.v_min, self.sat_scale)
+        except ValueError as e:
+            raise InputError(str(e)) from None
+
+
+@dataclass
+class Recolor:
+    """Edit one training view with the rule; measure the held-out views."""
+
+    load_config: Path
+    """The run's config.yml."""
+    out: Path = Path("bench_out/recolor/results.json")
+    """JSON results; pictures are written beside it."""
+    rule: RuleArgs = field(default_factory=RuleArgs)
+    edit_view: int = 0
+    """Training image to edit."""
+    edit_source: str = "photo"
+    """Apply the rule to the training 'photo' or to the model's 'render' of it."""
+    steps: Optional[int] = None
+    """Edit steps (default: the engine's)."""
+    pixel_batches: int = 1
+    """Pixel subsets per edit (one per step)."""
+    repeats: int = 3
+    """Timed fits after one warm-up; the median is reported."""
+    max_views: int = 0
+    """Held-out views to measure (0: all)."""
+    pictures: int = 3
+    """Held-out views saved as before | after | truth | mask PNGs."""
+    lpips: bool = True
+    """Compute LPIPS when its weights are available offline."""
+
+
+@dataclass
+class AccuracyTime:
+    """Sweep edit steps (and pixel subsampling): recolour PSNR against wall time."""
+
+    load_config: Path
+    out: Path = Path("bench_out/accuracy_time/accuracy_time.json")
+    """JSON results; the PNG plot is written beside it (same stem)."""
+    rule: RuleArgs = field(default_factory=RuleArgs)
+    edit_view: int = 0
+    edit_source: str = "photo"
+    steps: tuple[int, ...] = (10, 25, 50, 75, 100, 150, 200, 300, 500)
+    pixel_batches: tuple[int, ...] = (1, 4)
+    repeats: int = 3
+    max_views: int = 0
+
+
+Command = Union[
+    Annotated[Recolor, tyro.conf.subcommand("recolor")],
+    Annotated[AccuracyTime, tyro.conf.subcommand("accuracy-time")],
+]
+
+
+# ---------------------------------------------------------------------------- helpers
+def psnr(a: torch.Tensor, b: torch.Tensor, mask: Optional[torch.Tensor] = None) -> float:
+    """PSNR over all pixels, or over ``mask`` [H,W] (NaN for an empty mask)."""
+    d = (a.float() - b.float()) ** 2
+    if mask is not None:
+        if not bool(mask.any()):
+            return math.nan
+        d = d[mask]
+    return float(-10.0 * torch.log10(d.mean().clamp_min(1e-12)))
+
+
+def _mean(xs: list[float]) -> float:
+    xs = [x for x in xs if not math.isnan(x)]
+    return float(sum(xs) / len(xs)) if xs else math.nan
+
+
+@dataclass
+class Bench:
+    """A loaded run prepared for recolour measurements: the edit view and the held-out views
+    with their photos and unedited renders (computed once)."""
+
+    pipeline: object
+    scene: object
+    edit_camera: object
+    edit_photo: torch.Tensor
+    views: list  # raster Cameras, one view each
+    photos: list[torch.Tensor]
+    base: list[torch.Tensor]
+    fingerprint: str
+
+    @staticmethod
+    def load(pipeline, edit_view: int, max_views: int = 0) -> "Bench":
+        from virgi_ns.edit import FrozenScene, render_view
+        from virgi_ns.nscams import raster_cameras
+
+        dm = pipeline.datamanager
+        model = pipeline.model
+        train, ev = dm.train_dataset, getattr(dm, "eval_dataset", None)
+        if not 0 <= edit_view < len(train):
+            raise InputError(f"--edit-view {edit_view} is out of range: {len(train)} training images")
+        if ev is None or len(ev) == 0:
+            raise InputError("the run has no held-out (eval) images to measure")
+        scene = FrozenScene.from_model(model)
+        dev = model.device
+        idx = list(range(len(ev)))
+        if max_views > 0 and len(idx) > max_views:
+            idx = [idx[round(i * (len(idx) - 1) / max(max_views - 1, 1))] for i in range(max_views)]
+        views, photos, base = [], [], []
+        for i in idx:
+            cams = raster_cameras(ev.cameras[i : i + 1]).to(dev)
+            views.append(cams)
+            photos.append(ev.get_image_float32(i)[..., :3].to(dev))
+            base.append(render_view(scene, cams, 0)["rgb"].clamp(0, 1))
+        ecam = raster_cameras(train.cameras[edit_view : edit_view + 1]).to(dev)
+        return Bench(pipeline, scene, ecam, train.get_image_float32(edit_view)[..., :3].to(dev), views, photos,
+                     base, scene.fingerprint())
+
+    def edited_image(self, rule: RecolorRule, source: str) -> torch.Tensor:
+        from virgi_ns.edit import render_view
+
+        if source == "photo":
+            img = self.edit_photo
+        elif source == "render":
+            img = render_view(self.scene, self.edit_camera, 0)["rgb"].clamp(0, 1)
+        else:
+            raise InputError(f"--edit-source must be 'photo' or 'render', got {source!r}")
+        return recolor(img, rule)[0]
+
+    def fit(self, edited: torch.Tensor, steps: Optional[int], pixel_batches: int, repeats: int):
+        """(edit, {setup_s, steps_s, total_s} medians) after one untimed warm-up fit."""
+        from virgi_ns.edit import EditConfig, EditEngine
+
+        cfg = EditConfig(pixel_batches=pixel_batches)
+        if steps is not None:
+            cfg.steps = int(steps)
+        EditEngine(self.scene, self.edit_camera, edited, cfg=cfg).fit()  # warm-up (kernels, caches)
+        times, edit = [], None
+        for _ in range(max(1, repeats)):
+            edit, t = EditEngine(self.scene, self.edit_camera, edited, cfg=cfg).fit()
+            times.append(t)
+        med = lambda xs: float(statistics.median(xs))  # noqa: E731
+        return edit, {"setup_s": med([t.setup_s for t in times]), "steps_s": med([t.steps_s for t in times]),
+                      "total_s": med([t.total_s for t in times]), "steps": cfg.steps,
+                      "pixel_batches": pixel_batches, "final_l1": times[-1].final_loss}
+
+    def measure(self, edit, rule: RecolorRule, lpips: bool = True, keep: int = 0) -> tuple[dict, list]:
+        """Per-view and mean figures for ``edit``; the first ``keep`` views' pictures too."""
+        from virgi_ns.edit import render_view
+        from virgi_ns.edit_stack import EditStack
+        from virgi_ns.metrics import image_metrics
+
+        stack = EditStack(self.fingerprint)
+        stack.to(self.scene.device)
+        stack.add(edit)
+        rows, pics = [], []
+        for i, (cams, photo, base) in enumerate(zip(self.views, self.photos, self.base)):
+            out = render_view(self.scene, cams, 0, stack)
+            after = out["rgb"].clamp(0, 1)
+            truth_photo, _ = recolor(photo, rule)
+            truth_render, mask = recolor(base, rule)
+            m = image_metrics(after, truth_photo, lpips="auto" if lpips else None)
+            rows.append({
+                "recolour_psnr": m["psnr"], "recolour_ssim": m["ssim"], "recolour_lpips": m["lpips"],
+                "unedited_psnr": psnr(base, photo),
+                "propagation_psnr": psnr(after, truth_render),
+                "miss_psnr": psnr(after, truth_render, mask),
+                "leak_psnr": psnr(after, truth_render, ~mask),
+                "mask_fraction": float(mask.float().mean()),
+            })
+            if i < keep:
+                seg = out["segmentation"].clamp(0, 1).expand(-1, -1, 3)
+                pics.append(torch.cat([base, after, truth_render, seg], dim=1).cpu())
+        mean = {k: _mean([r[k] for r in rows]) for k in rows[0]} if rows else {}
+        return {"mean": mean, "views": rows}, pics
+
+
+def _save_png(path: Path, image: torch.Tensor) -> None:
+    from PIL import Image
+
+    arr = (image.clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+    with atomic_path(path) as tmp:
+        Image.fromarray(arr).save(tmp, format="PNG")
+
+
+def _write_json(path: Path, data: dict) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1, default=float))
+
+
+def _device_name(dev: torch.device) -> str:
+    return torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu"
+
+
+# ------------------------------------------------------------------------- commands
+def run_recolor(args: Recolor, pipeline=None, console: Optional[Console] = None) -> dict:
+    """The ``recolor`` benchmark; returns (and writes) its results."""
+    console = console or Console(stderr=True)
+    rule = args.rule.rule()
+    if pipeline is None:
+        from virgi_ns.cli.edit import load_run
+
+        with console.status(f"loading {args.load_config}"):
+            _, pipeline = load_run(args.load_config)
+    with console.status("rendering the held-out views"):
+        b = Bench.load(pipeline, args.edit_view, args.max_views)
+    edited = b.edited_image(rule, args.edit_source)
+    with console.status("fitting the edit"):
+        edit, timing = b.fit(edited, args.steps, args.pixel_batches, args.repeats)
+    with console.status("measuring"):
+        res, pics = b.measure(edit, rule, args.lpips, args.pictures)
+    out = {"config": str(args.load_config), "device": _device_name(b.scene.device),
+           "gaussians": int(b.scene.means.shape[0]), "rule": rule.to_dict(), "edit_view": args.edit_view,
+           "edit_source": args.edit_source, "timing": timing, **res}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    for i, p in enumerate(pics):
+        _save_png(args.out.with_name(f"{args.out.stem}_view{i}.png"), p)
+    _save_png(args.out.with_name(f"{args.out.stem}_edit.png"), torch.cat([b.edit_photo.cpu(), edited.cpu()], 1))
+    _write_json(args.out, out)
+    return out
+
+
+def summary(res: dict) -> str:
+    m, t = res["mean"], res["timing"]
+    return (f"recolour PSNR {m['recolour_psnr']:.2f} dB (unedited {m['unedited_psnr']:.2f}), SSIM "
+            f"{m['recolour_ssim']:.4f}, LPIPS {m['recolour_lpips']:.4f}; propagation {m['propagation_psnr']:.2f} dB "
+            f"(miss {m['miss_psnr']:.2f}, leak {m['leak_psnr']:.2f}); edit {t['total_s']:.3f} s "
+            f"(setup {t['setup_s']:.3f} + {t['steps']} steps {t['steps_s']:.3f}) on {res['device']}")
+
+
+def run_accuracy_time(args: AccuracyTime, pipeline=None, console: Optional[Console] = None) -> dict:
+    """The sweep; writes JSON + PNG plot; returns the results."""
+    console = console or Console(stderr=True)
+    rule = args.rule.rule()
+    if any(s < 1 for s in args.steps) or any(p < 1 for p in args.pixel_batches):
+        raise InputError("--steps and --pixel-batches values must be >= 1")
+    if pipeline is None:
+        from virgi_ns.cli.edit import load_run
+
+        with console.status(f"loading {args.load_config}"):
+            _, pipeline = load_run(args.load_config)
+    b = Bench.load(pipeline, args.edit_view, args.max_views)
+    edited = b.edited_image(rule, args.edit_source)
+    points = []
+    for pb in args.pixel_batches:
+        for s in args.steps:
+            edit, timing = b.fit(edited, s, pb, args.repeats)
+            res, _ = b.measure(edit, rule, lpips=False)
+            points.append({**timing, **res["mean"]})
+            console.print(f"pixel_batches {pb} steps {s}: {timing['total_s']:.3f} s, recolour "
+                          f"{res['mean']['recolour_psnr']:.2f} dB, propagation {res['mean']['propagation_psnr']:.2f} dB")
+    out = {"config": str(args.load_config), "device": _device_name(b.scene.device), "rule": rule.to_dict(),
+           "points": points}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    _write_json(args.out, out)
+    plot_accuracy_time(out, args.out.with_suffix(".png"))
+    return out
+
+
+def plot_accuracy_time(res: dict, path: Path) -> None:
+    """Recolour and propagation PSNR against edit wall time, one line per pixel subsampling."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pts = res["points"]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), constrained_layout=True)
+    for ax, key, title in ((axes[0], "recolour_psnr", "recolour PSNR (vs rule on photos)"),
+                           (axes[1], "propagation_psnr", "propagation PSNR (vs rule on renders)")):
+        for pb in sorted({p["pixel_batches"] for p in pts}):
+            sel = sorted((p for p in pts if p["pixel_batches"] == pb), key=lambda p: p["total_s"])
+            ax.plot([p["total_s"] for p in sel], [p[key] for p in sel], "o-",
+                    label=f"1/{pb} of the pixels per step" if pb > 1 else "all pixels per step")
+            for p in sel:
+                ax.annotate(str(p["steps"]), (p["total_s"], p[key]), fontsize=7, xytext=(3, 3),
+                            textcoords="offset points")
+        if key == "recolour_psnr" and pts:
+            ax.axhline(pts[0].get("unedited_psnr", math.nan), color="grey", ls="--", lw=1, label="unedited PSNR")
+        ax.set_xlabel("edit wall time (s): setup + steps")
+        ax.set_ylabel("PSNR (dB)")
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(f"accuracy vs time ({res['device']}; labels: steps)", fontsize=10)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    plt.close(fig)
+
+
+def main(argv: Optional[list[str]] = None) -> None:
+    cmd = tyro.cli(Command, args=argv)  # type: ignore[arg-type]
+    if isinstance(cmd, Recolor):
+        print(summary(run_recolor(cmd)))
+    else:
+        res = run_accuracy_time(cmd)
+        print(f"{len(res['points'])} points written to {cmd.out} and {cmd.out.with_suffix('.png')}")
+
+
+def entrypoint() -> None:
+    cli_entry(lambda: main(sys.argv[1:]))
+
+
+__all__ = ["Bench", "Recolor", "AccuracyTime", "RuleArgs", "run_recolor", "run_accuracy_time", "psnr", "summary"]
