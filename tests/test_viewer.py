@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import io
 import json
+import threading
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -21,8 +23,19 @@ from virgi_scene import make_scene
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     scene = make_scene(tmp_path_factory.mktemp("viewer_scene"))
-    _, pipeline = train_tiny(scene, steps=20)
+    _, pipeline = train_tiny(scene, steps=4)
     return scene, pipeline
+
+
+class OutputSelector:
+    """Stands in for the viewer's "Output type" dropdown."""
+
+    def __init__(self) -> None:
+        self.value = "rgb"
+        self.options = ["rgb", "diffuse", "specular", "depth", "accumulation"]
+
+    def set_options(self, options) -> None:
+        self.options = list(options)
 
 
 def png(image: np.ndarray) -> bytes:
@@ -96,8 +109,11 @@ def test_panel_save_upload_apply_undo(run, tmp_path):
     panel._guard(panel.apply_edit)
     assert panel.status_is_error and "upload" in panel.status
 
-    # an edit: swap red and green of the saved view (the red sphere turns green)
-    edited = saved[..., [1, 0, 2]].copy()
+    # an edit: the scene's pixels of the saved view painted green
+    mask = np.abs(saved - saved[0, 0]).max(-1) > 0.05
+    assert mask.mean() > 0.05
+    edited = saved.copy()
+    edited[mask] = (0.1, 0.8, 0.15)
     up.value = Upload("view_001 edited.png", png(edited))
     panel._on_upload(up)
     assert not panel.status_is_error, panel.status
@@ -114,8 +130,20 @@ def test_panel_save_upload_apply_undo(run, tmp_path):
     assert panel.selected.options == [ALL_EDITS, "edit 1"]
     out = model.get_outputs_for_camera(cam)
     assert out["segmentation"].shape == (40, 48, 1)
-    changed = torch.from_numpy(np.abs(edited - before).max(-1) > 0.1)
-    assert float(out["segmentation"][..., 0][changed].mean()) > 0.2  # the recoloured pixels are selected
+    seg = out["segmentation"][..., 0].numpy()
+    assert seg[mask].mean() > 0.5 and seg[~mask].mean() < 0.1  # the recoloured pixels are selected
+
+    # export bakes the edited colours; the exported file seen from the saved CAM.json (capture
+    # frame) looks like the model's edited render from the same view
+    panel.export(tmp_path / "out" / "edited.ply", wait=True)
+    assert not panel.status_is_error, panel.status
+    from virgi_ns.cli.render import render_image
+    from virgi_ns.io import load_splat
+
+    g = load_splat(tmp_path / "out" / "edited.ply")
+    assert len(g) == model.num_points
+    baked = render_image(g, read_camera_json(view.json), backend="reference")
+    assert np.abs(baked - after).mean() < 0.03, np.abs(baked - after).mean()
 
     # toggle off: back to the base colours; on again
     panel.set_enabled(1, False)
@@ -141,7 +169,17 @@ def test_panel_save_upload_apply_undo(run, tmp_path):
                                cam.camera_to_worlds.numpy(), atol=1e-5)
     panel = other
 
+    # the display dropdown drives the viewer's output selector; emptying the stack returns it to rgb
+    sel = OutputSelector()
+    panel.viewer = SimpleNamespace(control_panel=SimpleNamespace(_output_render=sel), train_lock=threading.Lock())
+    panel.set_display("diffuse")
+    assert sel.value == "diffuse"
+    panel.set_display("segmentation")
+    assert sel.value == "segmentation" and "segmentation" in sel.options and not panel.status_is_error
+    panel.display.value = "segmentation"
+
     panel.undo()
+    assert sel.value == "rgb" and panel.display.value == "rgb"
     assert len(model.edit_stack) == 0 and model.segmentation_edit is None
     np.testing.assert_allclose(render(model, cam), before, atol=0.05)  # k is still 0
     panel._guard(panel.undo)

@@ -56,6 +56,7 @@ if TYPE_CHECKING:
 DISPLAYS = ["rgb", "diffuse", "specular", "segmentation"]
 ALL_EDITS = "all enabled edits"
 MAX_UPLOAD_BYTES = 64 << 20
+MAX_DOWNLOAD_BYTES = 64 << 20
 _VIEW_RE = re.compile(r"view_(\d+)")
 
 
@@ -237,7 +238,7 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
                                        cb_hook=lambda e: self.select_edit(e.value))
         self.undo_button = ViewerButton("Undo", cb_hook=lambda e: self._guard(self.undo))
         self.reset_button = ViewerButton("Reset", cb_hook=lambda e: self._guard(self.reset))
-        self.export_button = ViewerButton("Export", cb_hook=lambda e: self._guard(self.export))
+        self.export_button = ViewerButton("Export", cb_hook=lambda e: None)
 
     # ----------------------------------------------------------------- nerfstudio hooks
     def _create_gui_handle(self, viser_server: "ViserServer") -> None:
@@ -257,6 +258,7 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
             for e in (self.undo_button, self.reset_button, self.export_button):
                 e.install(viser_server)
         self.save_button.gui_handle.on_click(lambda ev: self._guard(lambda: self.save_view(client=ev.client)))
+        self.export_button.gui_handle.on_click(lambda ev: self._guard(lambda: self.export(client=ev.client)))
         self._refresh_edits()
 
     def _setup(self, viewer) -> None:
@@ -496,7 +498,7 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
         self.set_status(f"{name} ({W}x{H}) is ready for {view.name}: press 'Apply edit'")
         return image, view
 
-    def apply_edit(self, wait: bool = False, steps: Optional[int] = None) -> Optional[threading.Thread]:
+    def apply_edit(self, wait: bool = False, steps: Optional[int] = None) -> threading.Thread:
         """Fit an edit from the uploaded image for its saved view, in a background thread
         (``wait``: join it). Progress and the outcome go to the status line."""
         self._check_idle()
@@ -507,49 +509,59 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
         name, image, view = self.pending
         stack = self._stack()
         self.pending = None
-        worker = threading.Thread(target=self._fit, args=(name, image, view, stack, steps), daemon=True,
-                                  name="virgi-edit")
+        return self._background(f"applying {name} to {view.name}", "the edit",
+                                lambda progress: self._fit(name, image, view, stack, steps, progress), wait)
+
+    def _background(self, label: str, what: str, job: Callable[[Callable[[int, int], None]], str],
+                    wait: bool) -> threading.Thread:
+        """Run ``job(progress)`` in a worker thread; its returned line (or its error) goes to the
+        status line, ``progress(done, total)`` to the progress bar."""
+
+        def progress(done: int, total: int) -> None:
+            self._set_progress(done / max(total, 1))
+            self.set_status(f"{label}: {done}/{total}", log=False)
+
+        def run() -> None:
+            try:
+                self.set_status(job(progress))
+            except VirgiError as e:
+                self.set_status(str(e), error=True)
+            except Exception as e:  # noqa: BLE001 - report, keep serving
+                self.set_status(f"{what} failed: {type(e).__name__}: {e}", error=True)
+            finally:
+                self._set_progress(None)
+
+        worker = threading.Thread(target=run, daemon=True, name="virgi-panel")
         self._worker = worker
         self._set_progress(0.0)
-        self.set_status(f"applying {name} to {view.name} ...")
+        self.set_status(f"{label} ...")
         worker.start()
         if wait:
             worker.join()
         return worker
 
-    def _fit(self, name: str, image: np.ndarray, view: SavedView, stack, steps: Optional[int]) -> None:
+    def _fit(self, name: str, image: np.ndarray, view: SavedView, stack, steps: Optional[int],
+             progress: Callable[[int, int], None]) -> str:
         from virgi_ns.edit import EditEngine, FrozenScene
         from virgi_ns.edit_stack import EditSource
 
         m = self._model
-        try:
-            with self._lock():
-                scene = FrozenScene.from_model(m)
-            cams = raster_cameras(view.camera).to(m.device)
-            source = EditSource(name, cams.Ks[0].cpu(), cams.viewmats[0].cpu(), int(cams.widths[0]),
-                                int(cams.heights[0]), view.name)
-            engine = EditEngine(scene, cams, torch.from_numpy(image), stack, source=source)
-
-            def progress(done: int, total: int) -> None:
-                self._set_progress(done / max(total, 1))
-                self.set_status(f"applying {name} to {view.name}: step {done}/{total}", log=False)
-
-            edit, timing = engine.fit(steps, progress)
-            with self._lock():
-                number = stack.add(edit)
-            self._refresh_edits()
-            self.set_status(f"edit {number} applied from {name} ({timing.steps} steps, {timing.total_s:.1f} s, "
-                            f"L1 {timing.final_loss:.4f})")
-            self._rerender()
-        except VirgiError as e:
-            self.set_status(str(e), error=True)
-        except Exception as e:  # noqa: BLE001 - report, keep serving
-            self.set_status(f"the edit failed: {type(e).__name__}: {e}", error=True)
-        finally:
-            self._set_progress(None)
+        with self._lock():
+            scene = FrozenScene.from_model(m)
+        cams = raster_cameras(view.camera).to(m.device)
+        source = EditSource(name, cams.Ks[0].cpu(), cams.viewmats[0].cpu(), int(cams.widths[0]),
+                            int(cams.heights[0]), view.name)
+        engine = EditEngine(scene, cams, torch.from_numpy(image), stack, source=source)
+        edit, timing = engine.fit(steps, progress)
+        with self._lock():
+            number = stack.add(edit)
+        self._refresh_edits()
+        self._rerender()
+        return (f"edit {number} applied from {name} ({timing.steps} steps, {timing.total_s:.1f} s, "
+                f"L1 {timing.final_loss:.4f})")
 
     def wait(self, timeout: Optional[float] = None) -> None:
-        """Join a running edit (for scripts and tests)."""
+        """Join a running edit or export (for scripts and tests)."""
         if self._worker is not None:
             self._worker.join(timeout)
 
@@ -618,20 +630,28 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
             self._edit_boxes.append(box)
 
     # ------------------------------------------------------------------------ export
-    def export(self, path: Optional[Path] = None) -> Path:
-        """Bake the model with its enabled edits and specular strength into ``<run>/exports/edited.ply``."""
+    def export(self, path: Optional[Path] = None, wait: bool = False, client=None) -> threading.Thread:
+        """Bake the model with its enabled edits and specular strength (:mod:`virgi_ns.export`) into
+        ``path`` (default ``<run>/exports/edited.ply``) in a background thread; files up to
+        ``MAX_DOWNLOAD_BYTES`` are also sent to the browser."""
         self._check_idle()
-        try:
-            from virgi_ns import export as export_mod
-        except ImportError as e:
-            raise InputError(f"export is not available in this installation ({e})") from None
         out = Path(path) if path is not None else self.run_dir / "exports" / "edited.ply"
-        self.set_status(f"exporting to {out} ...")
-        with self._lock():
-            export_mod.export_model(self._model, out)
-        self.last_export = out
-        self.set_status(f"exported {out}")
-        return out
+        target = self.viewer.pipeline if getattr(self.viewer, "pipeline", None) is not None else self._model
+
+        def job(progress: Callable[[int, int], None]) -> str:
+            try:
+                from virgi_ns.export import export_model
+            except ImportError as e:
+                raise InputError(f"export is not available in this installation ({e})") from None
+            g = export_model(target, out, progress=progress)
+            self.last_export = out
+            size = out.stat().st_size
+            dest = client if client is not None else self.viser_server if self.viewer is not None else None
+            if dest is not None and size <= MAX_DOWNLOAD_BYTES:
+                dest.send_file_download(out.name, out.read_bytes())
+            return f"exported {len(g):,} Gaussians to {out} ({size / 2**20:.1f} MiB)"
+
+        return self._background(f"exporting to {out.name}", "the export", job, wait)
 
 
 __all__ = ["VirgiPanel", "ViewerUpload", "Upload", "SavedView", "camera_spec", "camera_from_spec", "decode_image"]
