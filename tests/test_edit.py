@@ -293,3 +293,19 @@ def test_later_edit_overrides_earlier(world):
     assert mean[1] > 2 * mean[0]
     first.set_enabled(2, False)  # disabling the second brings back the first's red
     torch.testing.assert_close(_render(world, v, first)["rgb"], _render(world, v, _stack(world, world["edit"]))["rgb"])
+
+
+def test_feature_cache_gives_the_same_edit(world):
+    """Cached (f, h1, h_diff) of every Gaussian: same renders and the same fitted edit."""
+    import dataclasses
+
+    S = world["S"]
+    cached = dataclasses.replace(S.scene).precompute_features(chunk=500)
+    assert cached.features[0].shape == (S.scene.means.shape[0], S.scene.field.feature_dim)
+    v = HELD_OUT[0]
+    torch.testing.assert_close(render_view(cached, S.cameras, v, contrib=world["contrib"][v])["rgb"],
+                               world["before"][v]["rgb"], atol=1e-6, rtol=0)
+    eng = EditEngine(cached, S.cameras.index(EDIT_VIEW), world["edited"], EditStack(S.scene.fingerprint()))
+    edit, _ = eng.fit(20)
+    ref, _ = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), world["edited"]).fit(20)
+    torch.testing.assert_close(edit.head_weight, ref.head_weight, atol=1e-5, rtol=1e-4)

@@ -51,6 +51,9 @@ class FrozenScene:
     field: DecoupledColorField
     background: Tensor
     backend: str = "auto"
+    features: Optional[tuple[Tensor, Tensor, Tensor]] = None
+    """Optional cache of every Gaussian's (f, h1, h_diff) (:meth:`precompute_features`); edits
+    then gather them instead of running the hash grid and MLP_diff's first layers."""
 
     @property
     def device(self) -> torch.device:
@@ -65,6 +68,26 @@ class FrozenScene:
         return FrozenScene(model.means.detach(), model.quats.detach(), torch.exp(model.scales.detach()),
                            torch.sigmoid(model.opacities.detach()).reshape(-1), model.field,
                            torch.as_tensor(model.background_color, dtype=torch.float32).to(dev).reshape(3), backend)
+
+    @torch.no_grad()
+    def precompute_features(self, chunk: int = 1 << 18) -> "FrozenScene":
+        """Fill :attr:`features` for all Gaussians (about 640 bytes each with the default field)."""
+        parts: list[tuple[Tensor, Tensor, Tensor]] = []
+        for s in range(0, self.means.shape[0], chunk):
+            f = self.field.encode(self.means[s : s + chunk].float()).float()
+            h1, h2 = self.field.diffuse_hidden(f)
+            parts.append((f, h1.float(), h2.float()))
+        self.features = tuple(torch.cat(x) for x in zip(*parts))  # type: ignore[assignment]
+        return self
+
+    def gaussian_features(self, idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(f, h1, h_diff) of Gaussians ``idx``, from the cache when present."""
+        if self.features is not None:
+            f, h1, h2 = self.features
+            return f[idx], h1[idx], h2[idx]
+        f = self.field.encode(self.means[idx].float()).float()
+        h1, h2 = self.field.diffuse_hidden(f)
+        return f, h1.float(), h2.float()
 
     def fingerprint(self) -> str:
         """The base run's fingerprint that every edit of it carries."""
@@ -232,9 +255,8 @@ class EditEngine:
         self.gaussians = g
         fld = sc.field
         means = sc.means[g].float()
-        self.feats = fld.encode(means).float()
-        h1, h2 = fld.diffuse_hidden(self.feats)
-        self.h_diff = h2.float()
+        self.feats, h1, h2 = sc.gaussian_features(g)
+        self.h_diff = h2
         c_d = fld.diffuse(h2).float()
         self.c_d_base = c_d
         self.c_d = self.stack.diffuse(self.feats, self.h_diff, c_d) if self.stack is not None else c_d
@@ -251,12 +273,14 @@ class EditEngine:
             torch.manual_seed(cfg.seed)
             self.seg = SegmentationHead(self.feats.shape[1], self.h_diff.shape[1], cfg.seg_width,
                                         cfg.seg_init_bias).to(dev)
-        self.opt = torch.optim.Adam([self.weight, self.bias, *self.seg.parameters()], lr=cfg.lr)
+        self.seg_input = self.seg.inputs(self.feats, self.h_diff)
+        self.opt = torch.optim.Adam([self.weight, self.bias, *self.seg.parameters()], lr=cfg.lr,
+                                    fused=dev.type == "cuda")
 
     # ------------------------------------------------------------------ steps
     def colours(self) -> tuple[Tensor, Tensor]:
         """(C' [U,3], alpha [U,1]) of the view's Gaussians under the current heads."""
-        alpha = self.seg(self.feats, self.h_diff)
+        alpha = torch.sigmoid(self.seg.logits_of(self.seg_input))
         c_dp = torch.nn.functional.linear(self.h_diff, self.weight, self.bias)
         c_dd = alpha * c_dp + (1.0 - alpha) * self.c_d
         return torch.sigmoid(c_dd + self.k * self.c_s), alpha
@@ -320,8 +344,7 @@ def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional
     fld = scene.field
     g = contrib.pair_gaussian.to(scene.device)
     m = scene.means[g].float()
-    f = fld.encode(m).float()
-    h1, h2 = fld.diffuse_hidden(f)
+    f, h1, h2 = scene.gaussian_features(g)
     c_d = fld.diffuse(h2).float()
     dirs = view_directions(m, cams.camera_centers()[0].to(m).expand_as(m))
     c_s = fld.specular(f, dirs, h1, h2).float()

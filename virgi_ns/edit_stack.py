@@ -56,9 +56,15 @@ class SegmentationHead(nn.Module):
         nn.init.normal_(self.l2.weight, std=1e-2)
         nn.init.constant_(self.l2.bias, init_bias)
 
-    def logits(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N 1"]:
-        x = torch.cat([feats.to(self.l1.weight.dtype), h_diff.to(self.l1.weight.dtype)], dim=-1)
+    def inputs(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N FH"]:
+        """``[f, h_diff]``, the head's input (constant during an edit, so callers may cache it)."""
+        return torch.cat([feats.to(self.l1.weight.dtype), h_diff.to(self.l1.weight.dtype)], dim=-1)
+
+    def logits_of(self, x: Float[Tensor, "N FH"]) -> Float[Tensor, "N 1"]:
         return self.l2(torch.relu(self.l1(x)))
+
+    def logits(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N 1"]:
+        return self.logits_of(self.inputs(feats, h_diff))
 
     def forward(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N 1"]:
         return torch.sigmoid(self.logits(feats, h_diff))
