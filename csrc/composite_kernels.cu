@@ -69,9 +69,9 @@ __global__ void composite_bwd_kernel(int64_t M, int d_rt, const float* __restric
 
 // Per work unit (16x16 grid tile of one item), as the rasterizer's pass: each thread owns a
 // pixel and steps through its entries while the block walks the tile's depth-sorted list in
-// batches; the entry of list element t is accumulated into shared memory, and the block adds
-// one atomic per (list element, channel) to the pair's gradient: a Gaussian covering many
-// pixels costs one global atomic per tile instead of one per pixel.
+// batches; the terms of list element t are summed per warp (shuffles), then per block (shared
+// memory), and the block adds one atomic per (list element, channel) to the pair's gradient: a
+// Gaussian covering many pixels costs one global atomic per tile instead of one per pixel.
 template <int D>
 __global__ void __launch_bounds__(kTile* kTile)
     composite_bwd_tile_kernel(const int* __restrict__ units, const int* __restrict__ items,
@@ -115,13 +115,27 @@ __global__ void __launch_bounds__(kTile* kTile)
     for (int d = 0; d < D; ++d) s_acc[tid * D + d] = 0.f;
     __syncthreads();
     const int nb = min(B, end - b0);
-    for (int t = 0; t < nb && !done; ++t) {
-      if (s_pair[t] != q) continue;
-      const float w = weight[e];
+    // The warp steps through the batch together: lanes whose next entry is element t add their
+    // term, the warp sums it by shuffles and one lane adds it to shared memory.
+    for (int t = 0; t < nb; ++t) {
+      if (__all_sync(0xffffffffu, done)) break;
+      const bool hit = !done && s_pair[t] == q;
+      if (!__any_sync(0xffffffffu, hit)) continue;
+      float v[D];
+      const float w = hit ? weight[e] : 0.f;
 #pragma unroll
-      for (int d = 0; d < D; ++d) atomicAdd(&s_acc[t * D + d], w * gv[d]);
-      if (++e == e_end) done = true;
-      else q = pair[e];
+      for (int d = 0; d < D; ++d) v[d] = w * gv[d];
+#pragma unroll
+      for (int off = 16; off > 0; off >>= 1)
+#pragma unroll
+        for (int d = 0; d < D; ++d) v[d] += __shfl_down_sync(0xffffffffu, v[d], off);
+      if ((tid & 31) == 0)
+#pragma unroll
+        for (int d = 0; d < D; ++d) atomicAdd(&s_acc[t * D + d], v[d]);
+      if (hit) {
+        if (++e == e_end) done = true;
+        else q = pair[e];
+      }
     }
     __syncthreads();
     const int qt = s_pair[tid];

@@ -72,7 +72,6 @@ __global__ void project_count_kernel(int N, int Vr, const float* __restrict__ me
       {2.f * (qx * qy + qw * qz), 1.f - 2.f * (qx * qx + qz * qz), 2.f * (qy * qz - qw * qx)},
       {2.f * (qx * qz - qw * qy), 2.f * (qy * qz + qw * qx), 1.f - 2.f * (qx * qx + qy * qy)}};
   const float s[3] = {scales[3 * g], scales[3 * g + 1], scales[3 * g + 2]};
-  const float smax = fmaxf(fabsf(s[0]), fmaxf(fabsf(s[1]), fabsf(s[2])));
   const float opac = opacities[g];
 
   for (int v = 0; v < Vr; ++v) {
@@ -108,24 +107,6 @@ __global__ void project_count_kernel(int N, int Vr, const float* __restrict__ me
       const float mx = fx * x * rz + cx, my = fy * y * rz + cy;
       const int* st = sat + sat_base;
       const int w1 = gw + 1;
-      // Cheap conservative cull first: lambda_max(cov2d) <= |J W|_F^2 smax^2 + eps2d (R is a
-      // rotation), and the radius formula adds at most 0.1 to lambda_max; a rectangle from this
-      // larger radius holds the true one, so if it holds no requested tile, neither does the true.
-      {
-        float F2 = 0.f;
-#pragma unroll
-        for (int k = 0; k < 3; ++k) F2 += JW[0][k] * JW[0][k] + JW[1][k] * JW[1][k];
-        const float rb = ceilf(3.f * sqrtf(F2 * smax * smax * 1.001f + 0.5f)) + 2.f;
-        if (isfinite(rb) && isfinite(mx) && isfinite(my)) {
-          int x0, x1, y0, y1;
-          tile_rect(mx, my, rb, gw, gh, x0, x1, y0, y1);
-          if (x1 <= x0 || y1 <= y0 ||
-              st[y1 * w1 + x1] - st[y0 * w1 + x1] - st[y1 * w1 + x0] + st[y0 * w1 + x0] == 0) {
-            counts[idx] = 0;
-            continue;
-          }
-        }
-      }
       float A[2][3];
 #pragma unroll
       for (int i = 0; i < 2; ++i)
