@@ -223,7 +223,7 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
         self._edits_folder = None
         self._edit_boxes: List[ViewerCheckbox] = []
 
-        self.display = ViewerDropdown("Display", "rgb", list(DISPLAYS), cb_hook=lambda e: self.set_display(e.value),
+        self.display = ViewerDropdown("Display", "rgb", list(DISPLAYS), cb_hook=lambda e: self._guard(lambda: self.set_display(e.value)),
                                       hint="rgb, diffuse, specular, or the selected edit's segmentation")
         self.specular = ViewerSlider("Specular strength", 1.0, 0.0, 2.0, 0.05,
                                      cb_hook=lambda e: self.set_specular_strength(float(e.value)),
@@ -235,7 +235,7 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
                                            mime_type="image/*", hint="The saved view, recoloured in any editor")
         self.apply_button = ViewerButton("Apply edit", cb_hook=lambda e: self._guard(self.apply_edit))
         self.selected = ViewerDropdown("Segmentation of", ALL_EDITS, [ALL_EDITS],
-                                       cb_hook=lambda e: self.select_edit(e.value))
+                                       cb_hook=lambda e: self._guard(lambda: self.select_edit(e.value)))
         self.undo_button = ViewerButton("Undo", cb_hook=lambda e: self._guard(self.undo))
         self.reset_button = ViewerButton("Reset", cb_hook=lambda e: self._guard(self.reset))
         self.export_button = ViewerButton("Export", cb_hook=lambda e: None)
@@ -622,7 +622,7 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
         for r in rows:
             n = int(r["number"])
             label = f"{n}: {Path(str(r['image'])).name or 'edit'}" + (f" ({r['camera']})" if r["camera"] else "")
-            box = ViewerCheckbox(label, bool(r["enabled"]), cb_hook=lambda e, n=n: self.set_enabled(n, bool(e.value)),
+            box = ViewerCheckbox(label, bool(r["enabled"]), cb_hook=lambda e, n=n: self._guard(lambda: self.set_enabled(n, bool(e.value))),
                                  hint="Show this edit")
             if self._edits_folder is not None and self._server is not None:
                 with self._edits_folder:
