@@ -74,11 +74,15 @@ def test_sparse_pixel_batches_reproduce_composite(world):
     idx = torch.cat([torch.nonzero((target[None] == t[:, None]).all(-1))[:, 1] for t in tgt.split(1000)])
     assert sorted(idx.tolist()) == list(range(c.num_pixels))
     torch.testing.assert_close(got, ref[idx], atol=1e-6, rtol=1e-5)
+    one = _pixel_batches(c, target, bg, 1, seed=0)[0]
+    torch.testing.assert_close(_SparseRender.apply(colours, one.A, one.At) + one.background, ref, atol=1e-6, rtol=1e-5)
     # gradients through A^T equal autograd through the scatter composite
     w = torch.rand(c.num_pixels, 3, generator=g)
     (gr,) = torch.autograd.grad((ref * w).sum(), colours)
     (gs,) = torch.autograd.grad((got * w[idx]).sum(), colours)
     torch.testing.assert_close(gs, gr, atol=1e-5, rtol=1e-5)
+    (g1,) = torch.autograd.grad(((_SparseRender.apply(colours, one.A, one.At)) * w).sum(), colours)
+    torch.testing.assert_close(g1, gr, atol=1e-5, rtol=1e-5)
 
 
 def test_fresh_edit_changes_nothing(world):

@@ -138,6 +138,13 @@ def _pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches
     dev, dt = target.device, target.dtype
     P = contrib.num_pixels
     U = int(contrib.pair_gaussian.shape[0])
+    if n_batches == 1:  # the whole image: entries are already grouped by pixel
+        pix, pair = contrib.pixel.to(dev), contrib.pair.to(dev)
+        w = contrib.weight.detach().to(dev, dt)
+        t_order = torch.argsort(pair * P + pix)
+        T = contrib.transmittance.detach().to(dev, dt)
+        return [_PixelBatch(_csr(pix, pair, w, (P, U)), _csr(pair[t_order], pix[t_order], w[t_order], (U, P)),
+                            T[:, None] * bg[None, :], target)]
     gen = torch.Generator().manual_seed(seed)
     batch_of = torch.empty(P, dtype=torch.long)
     batch_of[torch.randperm(P, generator=gen)] = torch.arange(P) % n_batches

@@ -1,0 +1,235 @@
+"""Benchmark (GPU): the edit engine on real captures, and its speed on a 1M-Gaussian scene.
+
+Per scene (beercan, fern, cup; trained VIRGi runs), one training photo recoloured by a fixed HSV
+rule is the edit (:mod:`virgi_ns.bench.recolor`), and the held-out views are measured:
+
+  recolour PSNR/SSIM/LPIPS   edited render vs the rule on the held-out photos (beside the unedited PSNR)
+  propagation PSNR           edited render vs the rule on the model's own unedited renders,
+                             split into miss (inside the rule's mask) and leak (outside)
+  edit time                  setup and steps separately, median of --repeats after a warm-up;
+                             cold (hash grid + MLP_diff run for the view's Gaussians) and with the
+                             scene's (f, h1, h_diff) cached, as a viewer session keeps them
+
+beercan's targets (issue 5): propagation >= 35 dB, miss and leak >= 30 dB, recolour PSNR within
+0.5 dB of the unedited PSNR, edit wall time <= 0.25 s. beercan also gets the accuracy-time sweep
+(JSON + PNG). Pictures: ``<scene>_view<i>.png`` = unedited | edited | truth (rule on the render) |
+segmentation, for the first held-out views. A synthetic 1M-Gaussian scene at 1280x720 is timed too.
+
+    python bench/edit.py --runs beercan bench_out/train/runs/beercan-virgi/virgi/run/config.yml \\
+        fern CFG cup CFG --out bench_out/edit
+
+A scene whose config is not given is looked up at ``<train-out>/runs/<scene>-virgi/virgi/run/config.yml``
+(what ``bench/train.py`` writes); ``--train-missing`` trains it first (``--geometry-steps``,
+``--colour-steps``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import torch
+import tyro
+from rich.console import Console
+from rich.table import Table
+
+from virgi_ns.bench.recolor import AccuracyTime, Bench, RuleArgs, _save_png, run_accuracy_time
+from virgi_ns.errors import InputError, atomic_path, cli_entry
+
+console = Console()
+
+RULES: Dict[str, RuleArgs] = {
+    # the can's blue -> red; near-white highlights and the grey-white floor are outside the rule
+    "beercan": RuleArgs(h0=190.0, h1=250.0, shift=150.0, s_min=0.35, v_min=0.15),
+    # the fern's green leaves -> magenta
+    "fern": RuleArgs(h0=60.0, h1=160.0, shift=200.0, s_min=0.25, v_min=0.1),
+    # the cup's wooden shelf (orange-brown) -> blue
+    "cup": RuleArgs(h0=15.0, h1=50.0, shift=190.0, s_min=0.3, v_min=0.25),
+}
+
+
+@dataclass
+class Args:
+    runs: Dict[str, Path] = field(default_factory=dict)
+    """Pairs 'scene config.yml' of trained VIRGi runs."""
+    scenes: List[str] = field(default_factory=lambda: ["beercan", "fern", "cup"])
+    out: Path = Path("bench_out/edit")
+    train_out: Path = Path("bench_out/train")
+    """Where bench/train.py put its runs (used for scenes not in --runs)."""
+    train_missing: bool = False
+    """Train a VIRGi run for scenes that have none (needs --data)."""
+    data: Path = Path(__file__).resolve().parents[2] / "shared" / "data"
+    geometry_steps: int = 30000
+    colour_steps: int = 10000
+    edit_view: int = 0
+    steps: Optional[int] = None
+    """Edit steps (default: the engine's)."""
+    repeats: int = 5
+    max_views: int = 0
+    pictures: int = 3
+    sweep: bool = True
+    """The accuracy-time sweep on beercan."""
+    million: bool = True
+    """Time the engine on a synthetic 1M-Gaussian scene at 1280x720."""
+
+
+def _config_for(args: Args, scene: str) -> Path:
+    if scene in args.runs:
+        return args.runs[scene]
+    cfg = args.train_out / "runs" / f"{scene}-virgi" / "virgi" / "run" / "config.yml"
+    if cfg.is_file() or not args.train_missing:
+        return cfg
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from train import dataparser_for, quiet, train  # bench/train.py
+
+    from method_configs.virgi import virgi_trainer_config
+
+    c = virgi_trainer_config("virgi", geometry_steps=args.geometry_steps, colour_steps=args.colour_steps)
+    c.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
+    quiet(c, args.train_out, f"{scene}-virgi")
+    console.log(f"training {scene} ({args.geometry_steps} + {args.colour_steps} steps)")
+    trainer, secs, _ = train(c)
+    console.log(f"trained {scene} in {secs:.0f} s")
+    del trainer
+    torch.cuda.empty_cache()
+    return Path(c.get_base_dir()) / "config.yml"
+
+
+def bench_scene(args: Args, scene: str) -> dict:
+    from virgi_ns.cli.edit import load_run
+
+    cfg = _config_for(args, scene)
+    if not cfg.is_file():
+        raise InputError(f"{scene}: no run at {cfg} (pass --runs {scene}=CONFIG or --train-missing)")
+    _, pipeline = load_run(cfg)
+    rule = RULES[scene].rule()
+    b = Bench.load(pipeline, args.edit_view, args.max_views)
+    edited = b.edited_image(rule, "photo")
+    edit, cold = b.fit(edited, args.steps, 1, args.repeats)
+    t0 = time.perf_counter()
+    b.scene.precompute_features()
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+    cache_s = time.perf_counter() - t0
+    _, warm = b.fit(edited, args.steps, 1, args.repeats)
+    res, pics = b.measure(edit, rule, lpips=True, keep=args.pictures)
+    args.out.mkdir(parents=True, exist_ok=True)
+    for i, p in enumerate(pics):
+        _save_png(args.out / f"{scene}_view{i}.png", p)
+    _save_png(args.out / f"{scene}_edit.png", torch.cat([b.edit_photo.cpu(), edited.cpu()], 1))
+    m = res["mean"]
+    row = {"scene": scene, "config": str(cfg), "gaussians": int(b.scene.means.shape[0]),
+           "image": f"{int(b.edit_camera.widths[0])}x{int(b.edit_camera.heights[0])}", "rule": rule.to_dict(),
+           "views": len(res["views"]), **m, "timing_cold": cold, "timing_cached": warm,
+           "feature_cache_s": cache_s, "per_view": res["views"]}
+    if scene == "beercan":
+        row["targets"] = {
+            "propagation>=35": m["propagation_psnr"] >= 35.0,
+            "miss>=30": m["miss_psnr"] >= 30.0,
+            "leak>=30": m["leak_psnr"] >= 30.0,
+            "recolour within 0.5 dB of unedited": m["recolour_psnr"] >= m["unedited_psnr"] - 0.5,
+            "edit <= 0.25 s (cold)": cold["total_s"] <= 0.25,
+        }
+        if args.sweep:
+            run_accuracy_time(AccuracyTime(cfg, out=args.out / "beercan_accuracy_time.json", rule=RULES[scene],
+                                           edit_view=args.edit_view, repeats=max(1, args.repeats // 2),
+                                           max_views=args.max_views), pipeline, console)
+    del pipeline, b
+    torch.cuda.empty_cache()
+    return row
+
+
+@torch.no_grad()
+def bench_million(repeats: int, steps: Optional[int], n: int = 1_000_000, width: int = 1280, height: int = 720,
+                  device: str = "cuda") -> dict:
+    """Setup and step times of one edit on ``n`` random Gaussians filling a 1280x720 view."""
+    from virgi_ns.edit import EditConfig, EditEngine, FrozenScene
+    from virgi_ns.field import ColorFieldConfig, DecoupledColorField
+    from virgi_ns.raster import Cameras
+
+    dev = torch.device(device)
+    g = torch.Generator(device=dev).manual_seed(0)
+    f = 0.9 * width
+    z = 2.0 + 6.0 * torch.rand(n, generator=g, device=dev)
+    x = (torch.rand(n, generator=g, device=dev) - 0.5) * z * width / f * 1.1
+    y = (torch.rand(n, generator=g, device=dev) - 0.5) * z * height / f * 1.1
+    means = torch.stack([x, y, z], -1)
+    scales = torch.exp(math.log(0.004) + math.log(8.0) * torch.rand(n, 3, generator=g, device=dev))
+    quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=g, device=dev), dim=-1)
+    opac = 0.3 + 0.7 * torch.rand(n, generator=g, device=dev)
+    field_ = DecoupledColorField(ColorFieldConfig(log2_hashmap_size=19 if n > 100_000 else 12), torch.tensor([[-6.0, -4.0, 1.5], [6.0, 4.0, 8.5]])).to(dev)
+    torch.nn.init.normal_(field_.spec_l3.weight, std=0.1)
+    cams = Cameras.from_params(f, f, width / 2, height / 2, torch.eye(4, device=dev)[None], width, height)
+    scene = FrozenScene(means, quats, scales, opac, field_, torch.zeros(3, device=dev))
+    edited = torch.rand(height, width, 3, generator=g, device=dev)
+    cfg = EditConfig() if steps is None else EditConfig(steps=steps)
+
+    def timed() -> dict:
+        with torch.enable_grad():
+            EditEngine(scene, cams, edited, cfg=cfg).fit()  # warm-up
+            ts = [EditEngine(scene, cams, edited, cfg=cfg).fit()[1] for _ in range(max(1, repeats))]
+        med = lambda v: float(statistics.median(v))  # noqa: E731
+        return {"setup_s": med([t.setup_s for t in ts]), "steps_s": med([t.steps_s for t in ts]),
+                "total_s": med([t.total_s for t in ts]), "steps": cfg.steps}
+
+    eng = EditEngine(scene, cams, edited, cfg=cfg)
+    info = {"gaussians": n, "image": f"{width}x{height}", "contributing": int(eng.gaussians.numel()),
+            "entries": int(eng.contrib.pixel.numel())}
+    del eng
+    cold = timed()
+    scene.precompute_features()
+    warm = timed()
+    return {**info, "timing_cold": cold, "timing_cached": warm}
+
+
+def print_table(rows: List[dict], device: str) -> None:
+    t = Table(title=f"edit engine on {device}")
+    for c in ("scene", "gaussians", "recolour PSNR", "unedited", "SSIM", "LPIPS", "propagation", "miss", "leak",
+              "setup s", "steps s", "total s", "cached total s"):
+        t.add_column(c)
+    for r in rows:
+        c, w = r["timing_cold"], r["timing_cached"]
+        t.add_row(r["scene"], f"{r['gaussians']:,}", f"{r['recolour_psnr']:.2f}", f"{r['unedited_psnr']:.2f}",
+                  f"{r['recolour_ssim']:.4f}", f"{r['recolour_lpips']:.4f}", f"{r['propagation_psnr']:.2f}",
+                  f"{r['miss_psnr']:.2f}", f"{r['leak_psnr']:.2f}", f"{c['setup_s']:.3f}", f"{c['steps_s']:.3f}",
+                  f"{c['total_s']:.3f}", f"{w['total_s']:.3f}")
+    console.print(t)
+    for r in rows:
+        if "targets" in r:
+            console.print(f"{r['scene']} targets: " + ", ".join(f"{k}: {'PASS' if v else 'FAIL'}"
+                                                                for k, v in r["targets"].items()))
+
+
+def main(args: Args) -> None:
+    if not torch.cuda.is_available():
+        raise InputError("bench/edit.py times the engine on a GPU; none is available")
+    device = torch.cuda.get_device_name(0)
+    rows = [bench_scene(args, s) for s in args.scenes]
+    result: dict = {"device": device, "scenes": rows}
+    if rows:
+        print_table(rows, device)
+    if args.million:
+        result["million"] = bench_million(args.repeats, args.steps)
+        m = result["million"]
+        console.print(f"1M Gaussians at {m['image']} ({m['contributing']:,} contribute, {m['entries']:,} entries): "
+                      f"cold setup {m['timing_cold']['setup_s']:.3f} s + steps {m['timing_cold']['steps_s']:.3f} s; "
+                      f"cached setup {m['timing_cached']['setup_s']:.3f} s + steps "
+                      f"{m['timing_cached']['steps_s']:.3f} s ({m['timing_cold']['steps']} steps)")
+    args.out.mkdir(parents=True, exist_ok=True)
+    with atomic_path(args.out / "results.json") as tmp:
+        tmp.write_text(json.dumps(result, indent=1, default=float))
+    console.print(f"wrote {args.out / 'results.json'}")
+
+
+def entrypoint() -> None:
+    cli_entry(lambda: main(tyro.cli(Args)))
+
+
+if __name__ == "__main__":
+    entrypoint()
