@@ -254,6 +254,10 @@ __global__ void __launch_bounds__(kTile* kTile)
   }
   float T = 1.f;
   int k = 0;
+  // FILL: entries at even positions wait in registers for their odd neighbour, so most pairs of
+  // entries leave in one 16-byte store (the packed array is 16-byte aligned).
+  int2 pending = make_int2(0, 0);
+  int64_t pending_at = -1;
 
   // FILL: a Gaussian used by any pixel of the batch is marked once per block (s_used), after
   // the batch, by the thread that loaded it.
@@ -286,10 +290,26 @@ __global__ void __launch_bounds__(kTile* kTile)
         break;
       }
       if (FILL) {
-        // one 8-byte store per entry; split into the pair / weight arrays by split_kernel
-        out_entry[base + k] = make_int2(s_id[t], __float_as_int(alpha * T));
+        // packed (flat id, weight); split into the pair / weight arrays by split_kernel
+        const int2 val = make_int2(s_id[t], __float_as_int(alpha * T));
+        const int64_t e = base + k;
+        if (e & 1) {
+          if (pending_at == e - 1) {
+            *reinterpret_cast<int4*>(out_entry + e - 1) = make_int4(pending.x, pending.y, val.x, val.y);
+            pending_at = -1;
+          } else {
+            out_entry[e] = val;
+          }
+        } else {
+          pending = val;
+          pending_at = e;
+        }
         s_used[t] = 1;
-        if (k + 1 == n_out) done = true;
+        if (k + 1 == n_out) {
+          done = true;
+          if (pending_at >= 0) out_entry[pending_at] = pending;
+          pending_at = -1;
+        }
       }
       ++k;
       T = next_T;

@@ -178,10 +178,11 @@ def test_cuda_empty_cases():
 @pytest.mark.gpu
 @pytest.mark.parametrize("kind", ["whole", "tiles"])
 @pytest.mark.parametrize("d", [3, 1, 4, 5])
-def test_fused_composite_matches_plain(d, kind):
+def test_fused_composite_matches_plain(d, kind, monkeypatch):
     """Fused forward and both backward paths (per tile for 1/3/4 channels, per entry otherwise)."""
     from virgi_ns.raster import cuda
 
+    monkeypatch.setattr(cuda, "TILE_BACKWARD_MIN_PIXELS", 0 if kind == "whole" else 1 << 40)
     dev = torch.device("cuda")
     cams = make_cams(96, 64, views=2)
     m, q, s, o = (a.float().to(dev) for a in random_scene(800, seed=7, scale=(0.01, 0.15)))

@@ -30,6 +30,8 @@ CSRC = Path(__file__).resolve().parents[2] / "csrc"
 SOURCES = ("extension.cpp", "raster_kernels.cu", "composite_kernels.cu")
 EXTENSION_NAME = "virgi_ns_raster"
 
+TILE_BACKWARD_MIN_PIXELS = 1 << 20  # measured on an H200: per-entry atomics win below ~1 Mpix
+
 _LOCK = threading.Lock()
 _MODULE: ModuleType | None = None
 _FAILURE: str | None = None
@@ -181,7 +183,10 @@ class _FusedComposite(torch.autograd.Function):
         grad = grad.contiguous()
         g_colors = g_bg = None
         if ctx.needs_input_grad[0]:
-            if c.tile_lists is not None and grad.shape[1] in (1, 3, 4):
+            # per tile (warp sums, one atomic per tile and Gaussian) pays off on whole images,
+            # where a Gaussian reaches many pixels; small tile batches are faster per entry
+            if c.tile_lists is not None and grad.shape[1] in (1, 3, 4) and \
+                    c.num_pixels >= TILE_BACKWARD_MIN_PIXELS:
                 g_colors = _load().composite_backward_tiles(grad, c.pixel_offsets, c.pair, c.weight,
                                                             ctx.num_pairs, *c.tile_lists)
             else:
