@@ -59,8 +59,9 @@ class DemoConfig:
     source: Path = SHARED_BEERCAN
     """COLMAP beercan used by --full."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
-    geometry_steps: int = 200
-    """Geometry steps when no pre-trained geometry is found (first half at 1/4 resolution, then 1/2)."""
+    geometry_steps: int = 60
+    """Geometry steps when no pre-trained geometry is found (at 1/4 resolution on a CPU: a coarse
+    stand-in, seeded from the sparse points, with no densification)."""
     colour_steps: Optional[int] = None
     """Colour-stage steps; default 400 with pre-trained geometry, 200 when geometry is trained here."""
     tile_size: int = 32
@@ -126,9 +127,9 @@ def trainer_config(cfg: DemoConfig, scene: Path, geometry: Optional[Path], use_c
     m = tc.pipeline.model
     m.geometry_from = geometry
     m.color_field = ColorFieldConfig(log2_hashmap_size=cfg.hash_log2)
-    if g_steps > 0:  # a short schedule: 1/4 then 1/2 resolution (full resolution costs too much on a CPU)
+    if g_steps > 0 and not torch.cuda.is_available():  # 1/4 resolution throughout: a CPU cannot afford more
         m.num_downscales = 2
-        m.resolution_schedule = max(1, (g_steps + 1) // 2)
+        m.resolution_schedule = g_steps + 1
     if use_cache:
         m._target = _cached_model_class()
     return tc
@@ -173,7 +174,7 @@ def train(pipeline, tc, steps: int, on_step: Callable[[int, Dict[str, float]], N
         model.step_post_backward(step) if hasattr(model, "step_post_backward") else None
         for cb in cbs:
             cb.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
-        on_step(step, {k: float(v) for k, v in metrics.items() if k == "psnr"})
+        on_step(step, {k: float(torch.as_tensor(v).detach()) for k, v in metrics.items() if k == "psnr"})
     if not prepared:
         model.freeze_geometry()
 
@@ -298,10 +299,11 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
 
             def on_step(step: int, m: Dict[str, float]) -> None:
                 info = f"psnr {m['psnr']:.2f}" if "psnr" in m else ""
-                if step < g_steps:
-                    progress.update(t_geo, completed=step + 1, info=info)
-                else:
-                    progress.update(t_col, completed=step + 1 - g_steps, info=info)
+                stage, done, n = ("geometry", step + 1, g_steps) if step < g_steps else \
+                    ("colour", step + 1 - g_steps, n_colour)
+                progress.update(t_geo if stage == "geometry" else t_col, completed=done, info=info)
+                if not console.is_terminal and (done % max(1, n // 10) == 0 or done == n):
+                    console.log(f"{stage} step {done}/{n} {info}")  # a log file gets lines, not a bar
 
             train(pipeline, tc, total, on_step, before_colour)
             end = time.perf_counter()

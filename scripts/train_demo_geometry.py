@@ -1,0 +1,188 @@
+"""(GPU) Train the demo's geometry: splatfacto on the bundle's views, pruned, as an INRIA .ply.
+
+    python scripts/train_demo_geometry.py                     # -> virgi_ns/assets/beercan_small/geometry.ply
+    python scripts/train_demo_geometry.py --steps 15000 --cap 60000 --downscale 2
+
+The demo imports ``geometry.ply`` from the bundle when it is there (``virgi_ns.demo``), which
+spares a CPU the geometry stage. This script trains nerfstudio's splatfacto (gsplat, CUDA) on the
+bundle's *training* views only (the same every-8th hold-out as the demo, so the demo's held-out
+views stay unseen), on the same views rebuilt at ``--downscale`` from the COLMAP beercan when
+``--source`` is present (sharper geometry), else on the bundled 1/4-size images. It then
+
+- keeps the ``--cap`` Gaussians with the largest ``opacity * size`` (geometric mean of the three
+  scales), after dropping those below ``--min-opacity``;
+- moves them from the run's frame back into the capture frame (COLMAP's; the inverse of the
+  dataparser's orient/centre/scale), and writes SH degree 0 (the colour field replaces colours);
+- prints the held-out PSNR of the splatfacto render before and after pruning.
+
+Nothing is downloaded: splatfacto's LPIPS metric (which fetches AlexNet) is replaced by a NaN
+stand-in when its weights are not cached.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import tyro
+from rich.console import Console
+
+from virgi_ns.data.bundle import BUNDLED_SCENE, BundleDataParserConfig
+from virgi_ns.data.make_bundle import DEFAULT_SOURCE
+from virgi_ns.errors import InputError, cli_entry
+
+console = Console()
+
+
+@dataclass
+class Args:
+    scene: Path = BUNDLED_SCENE
+    """The bundle whose views (and hold-out) define the training set."""
+    source: Path = DEFAULT_SOURCE
+    """COLMAP beercan; when present the bundle's views are rebuilt from it at --downscale."""
+    downscale: int = 2
+    """Downscale of the rebuilt views (1: 720x1280). Ignored without --source."""
+    out: Path = BUNDLED_SCENE / "geometry.ply"
+    steps: int = 15000
+    cap: int = 60000
+    """Most Gaussians kept."""
+    min_opacity: float = 0.02
+    sh_degree: int = 3
+    """splatfacto's SH degree while training (the file keeps degree 0)."""
+    seed: int = 42
+
+
+def _stub_lpips_if_offline() -> None:
+    from virgi_ns.metrics import make_lpips
+
+    if make_lpips() is not None:
+        return
+    import torchmetrics.image.lpip as lp
+
+    class _NoLpips(torch.nn.Module):
+        def __init__(self, *a, **k) -> None:
+            super().__init__()
+
+        def forward(self, a, b):
+            return torch.tensor(float("nan"))
+
+    lp.LearnedPerceptualImagePatchSimilarity = _NoLpips  # type: ignore[misc]
+
+
+@torch.no_grad()
+def heldout_psnr(pipeline) -> float:
+    model, dm = pipeline.model, pipeline.datamanager
+    model.eval()
+    vals = []
+    for i in range(len(dm.eval_dataset)):
+        gt = dm.cached_eval[i]["image"].to(model.device)
+        gt = (gt.float() / 255.0 if gt.dtype == torch.uint8 else gt)[..., :3]
+        cam = dm.eval_dataset.cameras[i : i + 1].to(model.device)
+        out = model.get_outputs_for_camera(cam)
+        pred = out["rgb"].clamp(0, 1)
+        vals.append(-10 * math.log10(max(float(((pred - gt) ** 2).mean()), 1e-10)))
+    model.train()
+    return sum(vals) / max(len(vals), 1)
+
+
+def prune_scores(opacity_logits: torch.Tensor, log_scales: torch.Tensor) -> torch.Tensor:
+    """``sigmoid(opacity) * geometric mean of the scales`` per Gaussian."""
+    return torch.sigmoid(opacity_logits.reshape(-1)) * torch.exp(log_scales.mean(-1))
+
+
+def to_capture_frame(params: dict, transform: torch.Tensor, scale: float):
+    """splatfacto parameters (run frame, ``x_run = scale (R x + t)``, ``transform`` = [R|t]) ->
+    :class:`Gaussians` in the capture frame, SH degree 0."""
+    from virgi_ns.gaussians import Gaussians
+    from virgi_ns.nscams import transform_gaussians
+
+    T = torch.as_tensor(transform).float().cpu()[:3]
+    R, t = T[:, :3], T[:, 3]
+    inverse = torch.cat([R.T, (-R.T @ t)[:, None]], 1)  # x = R^T (x_run / scale) - R^T t
+    means = params["means"].float().cpu() / scale
+    log_scales = params["scales"].float().cpu() - math.log(scale)
+    means, log_scales, quats = transform_gaussians(means, log_scales, params["quats"].float().cpu(), inverse, 1.0)
+    return Gaussians(means=means, scales=log_scales, quats=torch.nn.functional.normalize(quats, dim=-1),
+                     opacities=params["opacities"].float().cpu().reshape(-1),
+                     sh=params["features_dc"].float().cpu()[:, None, :])
+
+
+def main(args: Args) -> None:
+    if not torch.cuda.is_available():
+        raise InputError("train_demo_geometry.py trains splatfacto with gsplat: it needs a CUDA GPU")
+    from nerfstudio.configs.method_configs import method_configs
+
+    from virgi_ns.io import save_ply
+
+    tmp = None
+    scene = args.scene
+    if args.source.is_dir() and (args.source / "sparse" / "0").is_dir():
+        from virgi_ns.data.make_bundle import Args as BundleArgs
+        from virgi_ns.data.make_bundle import make_bundle
+
+        n_views = len(json.loads((scene / "transforms.json").read_text())["frames"])
+        tmp = Path(tempfile.mkdtemp(prefix="virgi_geometry_"))
+        make_bundle(BundleArgs(source=args.source, out=tmp / "scene", views=n_views, downscale=args.downscale))
+        scene = tmp / "scene"
+        console.log(f"training on {n_views} views rebuilt at 1/{args.downscale} from {args.source}")
+    else:
+        console.log(f"training on the bundled images in {scene}")
+    try:
+        _stub_lpips_if_offline()
+        torch.manual_seed(args.seed)
+        cfg = copy.deepcopy(method_configs["splatfacto"])
+        cfg.pipeline.datamanager.dataparser = BundleDataParserConfig(data=scene)
+        cfg.pipeline.datamanager.data = scene
+        cfg.pipeline.model.sh_degree = args.sh_degree
+        cfg.max_num_iterations = args.steps
+        for group in cfg.optimizers.values():
+            sch = group.get("scheduler")
+            if sch is not None and hasattr(sch, "max_steps"):
+                sch.max_steps = args.steps
+        cfg.vis = "tensorboard"
+        cfg.output_dir = (tmp or Path(tempfile.mkdtemp(prefix="virgi_geometry_"))) / "runs"
+        cfg.experiment_name = "demo-geometry"
+        cfg.timestamp = "run"
+        cfg.steps_per_eval_image = cfg.steps_per_eval_batch = cfg.steps_per_eval_all_images = 10**9
+        cfg.steps_per_save = 10**9
+        cfg.viewer.quit_on_train_completion = True
+        trainer = cfg.setup(local_rank=0, world_size=1)
+        trainer.setup()
+        t0 = time.perf_counter()
+        trainer.train()
+        console.log(f"splatfacto: {args.steps} steps in {time.perf_counter() - t0:.0f} s")
+        pipeline = trainer.pipeline
+        model = pipeline.model
+        psnr_full = heldout_psnr(pipeline)
+        n_all = model.num_points
+
+        p = {k: v.detach() for k, v in model.gauss_params.items()}
+        score = prune_scores(p["opacities"], p["scales"])
+        score[torch.sigmoid(p["opacities"].reshape(-1)) < args.min_opacity] = -1.0
+        keep = torch.argsort(score, descending=True)[: min(args.cap, int((score >= 0).sum()))]
+        keep = keep.sort().values
+        for k in list(model.gauss_params.keys()):
+            model.gauss_params[k] = torch.nn.Parameter(p[k][keep])
+        psnr_pruned = heldout_psnr(pipeline)
+
+        out = pipeline.datamanager.train_dataparser_outputs
+        g = to_capture_frame({k: v[keep] for k, v in p.items()}, out.dataparser_transform,
+                             float(out.dataparser_scale))
+        save_ply(g, args.out)
+        console.log(f"wrote {args.out}: {len(g):,} of {n_all:,} Gaussians "
+                    f"({args.out.stat().st_size / 1e6:.1f} MB); held-out PSNR {psnr_full:.2f} dB before pruning, "
+                    f"{psnr_pruned:.2f} dB after")
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    cli_entry(lambda: main(tyro.cli(Args)))

@@ -1,0 +1,155 @@
+"""The demo's pipeline on a reduced bundle, the bundled capture against COLMAP, the geometry script's frame."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from virgi_ns.data.bundle import BUNDLED_SCENE, BundleDataParserConfig, read_points_ply
+from virgi_ns.data.make_bundle import shrink_bundle
+from virgi_ns.gaussians import Gaussians
+from virgi_ns.io import load_splat, save_ply
+from virgi_ns.recolor import RecolorRule, rule_mask
+
+warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _tiny_bundle(root: Path) -> Path:
+    """10 bundled views at 45x80 and a small geometry at the sparse points (capture frame)."""
+    scene = shrink_bundle(BUNDLED_SCENE, root / "scene", views=10, factor=4)
+    xyz, rgb = read_points_ply(scene / "sparse_pc.ply")
+    gen = torch.Generator().manual_seed(0)
+    n = len(xyz)
+    g = Gaussians(means=torch.from_numpy(xyz).float(), scales=torch.full((n, 3), math.log(0.03)),
+                  quats=torch.nn.functional.normalize(torch.randn(n, 4, generator=gen), dim=-1),
+                  opacities=torch.full((n,), 2.0),
+                  sh=((torch.from_numpy(rgb).float() / 255 - 0.5) / 0.28209479177387814)[:, None, :])
+    save_ply(g, scene / "geometry.ply")
+    return scene
+
+
+def test_demo_pipeline_on_a_tiny_capture(tmp_path):
+    from virgi_ns.demo import COLUMNS, DemoConfig, run
+
+    scene = _tiny_bundle(tmp_path)
+    out = tmp_path / "out"
+    cfg = DemoConfig(out=out, scene=scene, colour_steps=4, tile_size=16, views_per_anchor=3, pixel_budget=768,
+                     hash_log2=12, edit_steps=8, grid_views=2, export_directions=8)
+    metrics = run(cfg)
+    assert metrics["geometry"] == str(scene / "geometry.ply")  # the bundle's geometry was imported
+    assert metrics["train_views"] == 8 and metrics["held_out_views"] == 2  # every 8th held out: 0 and 8
+    for key in ("reconstruction_psnr", "recolour_psnr", "propagation_psnr", "edit_fit_psnr"):
+        assert math.isfinite(metrics[key]) and metrics[key] > 5, key
+    assert metrics["edit_time_s"]["steps_count"] == 8 and metrics["edit_time_s"]["total"] > 0
+    # files
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["recolour_psnr"] == pytest.approx(metrics["recolour_psnr"])
+    grid = np.asarray(Image.open(out / "grid.png").convert("RGB"))
+    w, h, pad, title = 45, 80, 4, 18
+    assert grid.shape == (title + 2 * (h + pad), len(COLUMNS) * (w + pad) + pad, 3)
+    # the grid's photo cell (below its label strip) is the held-out photo itself
+    eval_name = saved["per_view"][1]["view"]
+    photo = np.asarray(Image.open(scene / "images" / eval_name).convert("RGB"))
+    cell = grid[title + (h + pad) + 14 : title + (h + pad) + h, pad : pad + w].astype(int)
+    assert np.abs(cell - photo[14:].astype(int)).max() <= 1
+    # the edit view's rule pixel count, recomputed from the photo on disk
+    meta = json.loads((scene / "transforms.json").read_text())
+    train_names = [f["file_path"] for i, f in enumerate(meta["frames"]) if i % 8 != 0]
+    img = torch.from_numpy(np.asarray(Image.open(scene / train_names[saved["edit_view"]["index"]]).convert("RGB")))
+    assert int(rule_mask(img.float() / 255, RecolorRule(**saved["rule"])).sum()) == saved["edit_view"]["rule_pixels"]
+    # the edited scene: every Gaussian, SH degree 3, positions in the capture frame (the imported file's)
+    g = load_splat(out / "edited_scene.ply")
+    src = load_splat(scene / "geometry.ply")
+    assert len(g) == len(src) and g.sh_degree == 3
+    torch.testing.assert_close(g.means, src.means, atol=1e-4, rtol=1e-4)
+
+
+def test_bad_scene_exits_2_and_writes_nothing(tmp_path, monkeypatch, capsys):
+    from virgi_ns import demo
+
+    out = tmp_path / "out"
+    monkeypatch.setattr(sys, "argv", ["demo", "--scene", str(tmp_path / "nowhere"), "--out", str(out)])
+    with pytest.raises(SystemExit) as e:
+        demo.entrypoint()
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "transforms.json" in err[0]
+    assert not out.exists()
+
+
+def test_bundle_matches_colmap_observations(shared_data):
+    """Projecting COLMAP's points with the bundle's pinhole cameras lands on COLMAP's own
+    (distorted) observations after undistortion: within a pixel at the bundle's 1/4 scale."""
+    from nerfstudio.data.utils.colmap_parsing_utils import (read_cameras_binary, read_images_binary,
+                                                             read_points3D_binary)
+
+    sparse = shared_data / "beercan" / "sparse" / "0"
+    cams = read_cameras_binary(sparse / "cameras.bin")
+    ims = {im.name: im for im in read_images_binary(sparse / "images.bin").values()}
+    pts = read_points3D_binary(sparse / "points3D.bin")
+    meta = json.loads((BUNDLED_SCENE / "transforms.json").read_text())
+    assert len(meta["frames"]) == 32 and meta["applied_transform"] == np.eye(4)[:3].tolist()
+    errs = []
+    for fr in meta["frames"][::5]:
+        im = ims[fr["colmap_image"]]
+        f, cx, cy, k1 = cams[im.camera_id].params
+        ok = im.point3D_ids >= 0
+        obs = im.xys[ok]
+        X = np.stack([pts[i].xyz for i in im.point3D_ids[ok]])
+        # the observation, undistorted by inverting x_d = x (1 + k1 r^2) (fixed point), then rescaled
+        xd = (obs - [cx, cy]) / f
+        x = xd.copy()
+        for _ in range(20):
+            x = xd / (1 + k1 * (x**2).sum(-1, keepdims=True))
+        want = x * [fr["fl_x"], fr["fl_y"]] + [fr["cx"], fr["cy"]]
+        c2w = np.asarray(fr["transform_matrix"])
+        c2w[:3, 1:3] *= -1  # OpenGL -> OpenCV camera axes
+        w2c = np.linalg.inv(c2w)
+        pc = X @ w2c[:3, :3].T + w2c[:3, 3]
+        got = pc[:, :2] / pc[:, 2:3] * [fr["fl_x"], fr["fl_y"]] + [fr["cx"], fr["cy"]]
+        errs.append(np.linalg.norm(got - want, axis=-1))
+    err = np.concatenate(errs)
+    assert np.median(err) < 0.25 and np.quantile(err, 0.95) < 1.0, (np.median(err), np.quantile(err, 0.95))
+
+
+def test_bundle_parses_with_its_hold_out():
+    out_train = BundleDataParserConfig().setup().get_dataparser_outputs("train")
+    out_val = BundleDataParserConfig().setup().get_dataparser_outputs("val")
+    assert len(out_train.image_filenames) == 28 and len(out_val.image_filenames) == 4
+    assert [p.name for p in out_val.image_filenames] == [
+        json.loads((BUNDLED_SCENE / "transforms.json").read_text())["frames"][i]["file_path"].split("/")[-1]
+        for i in (0, 8, 16, 24)]
+    assert out_train.metadata["points3D_xyz"].shape[0] == len(read_points_ply(BUNDLED_SCENE / "sparse_pc.ply")[0])
+
+
+def test_geometry_script_returns_gaussians_to_the_capture_frame(tmp_path):
+    """What the GPU script writes, imported by the model (capture frame), is where it trained."""
+    spec = importlib.util.spec_from_file_location("train_demo_geometry", REPO / "scripts" / "train_demo_geometry.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    from virgi_ns.demo import DemoConfig, trainer_config
+
+    scene = _tiny_bundle(tmp_path)
+    tc = trainer_config(DemoConfig(scene=scene, hash_log2=12), scene, scene / "geometry.ply", use_cache=False)
+    pipeline = tc.pipeline.setup(device="cpu", test_mode="val")
+    model = pipeline.model
+    params = {k: v.detach() for k, v in model.gauss_params.items()}
+    out = pipeline.datamanager.train_dataparser_outputs
+    assert float(out.dataparser_scale) != 1.0  # a real frame change
+    g = mod.to_capture_frame(params, out.dataparser_transform, float(out.dataparser_scale))
+    src = load_splat(scene / "geometry.ply")
+    torch.testing.assert_close(g.means, src.means, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(g.scales, src.scales, atol=1e-4, rtol=1e-4)
+    dots = (g.quats * torch.nn.functional.normalize(src.quats, dim=-1)).sum(-1).abs()
+    assert bool((dots > 1 - 1e-4).all())
