@@ -18,8 +18,9 @@ install: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
+# `make demo`: VIRGi on the bundled capture (CPU: a few minutes); `make demo FULL=1`: full resolution (GPU).
 demo: $(STAMP)
-	@echo "make demo: the end-to-end demo is not built yet (see issue 7); run 'make test' for now."
+	$(PY) -m virgi_ns.demo --out demo_out $(if $(FULL),--full,)
 
 clean:
 	rm -rf $(VENV) demo_out

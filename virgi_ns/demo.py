@@ -59,11 +59,11 @@ class DemoConfig:
     source: Path = SHARED_BEERCAN
     """COLMAP beercan used by --full."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
-    geometry_steps: int = 60
-    """Geometry steps when no pre-trained geometry is found (at 1/4 resolution on a CPU: a coarse
-    stand-in, seeded from the sparse points, with no densification)."""
+    geometry_steps: Optional[int] = None
+    """Geometry steps when no pre-trained geometry is found; default 15000 on a GPU, 60 on a CPU (at
+    1/4 resolution, no densification: a coarse stand-in seeded from the sparse points)."""
     colour_steps: Optional[int] = None
-    """Colour-stage steps; default 400 with pre-trained geometry, 200 when geometry is trained here."""
+    """Colour-stage steps; default 5000 on a GPU; on a CPU 400 with pre-trained geometry, else 200."""
     tile_size: int = 32
     views_per_anchor: int = 5
     pixel_budget: int = 2 * 5 * 32 * 32
@@ -115,7 +115,7 @@ def trainer_config(cfg: DemoConfig, scene: Path, geometry: Optional[Path], use_c
     from method_configs.virgi import virgi_trainer_config
     from virgi_ns.field import ColorFieldConfig
 
-    g_steps = 0 if geometry is not None else cfg.geometry_steps
+    g_steps = 0 if geometry is not None else geometry_steps(cfg)
     tc = virgi_trainer_config("virgi-demo", geometry_steps=g_steps, colour_steps=colour_steps(cfg, geometry))
     dm = tc.pipeline.datamanager
     dm.dataparser = BundleDataParserConfig(data=scene)
@@ -127,7 +127,7 @@ def trainer_config(cfg: DemoConfig, scene: Path, geometry: Optional[Path], use_c
     m = tc.pipeline.model
     m.geometry_from = geometry
     m.color_field = ColorFieldConfig(log2_hashmap_size=cfg.hash_log2)
-    if g_steps > 0 and not torch.cuda.is_available():  # 1/4 resolution throughout: a CPU cannot afford more
+    if g_steps > 0 and (cfg.device == "cpu" or not torch.cuda.is_available()):  # 1/4 resolution throughout: a CPU cannot afford more
         m.num_downscales = 2
         m.resolution_schedule = g_steps + 1
     if use_cache:
@@ -138,7 +138,15 @@ def trainer_config(cfg: DemoConfig, scene: Path, geometry: Optional[Path], use_c
 def colour_steps(cfg: DemoConfig, geometry: Optional[Path]) -> int:
     if cfg.colour_steps is not None:
         return cfg.colour_steps
+    if torch.cuda.is_available() and cfg.device != "cpu":
+        return 5000
     return 400 if geometry is not None else 200
+
+
+def geometry_steps(cfg: DemoConfig) -> int:
+    if cfg.geometry_steps is not None:
+        return cfg.geometry_steps
+    return 15000 if torch.cuda.is_available() and cfg.device != "cpu" else 60
 
 
 class _Trainer:
