@@ -289,15 +289,23 @@ def test_export_with_an_edit_and_without_specular(fitted, rscene):
         model.set_edit_stack(None)
 
 
-def test_bake_without_cameras_uses_the_sphere_and_rejects_bad_strength(fitted, rscene):
+def test_bake_without_cameras_uses_the_sphere_and_rejects_bad_strength(fitted, rscene, tmp_path):
     scene = rscene
-    from virgi_ns.export import bake
+    from virgi_ns.export import bake, export_model
+    from virgi_ns.io import load_splat
 
     pipeline = fitted
     frame = CaptureFrame.from_pipeline(pipeline)
     g = bake(pipeline.model, None, None, frame, None, BakeConfig(directions=256))
     assert torch.isfinite(g.sh).all()
     assert min(fidelity(pipeline, scene, g)) > 25  # a looser fit (whole sphere), still the same scene
+    # the viewer's call: a bare model (frame from its metadata) straight to a file
+    out = export_model(pipeline.model, tmp_path / "m.ply")
+    torch.testing.assert_close(load_splat(tmp_path / "m.ply").means, scene.gaussians.means, atol=1e-5, rtol=0)
+    assert out.sh_degree == 3
+    with pytest.raises(InputError):
+        export_model(pipeline.model, tmp_path / "m.txt")
+    assert not (tmp_path / "m.txt").exists()
     with pytest.raises(InputError):
         bake(pipeline.model, None, -1.0, frame)
     with pytest.raises(InputError):
