@@ -135,6 +135,9 @@ class VirgiModel(SplatfactoModel):
         self._edited_cache: Optional[tuple] = None
         if self.imported:
             self.freeze_geometry()
+        from virgi_ns.viewer import VirgiPanel
+
+        self.viewer_panel = VirgiPanel(self)  # a plain attribute: the viewer finds it, checkpoints don't
 
     def _scene_aabb(self) -> Tensor:
         return self.scene_box.aabb.detach().float().cpu().clone()
@@ -390,6 +393,8 @@ class VirgiModel(SplatfactoModel):
         st = self.edit_stack
         if st is None or len(st) == 0:
             return torch.zeros(pg.shape[0], 1, device=self.device)
+        if self.segmentation_edit is not None and not 1 <= self.segmentation_edit <= len(st):
+            self.segmentation_edit = None  # the selected edit was undone: show all enabled edits
         fld = self.field
         if f is None:
             uniq, inv = torch.unique(pg, return_inverse=True)
@@ -482,14 +487,14 @@ class VirgiModel(SplatfactoModel):
     def render_camera(self, camera: NSCameras, gated: bool = False, max_pixels: int = 1 << 20
                       ) -> Dict[str, Tensor]:
         """Whole-image ``rgb``, ``diffuse``, ``specular`` (rgb - diffuse, no background), ``depth``,
-        ``accumulation`` (and ``segmentation`` when edits exist) for one camera, rendered in bands
+        ``accumulation`` and ``segmentation`` (zeros without edits) for one camera, rendered in bands
         of rows, through the edit stack when one is set."""
         cams = raster_cameras(camera[0:1] if len(camera.shape) else camera.reshape((1,)))
         W, H = int(cams.widths[0]), int(cams.heights[0])
         bg = self.background_color.to(self.device)
         rows = max(1, min(H, max_pixels // max(W, 1)))
         with_seg = self.edit_stack is not None and len(self.edit_stack) > 0
-        names = ("rgb", "diffuse", "specular", "depth", "accumulation") + (("segmentation",) if with_seg else ())
+        names = ("rgb", "diffuse", "specular", "depth", "accumulation", "segmentation")
         parts: Dict[str, List[Tensor]] = {k: [] for k in names}
         for y0 in range(0, H, rows):
             h = min(rows, H - y0)
@@ -499,6 +504,8 @@ class VirgiModel(SplatfactoModel):
             rgb = composite(cols["rgb"], contrib, bg)[0]
             if with_seg:
                 parts["segmentation"].append(composite(cols["segmentation"], contrib)[0])
+            else:
+                parts["segmentation"].append(rgb.new_zeros(h, W, 1))
             diff = composite(cols["diffuse"], contrib, bg)[0]
             parts["rgb"].append(rgb)
             parts["diffuse"].append(diff)
