@@ -68,6 +68,7 @@ def _apply(saved, **kw) -> Apply:
     return Apply(**args)
 
 
+@pytest.mark.slow  # three console-script runs, each loading the run through nerfstudio (~40 s)
 def test_apply_list_undo_through_the_console_script(saved):
     cfg = str(saved["config"])
     before = _run_hash(saved["config"])
