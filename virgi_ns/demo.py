@@ -179,7 +179,6 @@ def train(pipeline, tc, steps: int, on_step: Callable[[int, Dict[str, float]], N
         sum(losses.values()).backward()
         opt.optimizer_step_all()
         opt.scheduler_step_all(step)
-        model.step_post_backward(step) if hasattr(model, "step_post_backward") else None
         for cb in cbs:
             cb.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
         on_step(step, {k: float(torch.as_tensor(v).detach()) for k, v in metrics.items() if k == "psnr"})
