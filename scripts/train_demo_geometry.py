@@ -121,14 +121,13 @@ def main(args: Args) -> None:
 
     from virgi_ns.io import save_ply
 
-    tmp = None
+    tmp = Path(tempfile.mkdtemp(prefix="virgi_geometry_"))
     scene = args.scene
     if args.source.is_dir() and (args.source / "sparse" / "0").is_dir():
         from virgi_ns.data.make_bundle import Args as BundleArgs
         from virgi_ns.data.make_bundle import make_bundle
 
         n_views = len(json.loads((scene / "transforms.json").read_text())["frames"])
-        tmp = Path(tempfile.mkdtemp(prefix="virgi_geometry_"))
         make_bundle(BundleArgs(source=args.source, out=tmp / "scene", views=n_views, downscale=args.downscale))
         scene = tmp / "scene"
         console.log(f"training on {n_views} views rebuilt at 1/{args.downscale} from {args.source}")
@@ -147,7 +146,7 @@ def main(args: Args) -> None:
             if sch is not None and hasattr(sch, "max_steps"):
                 sch.max_steps = args.steps
         cfg.vis = "tensorboard"
-        cfg.output_dir = (tmp or Path(tempfile.mkdtemp(prefix="virgi_geometry_"))) / "runs"
+        cfg.output_dir = tmp / "runs"
         cfg.experiment_name = "demo-geometry"
         cfg.timestamp = "run"
         cfg.steps_per_eval_image = cfg.steps_per_eval_batch = cfg.steps_per_eval_all_images = 10**9
@@ -180,8 +179,7 @@ def main(args: Args) -> None:
                     f"({args.out.stat().st_size / 1e6:.1f} MB); held-out PSNR {psnr_full:.2f} dB before pruning, "
                     f"{psnr_pruned:.2f} dB after")
     finally:
-        if tmp is not None:
-            shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 if __name__ == "__main__":

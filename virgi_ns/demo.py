@@ -63,7 +63,7 @@ class DemoConfig:
     """Geometry steps when no pre-trained geometry is found; default 15000 on a GPU, 60 on a CPU (at
     1/4 resolution, no densification: a coarse stand-in seeded from the sparse points)."""
     colour_steps: Optional[int] = None
-    """Colour-stage steps; default 5000 on a GPU; on a CPU 400 with pre-trained geometry, else 200."""
+    """Colour-stage steps; default 5000 on a GPU; on a CPU 600 with pre-trained geometry, else 800."""
     tile_size: int = 32
     views_per_anchor: int = 5
     pixel_budget: int = 2 * 5 * 32 * 32
@@ -140,7 +140,7 @@ def colour_steps(cfg: DemoConfig, geometry: Optional[Path]) -> int:
         return cfg.colour_steps
     if torch.cuda.is_available() and cfg.device != "cpu":
         return 5000
-    return 400 if geometry is not None else 200
+    return 600 if geometry is not None else 800
 
 
 def geometry_steps(cfg: DemoConfig) -> int:
@@ -301,7 +301,9 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                     model.contrib_cache = ContributionCache(
                         train_cams, model.num_points,
                         lambda c, r: model._raster(c, r),
-                        progress=lambda d, n: progress.update(t_cache, completed=d))
+                        progress=lambda d, n: (progress.update(t_cache, completed=d),
+                                               None if console.is_terminal or d % 7 else
+                                               console.log(f"rasterized training view {d}/{n}")))
                 marks["cache_done"] = time.perf_counter()
 
             def on_step(step: int, m: Dict[str, float]) -> None:
