@@ -117,11 +117,18 @@ def to_capture_frame(params: dict, transform: torch.Tensor, scale: float):
 def main(args: Args) -> None:
     if not torch.cuda.is_available():
         raise InputError("train_demo_geometry.py trains splatfacto with gsplat: it needs a CUDA GPU")
+    tmp = Path(tempfile.mkdtemp(prefix="virgi_geometry_"))
+    try:
+        _train_and_write(args, tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _train_and_write(args: Args, tmp: Path) -> None:
     from nerfstudio.configs.method_configs import method_configs
 
     from virgi_ns.io import save_ply
 
-    tmp = Path(tempfile.mkdtemp(prefix="virgi_geometry_"))
     scene = args.scene
     if args.source.is_dir() and (args.source / "sparse" / "0").is_dir():
         from virgi_ns.data.make_bundle import Args as BundleArgs
@@ -133,53 +140,50 @@ def main(args: Args) -> None:
         console.log(f"training on {n_views} views rebuilt at 1/{args.downscale} from {args.source}")
     else:
         console.log(f"training on the bundled images in {scene}")
-    try:
-        _stub_lpips_if_offline()
-        torch.manual_seed(args.seed)
-        cfg = copy.deepcopy(method_configs["splatfacto"])
-        cfg.pipeline.datamanager.dataparser = BundleDataParserConfig(data=scene)
-        cfg.pipeline.datamanager.data = scene
-        cfg.pipeline.model.sh_degree = args.sh_degree
-        cfg.max_num_iterations = args.steps
-        for group in cfg.optimizers.values():
-            sch = group.get("scheduler")
-            if sch is not None and hasattr(sch, "max_steps"):
-                sch.max_steps = args.steps
-        cfg.vis = "tensorboard"
-        cfg.output_dir = tmp / "runs"
-        cfg.experiment_name = "demo-geometry"
-        cfg.timestamp = "run"
-        cfg.steps_per_eval_image = cfg.steps_per_eval_batch = cfg.steps_per_eval_all_images = 10**9
-        cfg.steps_per_save = 10**9
-        cfg.viewer.quit_on_train_completion = True
-        trainer = cfg.setup(local_rank=0, world_size=1)
-        trainer.setup()
-        t0 = time.perf_counter()
-        trainer.train()
-        console.log(f"splatfacto: {args.steps} steps in {time.perf_counter() - t0:.0f} s")
-        pipeline = trainer.pipeline
-        model = pipeline.model
-        psnr_full = heldout_psnr(pipeline)
-        n_all = model.num_points
+    _stub_lpips_if_offline()
+    torch.manual_seed(args.seed)
+    cfg = copy.deepcopy(method_configs["splatfacto"])
+    cfg.pipeline.datamanager.dataparser = BundleDataParserConfig(data=scene)
+    cfg.pipeline.datamanager.data = scene
+    cfg.pipeline.model.sh_degree = args.sh_degree
+    cfg.max_num_iterations = args.steps
+    for group in cfg.optimizers.values():
+        sch = group.get("scheduler")
+        if sch is not None and hasattr(sch, "max_steps"):
+            sch.max_steps = args.steps
+    cfg.vis = "tensorboard"
+    cfg.output_dir = tmp / "runs"
+    cfg.experiment_name = "demo-geometry"
+    cfg.timestamp = "run"
+    cfg.steps_per_eval_image = cfg.steps_per_eval_batch = cfg.steps_per_eval_all_images = 10**9
+    cfg.steps_per_save = 10**9
+    cfg.viewer.quit_on_train_completion = True
+    trainer = cfg.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    t0 = time.perf_counter()
+    trainer.train()
+    console.log(f"splatfacto: {args.steps} steps in {time.perf_counter() - t0:.0f} s")
+    pipeline = trainer.pipeline
+    model = pipeline.model
+    psnr_full = heldout_psnr(pipeline)
+    n_all = model.num_points
 
-        p = {k: v.detach() for k, v in model.gauss_params.items()}
-        score = prune_scores(p["opacities"], p["scales"])
-        score[torch.sigmoid(p["opacities"].reshape(-1)) < args.min_opacity] = -1.0
-        keep = torch.argsort(score, descending=True)[: min(args.cap, int((score >= 0).sum()))]
-        keep = keep.sort().values
-        for k in list(model.gauss_params.keys()):
-            model.gauss_params[k] = torch.nn.Parameter(p[k][keep])
-        psnr_pruned = heldout_psnr(pipeline)
+    p = {k: v.detach() for k, v in model.gauss_params.items()}
+    score = prune_scores(p["opacities"], p["scales"])
+    score[torch.sigmoid(p["opacities"].reshape(-1)) < args.min_opacity] = -1.0
+    keep = torch.argsort(score, descending=True)[: min(args.cap, int((score >= 0).sum()))]
+    keep = keep.sort().values
+    for k in list(model.gauss_params.keys()):
+        model.gauss_params[k] = torch.nn.Parameter(p[k][keep])
+    psnr_pruned = heldout_psnr(pipeline)
 
-        out = pipeline.datamanager.train_dataparser_outputs
-        g = to_capture_frame({k: v[keep] for k, v in p.items()}, out.dataparser_transform,
-                             float(out.dataparser_scale))
-        save_ply(g, args.out)
-        console.log(f"wrote {args.out}: {len(g):,} of {n_all:,} Gaussians "
-                    f"({args.out.stat().st_size / 1e6:.1f} MB); held-out PSNR {psnr_full:.2f} dB before pruning, "
-                    f"{psnr_pruned:.2f} dB after")
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    out = pipeline.datamanager.train_dataparser_outputs
+    g = to_capture_frame({k: v[keep] for k, v in p.items()}, out.dataparser_transform,
+                         float(out.dataparser_scale))
+    save_ply(g, args.out)
+    console.log(f"wrote {args.out}: {len(g):,} of {n_all:,} Gaussians "
+                f"({args.out.stat().st_size / 1e6:.1f} MB); held-out PSNR {psnr_full:.2f} dB before pruning, "
+                f"{psnr_pruned:.2f} dB after")
 
 
 if __name__ == "__main__":
