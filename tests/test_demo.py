@@ -88,6 +88,17 @@ def test_bad_scene_exits_2_and_writes_nothing(tmp_path, monkeypatch, capsys):
     assert not out.exists()
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without a GPU")
+def test_full_resolution_without_a_gpu_is_refused(tmp_path, monkeypatch, capsys):
+    from virgi_ns import demo
+
+    out = tmp_path / "out"
+    monkeypatch.setattr(sys, "argv", ["demo", "--full", "--out", str(out)])
+    with pytest.raises(SystemExit) as e:
+        demo.entrypoint()
+    assert e.value.code == 2 and "GPU" in capsys.readouterr().err and not out.exists()
+
+
 def test_bundle_matches_colmap_observations(shared_data):
     """Projecting COLMAP's points with the bundle's pinhole cameras lands on COLMAP's own
     (distorted) observations after undistortion: within a pixel at the bundle's 1/4 scale."""

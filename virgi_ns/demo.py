@@ -231,20 +231,20 @@ def grid_image(rows: List[Dict[str, Tensor]], labels: List[str]) -> np.ndarray:
     return np.asarray(canvas)
 
 
-def _check_full(cfg: DemoConfig) -> None:
-    if cfg.full and cfg.device == "cpu":
-        raise InputError("--full trains at 720x1280: use a GPU (--device cuda or auto)")
+def _check_full(cfg: DemoConfig, dev: torch.device) -> None:
+    if cfg.full and dev.type != "cuda":
+        raise InputError("--full trains at 720x1280 and needs a CUDA GPU (none in use); run without --full")
 
 
 # --------------------------------------------------------------------------------- run
 def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]:
     """The whole demo; returns the metrics written to ``metrics.json``."""
     console = console or Console()
-    _check_full(cfg)
     dev = torch.device("cuda" if cfg.device == "cuda" or (cfg.device == "auto" and torch.cuda.is_available())
                        else "cpu")
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: no CUDA GPU is available")
+    _check_full(cfg, dev)
     for name in ("edit_steps", "colour_steps", "grid_views"):
         if getattr(cfg, name) is not None and getattr(cfg, name) < 1:
             raise InputError(f"--{name.replace('_', '-')} must be >= 1")
