@@ -4,7 +4,8 @@ One tile batch for every row: 160 tiles of 32x32 and 40 of 64x64 (any position) 
 Rows per scene (random 1M / 3M Gaussians, and a real splat with cameras placed around it):
 
 * ``ours tiles``         our CUDA backend on the tile batch (the 64-px tiles as 2x2 tiles of 32,
-                         so one request), fused composite; ``(plain)`` uses ``contract.composite``
+                         so one request), ``composite`` (fused for our lists); ``(plain)`` uses
+                         ``contract.composite_plain`` (gather + index_add)
 * ``gsplat per-tile``    gsplat 1.4.0 with one camera per tile (principal point shifted)
 * ``ours whole``         our backend on the 8 whole views
 * ``gsplat whole``       gsplat on the 8 whole views
@@ -31,7 +32,7 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from virgi_ns.errors import InputError, atomic_path, cli_entry  # noqa: E402
-from virgi_ns.raster.contract import Cameras, Request, composite  # noqa: E402
+from virgi_ns.raster.contract import Cameras, Request, composite, composite_plain  # noqa: E402
 
 
 @dataclass
@@ -209,7 +210,7 @@ def run_scene(sc: Scene, args: Args, tiles, req: Request, gsplat, rows: list[Row
             colors.grad = None
             c = cuda.rasterize(*geo, sc.cameras, request)
             cols = colors[c.pair_gaussian]
-            img = (cuda.composite if fused else composite)(cols, c, None)
+            img = (composite if fused else composite_plain)(cols, c, None)
             img.sum().backward()
             return c, img
         return step

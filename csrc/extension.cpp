@@ -7,6 +7,7 @@
 #include <torch/extension.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cstdint>
 #include <cstdlib>
 #include <limits>
@@ -29,7 +30,12 @@ struct Plan {
   std::vector<int> buf;
   int64_t views_at = 0, items_at = 0, units_at = 0, slots_at = 0, sat_at = 0;
   int num_views = 0, num_items = 0, num_units = 0, num_slots = 0;
+  int64_t total_tiles = 0;  // grid tiles of the requested views
 };
+
+// Visible (view, Gaussian) pairs per (view, Gaussian) over the request's share of grid tiles,
+// learned from earlier calls; sizes the compact arrays (an overflow costs a second projection).
+std::atomic<double> g_visible_per_share{4.0};
 
 Plan make_plan(const torch::Tensor& widths, const torch::Tensor& heights,
                const torch::Tensor& item_views, const torch::Tensor& item_x0,
@@ -121,6 +127,7 @@ Plan make_plan(const torch::Tensor& widths, const torch::Tensor& heights,
   plan.num_items = T;
   plan.num_units = static_cast<int>(units.size() / kUnitInts);
   plan.num_slots = num_slots;
+  plan.total_tiles = total_tiles;
   auto append = [&](const std::vector<int>& v, int64_t& at) {
     at = static_cast<int64_t>(plan.buf.size());
     plan.buf.insert(plan.buf.end(), v.begin(), v.end());
@@ -144,6 +151,8 @@ void check_input(const torch::Tensor& t, const char* name, int64_t cols) {
 
 }  // namespace
 
+// capacity: size of the compact visible-pair arrays to try first (-1: estimate; tests force an
+// overflow and its retry with a small value).
 // Returns {pixel i32[M], pair i32[M], weight f32[M], transmittance f32[P], valid bool[P],
 //          pixel_offsets i64[P+1], pair_view i64[U], pair_gaussian i64[U], pair_depth f32[U],
 //          and the tile lists for composite_backward_tiles: plan i32 (device), meta i64[6] (cpu:
@@ -153,7 +162,7 @@ std::vector<torch::Tensor> rasterize_contributions(
     torch::Tensor means, torch::Tensor quats, torch::Tensor scales, torch::Tensor opacities,
     torch::Tensor Ks, torch::Tensor viewmats, torch::Tensor widths, torch::Tensor heights,
     torch::Tensor item_views, torch::Tensor item_x0, torch::Tensor item_y0, int64_t item_w,
-    int64_t item_h) {
+    int64_t item_h, int64_t capacity) {
   check_input(means, "means", 3);
   check_input(quats, "quats", 4);
   check_input(scales, "scales", 3);
@@ -198,34 +207,86 @@ std::vector<torch::Tensor> rasterize_contributions(
   VIRGI_CUDA_CHECK(launch_init_pixels(P, iw, ih, d_items, d_views, transmittance.data_ptr<float>(),
                      valid.data_ptr<bool>(), stream));
 
-  // Project every Gaussian once per requested view; count the requested tiles it touches.
-  auto rec0 = torch::empty({VN, 4}, f32);
-  auto rec1 = torch::empty({VN, 4}, f32);
-  auto counts = torch::empty({VN}, i32);
-  VIRGI_CUDA_CHECK(launch_project_count(N, Vr, means.data_ptr<float>(), quats.data_ptr<float>(),
-                       scales.data_ptr<float>(), opacities.data_ptr<float>(), Ks.data_ptr<float>(),
-                       viewmats.data_ptr<float>(), d_views, d_sat,
-                       reinterpret_cast<float4*>(rec0.data_ptr<float>()),
-                       reinterpret_cast<float4*>(rec1.data_ptr<float>()), counts.data_ptr<int>(),
-                       stream));
+  // Project every Gaussian once per requested view; keep the visible pairs (those touching a
+  // requested grid tile) in compact arrays. Their number is known only after the projection:
+  // the arrays get a capacity from the request's share of grid tiles and a learned ratio, and
+  // the projection reruns with the exact size when they overflow.
+  auto totals = torch::zeros({2}, i64);
+  auto* d_totals = reinterpret_cast<unsigned long long*>(totals.data_ptr<int64_t>());
+  const int64_t total_tiles = plan.total_tiles;
+  const double share = total_tiles > 0 ? static_cast<double>(plan.num_slots) / total_tiles : 1.0;
+  int64_t cap = capacity >= 0 ? capacity
+                              : static_cast<int64_t>(std::min(1.0, share * g_visible_per_share.load()) *
+                                                     static_cast<double>(VN)) + 4096;
+  cap = std::max<int64_t>(std::min(cap, VN), 1);
+  torch::Tensor c_rec0, c_rec1, c_counts, c_fids;
+  int64_t Uc = 0, n_isect = 0;
+  for (int attempt = 0; attempt < 2; ++attempt) {
+    c_rec0 = torch::empty({cap, 4}, f32);
+    c_rec1 = torch::empty({cap, 4}, f32);
+    c_counts = torch::empty({cap}, i32);
+    c_fids = torch::empty({cap}, i32);
+    if (attempt > 0) totals.zero_();
+    VIRGI_CUDA_CHECK(launch_project_compact(
+        N, Vr, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(),
+        opacities.data_ptr<float>(), Ks.data_ptr<float>(), viewmats.data_ptr<float>(), d_views,
+        d_sat, cap, reinterpret_cast<float4*>(c_rec0.data_ptr<float>()),
+        reinterpret_cast<float4*>(c_rec1.data_ptr<float>()), c_counts.data_ptr<int>(),
+        c_fids.data_ptr<int>(), d_totals, stream));
+    auto t = totals.cpu();
+    Uc = t[0].item<int64_t>();
+    n_isect = t[1].item<int64_t>();
+    if (Uc <= cap) break;
+    cap = Uc;
+  }
+  if (capacity < 0 && VN > 0 && share > 0.0) {
+    // learn how many visible pairs a share of requested tiles brings (with a margin)
+    const double seen = static_cast<double>(Uc) / static_cast<double>(VN) / share;
+    // (a slow decay, so that alternating small and large requests do not overflow in turn)
+    g_visible_per_share = std::max(1.25 * seen, 0.95 * g_visible_per_share.load());
+  }
+  TORCH_CHECK(n_isect < std::numeric_limits<int>::max(), "too many tile intersections");
+
+  // The compact arrays in (view, Gaussian) order: ties in depth keep that order in the tile
+  // sort below, and the contributing pairs come out ascending in v*N+g.
+  auto fids = torch::empty({Uc}, i32);
+  auto cnts = torch::empty({Uc}, i32);
+  auto rec0 = torch::empty({Uc, 4}, f32);
+  auto rec1 = torch::empty({Uc, 4}, f32);
+  if (Uc > 0) {
+    auto perm_in = torch::arange(Uc, i32);
+    auto perm = torch::empty({Uc}, i32);
+    int fid_bits = 1;
+    while ((int64_t{1} << fid_bits) < VN) ++fid_bits;
+    size_t bytes = 0;
+    VIRGI_CUDA_CHECK(sort_ints(nullptr, bytes, Uc, fid_bits, c_fids.data_ptr<int>(),
+                               fids.data_ptr<int>(), perm_in.data_ptr<int>(), perm.data_ptr<int>(),
+                               stream));
+    auto scratch = torch::empty({static_cast<int64_t>(bytes) + 1}, f32.dtype(torch::kUInt8));
+    VIRGI_CUDA_CHECK(sort_ints(scratch.data_ptr(), bytes, Uc, fid_bits, c_fids.data_ptr<int>(),
+                               fids.data_ptr<int>(), perm_in.data_ptr<int>(), perm.data_ptr<int>(),
+                               stream));
+    VIRGI_CUDA_CHECK(launch_gather_compact(
+        Uc, perm.data_ptr<int>(), reinterpret_cast<const float4*>(c_rec0.data_ptr<float>()),
+        reinterpret_cast<const float4*>(c_rec1.data_ptr<float>()), c_counts.data_ptr<int>(),
+        reinterpret_cast<float4*>(rec0.data_ptr<float>()),
+        reinterpret_cast<float4*>(rec1.data_ptr<float>()), cnts.data_ptr<int>(), stream));
+  }
+  c_rec0 = c_rec1 = c_counts = c_fids = torch::Tensor();
   const float4* r0 = reinterpret_cast<const float4*>(rec0.data_ptr<float>());
   const float4* r1 = reinterpret_cast<const float4*>(rec1.data_ptr<float>());
 
   // Bin into requested tiles, sort by (slot, depth); ties keep the (view, Gaussian) order.
-  int64_t n_isect = 0;
-  torch::Tensor cum;
-  if (VN > 0) {
-    cum = torch::cumsum(counts, 0, torch::kInt64);
-    n_isect = cum[-1].item<int64_t>();
-  }
-  TORCH_CHECK(n_isect < std::numeric_limits<int>::max(), "too many tile intersections");
   auto ranges = torch::zeros({2 * static_cast<int64_t>(std::max(plan.num_slots, 1))}, i32);
   auto sorted_vals = torch::empty({n_isect}, i32);
   if (n_isect > 0) {
+    auto cum = torch::cumsum(cnts, 0, torch::kInt64);
     auto keys = torch::empty({n_isect}, i64);
     auto vals = torch::empty({n_isect}, i32);
-    VIRGI_CUDA_CHECK(launch_bin(N, Vr, counts.data_ptr<int>(), cum.data_ptr<int64_t>(), r0, r1, d_views, d_slots,
-               reinterpret_cast<uint64_t*>(keys.data_ptr<int64_t>()), vals.data_ptr<int>(), stream));
+    VIRGI_CUDA_CHECK(launch_bin(Uc, N, fids.data_ptr<int>(), cnts.data_ptr<int>(),
+                                cum.data_ptr<int64_t>(), r0, r1, d_views, d_slots,
+                                reinterpret_cast<uint64_t*>(keys.data_ptr<int64_t>()),
+                                vals.data_ptr<int>(), stream));
     auto keys_sorted = torch::empty_like(keys);
     int slot_bits = 1;
     while ((int64_t{1} << slot_bits) < plan.num_slots) ++slot_bits;
@@ -252,19 +313,19 @@ std::vector<torch::Tensor> rasterize_contributions(
 
   // Pass 2: the entries, grouped by pixel in compositing order, as packed (flat id, weight).
   auto packed = torch::empty({M, 2}, i32);
-  auto mark = torch::zeros({std::max<int64_t>(VN, 1)}, f32.dtype(torch::kUInt8));
+  auto mark = torch::zeros({std::max<int64_t>(Uc, 1)}, f32.dtype(torch::kUInt8));
   VIRGI_CUDA_CHECK(launch_raster(true, plan.num_units, d_units, d_items, d_views, iw, ih,
                                  ranges.data_ptr<int>(), sorted_vals.data_ptr<int>(), r0, r1,
                                  nullptr, nullptr, offsets.data_ptr<int64_t>(),
                                  reinterpret_cast<int2*>(packed.data_ptr<int>()),
                                  mark.data_ptr<uint8_t>(), stream));
 
-  // Distinct (view, Gaussian) pairs, ascending in view * N + gaussian (the rows are ascending
-  // in view), each entry's pair rank and weight, and each entry's pixel.
+  // Distinct (view, Gaussian) pairs, ascending in view * N + gaussian (the compact arrays are
+  // in that order), each entry's pair rank and weight, and each entry's pixel.
   int64_t U = 0;
   torch::Tensor rank;
   if (M > 0) {
-    rank = torch::cumsum(mark, 0, torch::kInt32);
+    rank = torch::cumsum(mark.narrow(0, 0, Uc), 0, torch::kInt32);
     U = rank[-1].item<int>();
   }
   auto pair_view = torch::empty({U}, i64);
@@ -274,8 +335,8 @@ std::vector<torch::Tensor> rasterize_contributions(
   auto pair = torch::empty({M}, i32);
   auto weight = torch::empty({M}, f32);
   if (M > 0) {
-    VIRGI_CUDA_CHECK(launch_pairs(VN, mark.data_ptr<uint8_t>(), rank.data_ptr<int>(), N, d_views,
-                                  r0, pair_view.data_ptr<int64_t>(),
+    VIRGI_CUDA_CHECK(launch_pairs(Uc, mark.data_ptr<uint8_t>(), rank.data_ptr<int>(), N,
+                                  fids.data_ptr<int>(), d_views, r0, pair_view.data_ptr<int64_t>(),
                                   pair_gaussian.data_ptr<int64_t>(), pair_depth.data_ptr<float>(),
                                   stream));
     VIRGI_CUDA_CHECK(launch_split(M, reinterpret_cast<const int2*>(packed.data_ptr<int>()),

@@ -4,7 +4,9 @@
 // Pipeline (extension.cpp, rasterize_contributions):
 //   host plan   -> requested views, their requested 16-px grid tiles ("slots"), work units
 //   project     -> each Gaussian projected once per requested view; culled when its 3-sigma
-//                  tile rectangle holds no requested grid tile (summed-area table lookup)
+//                  tile rectangle holds no requested grid tile (summed-area table lookup); the
+//                  visible (view, Gaussian) pairs are appended to compact arrays, which are then
+//                  sorted by v*N+g, so no later pass scans views x N
 //   bin + sort  -> (slot, depth) keys for requested tiles only, stable radix sort
 //   rasterize   -> per pixel, walk the tile's list twice: count, then fill contribution lists
 //                  grouped by pixel in compositing order
@@ -23,13 +25,23 @@ constexpr int kItemInts = 4;  // view row, x0, y0, pad
 constexpr int kUnitInts = 4;  // item, slot, gx, gy
 constexpr int kTile = 16;     // grid tile size (pixels), as gsplat's default
 
-cudaError_t launch_project_count(int N, int Vr, const float* means, const float* quats,
-                                 const float* scales, const float* opacities, const float* Ks,
-                                 const float* viewmats, const int* views, const int* sat,
-                                 float4* rec0, float4* rec1, int* counts, cudaStream_t stream);
-cudaError_t launch_bin(int N, int Vr, const int* counts, const int64_t* cum_counts,
-                       const float4* rec0, const float4* rec1, const int* views,
-                       const int* tile_slot, uint64_t* keys, int* vals, cudaStream_t stream);
+// totals[0] += visible pairs, totals[1] += their tile intersections (pre-zeroed); records at
+// compact slots >= cap are dropped (the caller retries with cap >= totals[0]).
+cudaError_t launch_project_compact(int N, int Vr, const float* means, const float* quats,
+                                   const float* scales, const float* opacities, const float* Ks,
+                                   const float* viewmats, const int* views, const int* sat,
+                                   int64_t cap, float4* rec0, float4* rec1, int* counts, int* fids,
+                                   unsigned long long* totals, cudaStream_t stream);
+// With temp == nullptr, writes the scratch size needed to temp_bytes and sorts nothing.
+cudaError_t sort_ints(void* temp, size_t& temp_bytes, int64_t n, int end_bit, const int* keys_in,
+                      int* keys_out, const int* vals_in, int* vals_out, cudaStream_t stream);
+cudaError_t launch_gather_compact(int64_t n, const int* perm, const float4* rec0_in,
+                                  const float4* rec1_in, const int* counts_in, float4* rec0,
+                                  float4* rec1, int* counts, cudaStream_t stream);
+cudaError_t launch_bin(int64_t n, int N, const int* fids, const int* counts,
+                       const int64_t* cum_counts, const float4* rec0, const float4* rec1,
+                       const int* views, const int* tile_slot, uint64_t* keys, int* vals,
+                       cudaStream_t stream);
 // With temp == nullptr, writes the scratch size needed to temp_bytes and sorts nothing.
 cudaError_t sort_pairs(void* temp, size_t& temp_bytes, int64_t n, int end_bit,
                        const uint64_t* keys_in, uint64_t* keys_out, const int* vals_in,
@@ -43,7 +55,7 @@ cudaError_t launch_raster(bool fill, int num_units, const int* units, const int*
                           int* px_count, float* px_trans, const int64_t* px_offsets,
                           int2* out_entry, uint8_t* mark, cudaStream_t stream);
 cudaError_t launch_pairs(int64_t n, const uint8_t* mark, const int* rank_incl, int N,
-                         const int* views, const float4* rec0, int64_t* pair_view,
+                         const int* fids, const int* views, const float4* rec0, int64_t* pair_view,
                          int64_t* pair_gaussian, float* pair_depth, cudaStream_t stream);
 cudaError_t launch_split(int64_t M, const int2* entry, const int* rank_incl, int* pair,
                          float* weight, cudaStream_t stream);

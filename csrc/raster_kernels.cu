@@ -40,52 +40,78 @@ __device__ __forceinline__ void tile_rect(float mx, float my, float radius, int 
 }
 
 // One thread per Gaussian; loops over the requested views so the Gaussian's rotation is
-// computed once. Writes counts[v*N+g] (requested tiles touched) and, where > 0, the records
-// rec0 = (mean2d.x, mean2d.y, depth, opacity), rec1 = (p, r, s, radius) where the Gaussian's
-// exponent at offset (dx, dy) is sigma = 0.5 (p (dx - r dy)^2 + s dy^2).
+// computed once. Only visible (view, Gaussian) pairs -- those touching a requested grid tile --
+// are kept: each is appended at a block-reserved slot of the compact arrays (one global atomic
+// per block and view; warps in order inside the block), as fid = v*N+g, count = requested tiles
+// touched, rec0 = (mean2d.x, mean2d.y, depth, opacity), rec1 = (p, r, s, radius) where the
+// Gaussian's exponent at offset (dx, dy) is sigma = 0.5 (p (dx - r dy)^2 + s dy^2). Slots at or
+// beyond cap are not written (the caller retries with the exact size); totals[0] counts the
+// visible pairs, totals[1] their tile intersections. The block order of the compact arrays is
+// arbitrary: the caller sorts them by fid.
 //
 // The 2D covariance is formed as the reference does, stable in float32 for very anisotropic
 // Gaussians: A = J W R diag(s) (2x3), cov2d = A A^T + eps2d I, and its determinant by
 // Cauchy-Binet (sum of squared 2x2 minors of A + eps2d (a0 + c0) + eps2d^2) instead of a c - b^2.
-__global__ void project_count_kernel(int N, int Vr, const float* __restrict__ means,
-                                     const float* __restrict__ quats,
-                                     const float* __restrict__ scales,
-                                     const float* __restrict__ opacities,
-                                     const float* __restrict__ Ks,
-                                     const float* __restrict__ viewmats,
-                                     const int* __restrict__ views, const int* __restrict__ sat,
-                                     float4* __restrict__ rec0, float4* __restrict__ rec1,
-                                     int* __restrict__ counts) {
+__global__ void __launch_bounds__(kThreads)
+    project_compact_kernel(int N, int Vr, const float* __restrict__ means,
+                           const float* __restrict__ quats, const float* __restrict__ scales,
+                           const float* __restrict__ opacities, const float* __restrict__ Ks,
+                           const float* __restrict__ viewmats, const int* __restrict__ views,
+                           const int* __restrict__ sat, int64_t cap, float4* __restrict__ rec0,
+                           float4* __restrict__ rec1, int* __restrict__ counts,
+                           int* __restrict__ fids, unsigned long long* __restrict__ totals) {
+  constexpr int kWarps = kThreads / 32;
+  __shared__ int s_warp_n[kWarps];
+  __shared__ int s_warp_off[kWarps];
+  __shared__ unsigned long long s_base;
+  __shared__ unsigned long long s_isect;
   const int g = blockIdx.x * blockDim.x + threadIdx.x;
-  if (g >= N) return;
+  const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
+  const bool live = g < N;
+  if (threadIdx.x == 0) s_isect = 0;
 
-  const float px = means[3 * g], py = means[3 * g + 1], pz = means[3 * g + 2];
-  float qw = quats[4 * g], qx = quats[4 * g + 1], qy = quats[4 * g + 2], qz = quats[4 * g + 3];
-  const float qn = fmaxf(sqrtf(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12f);
-  qw /= qn;
-  qx /= qn;
-  qy /= qn;
-  qz /= qn;
-  // Rotation matrix, row-major R[i][j].
-  const float R[3][3] = {
-      {1.f - 2.f * (qy * qy + qz * qz), 2.f * (qx * qy - qw * qz), 2.f * (qx * qz + qw * qy)},
-      {2.f * (qx * qy + qw * qz), 1.f - 2.f * (qx * qx + qz * qz), 2.f * (qy * qz - qw * qx)},
-      {2.f * (qx * qz - qw * qy), 2.f * (qy * qz + qw * qx), 1.f - 2.f * (qx * qx + qy * qy)}};
-  const float s[3] = {scales[3 * g], scales[3 * g + 1], scales[3 * g + 2]};
-  const float opac = opacities[g];
+  float px = 0.f, py = 0.f, pz = 0.f, opac = 0.f;
+  float R[3][3] = {{0.f, 0.f, 0.f}, {0.f, 0.f, 0.f}, {0.f, 0.f, 0.f}};
+  float s[3] = {0.f, 0.f, 0.f};
+  if (live) {
+    px = means[3 * g];
+    py = means[3 * g + 1];
+    pz = means[3 * g + 2];
+    float qw = quats[4 * g], qx = quats[4 * g + 1], qy = quats[4 * g + 2], qz = quats[4 * g + 3];
+    const float qn = fmaxf(sqrtf(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12f);
+    qw /= qn;
+    qx /= qn;
+    qy /= qn;
+    qz /= qn;
+    // Rotation matrix, row-major R[i][j].
+    R[0][0] = 1.f - 2.f * (qy * qy + qz * qz);
+    R[0][1] = 2.f * (qx * qy - qw * qz);
+    R[0][2] = 2.f * (qx * qz + qw * qy);
+    R[1][0] = 2.f * (qx * qy + qw * qz);
+    R[1][1] = 1.f - 2.f * (qx * qx + qz * qz);
+    R[1][2] = 2.f * (qy * qz - qw * qx);
+    R[2][0] = 2.f * (qx * qz - qw * qy);
+    R[2][1] = 2.f * (qy * qz + qw * qx);
+    R[2][2] = 1.f - 2.f * (qx * qx + qy * qy);
+    s[0] = scales[3 * g];
+    s[1] = scales[3 * g + 1];
+    s[2] = scales[3 * g + 2];
+    opac = opacities[g];
+  }
+  unsigned long long isect = 0;
 
   for (int v = 0; v < Vr; ++v) {
     const int* vt = views + v * kViewInts;
     const int cam = vt[0], W = vt[1], H = vt[2], gw = vt[3], gh = vt[4], sat_base = vt[6];
     const float* vm = viewmats + 16 * cam;
     const float* K = Ks + 9 * cam;
-    const int64_t idx = static_cast<int64_t>(v) * N + g;
     int count = 0;
+    float4 r0 = make_float4(0.f, 0.f, 0.f, 0.f), r1 = r0;
 
     const float x = vm[0] * px + vm[1] * py + vm[2] * pz + vm[3];
     const float y = vm[4] * px + vm[5] * py + vm[6] * pz + vm[7];
     const float z = vm[8] * px + vm[9] * py + vm[10] * pz + vm[11];
-    if (z >= kNear && z <= kFar) {
+    if (live && z >= kNear && z <= kFar) {
       const float fx = K[0], fy = K[4], cx = K[2], cy = K[5];
       const float Wf = static_cast<float>(W), Hf = static_cast<float>(H);
       const float tan_fovx = 0.5f * Wf / fx, tan_fovy = 0.5f * Hf / fy;
@@ -136,27 +162,71 @@ __global__ void project_count_kernel(int N, int Vr, const float* __restrict__ me
             count = st[y1 * w1 + x1] - st[y0 * w1 + x1] - st[y1 * w1 + x0] + st[y0 * w1 + x0];
           }
           if (count > 0) {
-            rec0[idx] = make_float4(mx, my, z, opac);
-            rec1[idx] = make_float4(c / det, b / c, 1.f / c, r_int);
+            r0 = make_float4(mx, my, z, opac);
+            r1 = make_float4(c / det, b / c, 1.f / c, r_int);
           }
         }
       }
     }
-    counts[idx] = count;
+    // Block-wide append of this view's visible pairs.
+    const unsigned ballot = __ballot_sync(0xffffffffu, count > 0);
+    if (lane == 0) s_warp_n[warp] = __popc(ballot);
+    __syncthreads();
+    if (threadIdx.x == 0) {
+      int total = 0;
+#pragma unroll
+      for (int w = 0; w < kWarps; ++w) {
+        s_warp_off[w] = total;
+        total += s_warp_n[w];
+      }
+      s_base = total > 0 ? atomicAdd(totals, static_cast<unsigned long long>(total)) : 0ull;
+    }
+    __syncthreads();
+    if (count > 0) {
+      const int64_t at = static_cast<int64_t>(s_base) + s_warp_off[warp] +
+                         __popc(ballot & ((1u << lane) - 1u));
+      if (at < cap) {
+        rec0[at] = r0;
+        rec1[at] = r1;
+        counts[at] = count;
+        fids[at] = v * N + g;
+      }
+      isect += count;
+    }
   }
+  // Intersections: warp sums, one shared atomic per warp, one global atomic per block.
+#pragma unroll
+  for (int off = 16; off > 0; off >>= 1) isect += __shfl_down_sync(0xffffffffu, isect, off);
+  if (lane == 0 && isect > 0) atomicAdd(&s_isect, isect);
+  __syncthreads();
+  if (threadIdx.x == 0 && s_isect > 0) atomicAdd(totals + 1, s_isect);
 }
 
-// Writes (slot << 32 | depth bits, v*N+g) for every requested tile a visible Gaussian touches.
-__global__ void bin_kernel(int N, int Vr, const int* __restrict__ counts,
-                           const int64_t* __restrict__ cum_counts, const float4* __restrict__ rec0,
-                           const float4* __restrict__ rec1, const int* __restrict__ views,
-                           const int* __restrict__ tile_slot, uint64_t* __restrict__ keys,
-                           int* __restrict__ vals) {
+// The compact arrays in fid order: out[i] = in[perm[i]] (fids are already sorted).
+__global__ void gather_compact_kernel(int64_t n, const int* __restrict__ perm,
+                                      const float4* __restrict__ rec0_in,
+                                      const float4* __restrict__ rec1_in,
+                                      const int* __restrict__ counts_in, float4* __restrict__ rec0,
+                                      float4* __restrict__ rec1, int* __restrict__ counts) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= n) return;
+  const int j = perm[i];
+  rec0[i] = rec0_in[j];
+  rec1[i] = rec1_in[j];
+  counts[i] = counts_in[j];
+}
+
+// Writes (slot << 32 | depth bits, c) for every requested tile that visible pair c touches
+// (c indexes the fid-ordered compact arrays, so ties keep the (view, Gaussian) order).
+__global__ void bin_kernel(int64_t n, int N, const int* __restrict__ fids,
+                           const int* __restrict__ counts, const int64_t* __restrict__ cum_counts,
+                           const float4* __restrict__ rec0, const float4* __restrict__ rec1,
+                           const int* __restrict__ views, const int* __restrict__ tile_slot,
+                           uint64_t* __restrict__ keys, int* __restrict__ vals) {
   const int64_t idx = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (idx >= static_cast<int64_t>(N) * Vr) return;
+  if (idx >= n) return;
   const int count = counts[idx];
-  if (count == 0) return;
-  const int v = static_cast<int>(idx / N);
+  const int v = fids[idx] / N;
   const int* vt = views + v * kViewInts;
   const int gw = vt[3], gh = vt[4];
   const int* ts = tile_slot + vt[5];
@@ -325,18 +395,20 @@ __global__ void __launch_bounds__(kTile* kTile)
   }
 }
 
-// For every flat (view row, Gaussian) index marked as contributing, write the pair's view,
-// Gaussian and depth at its rank (inclusive scan of the marks minus one).
+// For every visible pair c marked as contributing, write the pair's view, Gaussian and depth
+// at its rank (inclusive scan of the marks minus one).
 __global__ void pairs_kernel(int64_t n, const uint8_t* __restrict__ mark,
-                             const int* __restrict__ rank_incl, int N, const int* __restrict__ views,
-                             const float4* __restrict__ rec0, int64_t* __restrict__ pair_view,
-                             int64_t* __restrict__ pair_gaussian, float* __restrict__ pair_depth) {
+                             const int* __restrict__ rank_incl, int N, const int* __restrict__ fids,
+                             const int* __restrict__ views, const float4* __restrict__ rec0,
+                             int64_t* __restrict__ pair_view, int64_t* __restrict__ pair_gaussian,
+                             float* __restrict__ pair_depth) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n || !mark[i]) return;
   const int r = rank_incl[i] - 1;
-  const int v = static_cast<int>(i / N);
+  const int f = fids[i];
+  const int v = f / N;
   pair_view[r] = views[v * kViewInts];  // the camera row is the view id
-  pair_gaussian[r] = i - static_cast<int64_t>(v) * N;
+  pair_gaussian[r] = f - v * N;
   pair_depth[r] = rec0[i].z;
 }
 
@@ -388,23 +460,40 @@ inline unsigned blocks_for(int64_t n) { return static_cast<unsigned>((n + kThrea
 
 }  // namespace
 
-cudaError_t launch_project_count(int N, int Vr, const float* means, const float* quats,
-                                 const float* scales, const float* opacities, const float* Ks,
-                                 const float* viewmats, const int* views, const int* sat,
-                                 float4* rec0, float4* rec1, int* counts, cudaStream_t stream) {
+cudaError_t launch_project_compact(int N, int Vr, const float* means, const float* quats,
+                                   const float* scales, const float* opacities, const float* Ks,
+                                   const float* viewmats, const int* views, const int* sat,
+                                   int64_t cap, float4* rec0, float4* rec1, int* counts, int* fids,
+                                   unsigned long long* totals, cudaStream_t stream) {
   if (N == 0 || Vr == 0) return cudaSuccess;
-  project_count_kernel<<<blocks_for(N), kThreads, 0, stream>>>(
-      N, Vr, means, quats, scales, opacities, Ks, viewmats, views, sat, rec0, rec1, counts);
+  project_compact_kernel<<<blocks_for(N), kThreads, 0, stream>>>(
+      N, Vr, means, quats, scales, opacities, Ks, viewmats, views, sat, cap, rec0, rec1, counts,
+      fids, totals);
   return cudaGetLastError();
 }
 
-cudaError_t launch_bin(int N, int Vr, const int* counts, const int64_t* cum_counts,
-                       const float4* rec0, const float4* rec1, const int* views,
-                       const int* tile_slot, uint64_t* keys, int* vals, cudaStream_t stream) {
-  const int64_t n = static_cast<int64_t>(N) * Vr;
+cudaError_t sort_ints(void* temp, size_t& temp_bytes, int64_t n, int end_bit, const int* keys_in,
+                      int* keys_out, const int* vals_in, int* vals_out, cudaStream_t stream) {
+  return cub::DeviceRadixSort::SortPairs(temp, temp_bytes, keys_in, keys_out, vals_in, vals_out,
+                                         n, 0, end_bit, stream);
+}
+
+cudaError_t launch_gather_compact(int64_t n, const int* perm, const float4* rec0_in,
+                                  const float4* rec1_in, const int* counts_in, float4* rec0,
+                                  float4* rec1, int* counts, cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
-  bin_kernel<<<blocks_for(n), kThreads, 0, stream>>>(N, Vr, counts, cum_counts, rec0, rec1, views,
-                                                     tile_slot, keys, vals);
+  gather_compact_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, perm, rec0_in, rec1_in,
+                                                                counts_in, rec0, rec1, counts);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_bin(int64_t n, int N, const int* fids, const int* counts,
+                       const int64_t* cum_counts, const float4* rec0, const float4* rec1,
+                       const int* views, const int* tile_slot, uint64_t* keys, int* vals,
+                       cudaStream_t stream) {
+  if (n == 0) return cudaSuccess;
+  bin_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, N, fids, counts, cum_counts, rec0, rec1,
+                                                     views, tile_slot, keys, vals);
   return cudaGetLastError();
 }
 
@@ -449,10 +538,10 @@ cudaError_t launch_raster(bool fill, int num_units, const int* units, const int*
 }
 
 cudaError_t launch_pairs(int64_t n, const uint8_t* mark, const int* rank_incl, int N,
-                         const int* views, const float4* rec0, int64_t* pair_view,
+                         const int* fids, const int* views, const float4* rec0, int64_t* pair_view,
                          int64_t* pair_gaussian, float* pair_depth, cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
-  pairs_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, mark, rank_incl, N, views, rec0,
+  pairs_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, mark, rank_incl, N, fids, views, rec0,
                                                        pair_view, pair_gaussian, pair_depth);
   return cudaGetLastError();
 }

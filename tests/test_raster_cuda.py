@@ -21,7 +21,7 @@ import torch
 
 from test_raster_reference import SCENES, make_cams, random_scene
 from virgi_ns.raster import reference
-from virgi_ns.raster.contract import Cameras, Request, composite
+from virgi_ns.raster.contract import Cameras, Request, composite, composite_plain
 
 REPO = Path(__file__).resolve().parents[1]
 CSRC = REPO / "csrc"
@@ -196,11 +196,62 @@ def test_fused_composite_matches_plain(d, kind, monkeypatch):
     up = torch.randn(*c.shape, d, device=dev, generator=gen)
     fused = cuda.composite(colors, c, bg)
     (g_c, g_b) = torch.autograd.grad((fused * up).sum(), (colors, bg))
-    plain = composite(colors, c, bg)
+    plain = composite_plain(colors, c, bg)
     (p_c, p_b) = torch.autograd.grad((plain * up).sum(), (colors, bg))
     assert (fused - plain).abs().max() <= 1e-5
     assert torch.allclose(g_c, p_c, atol=1e-4, rtol=1e-5)
     assert torch.allclose(g_b, p_b, atol=1e-3, rtol=1e-5)
+
+
+@pytest.mark.gpu
+def test_composite_dispatches_to_fused(monkeypatch):
+    """The ordinary contract.composite runs the fused kernels for CUDA lists (float32 colours),
+    and the plain path for float64 colours or a plain Contributions; all give the same images."""
+    from virgi_ns.raster import cuda
+    from virgi_ns.raster.contract import Contributions
+
+    calls = []
+    real = cuda._FusedComposite.apply
+    monkeypatch.setattr(cuda._FusedComposite, "apply", lambda *a: calls.append(1) or real(*a))
+    dev = torch.device("cuda")
+    cams = make_cams(64, 48, views=2)
+    m, q, s, o = (a.float().to(dev) for a in random_scene(300, seed=3, scale=(0.01, 0.15)))
+    c = cuda.rasterize(m, q, s, o, cams.to(dev, torch.float32), Request.whole_images(cams))
+    colors = torch.rand(len(c.pair_view), 3, device=dev, generator=torch.Generator(dev).manual_seed(0))
+    colors.requires_grad_(True)
+    out = composite(colors, c, 0.25)
+    assert len(calls) == 1
+    (g,) = torch.autograd.grad(out.square().sum(), colors)
+    ref = composite_plain(colors, c, 0.25)
+    (g_ref,) = torch.autograd.grad(ref.square().sum(), colors)
+    assert (out - ref).abs().max() <= 1e-5 and torch.allclose(g, g_ref, atol=1e-4, rtol=1e-5)
+    out64 = composite(colors.double(), c, 0.25)  # not eligible: plain path
+    assert len(calls) == 1 and out64.dtype == torch.float64
+    fields = {f: getattr(c, f) for f in Contributions.__dataclass_fields__}
+    plain_obj = Contributions(**fields)
+    assert (composite(colors, plain_obj, 0.25) - ref).abs().max() == 0 and len(calls) == 1
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("capacity", [1, 37])
+def test_visible_capacity_overflow_retries(capacity, monkeypatch):
+    """Compact visible-pair arrays that overflow are resized and the projection rerun: the output
+    equals the default run exactly (the compact order is deterministic)."""
+    from virgi_ns.raster import cuda
+
+    dev = torch.device("cuda")
+    cams = make_cams(96, 64, views=3).to(dev, torch.float32)
+    m, q, s, o = (a.float().to(dev) for a in random_scene(2000, seed=4, scale=(0.005, 0.1)))
+    req = Request.tiles([0, 2, 1, 2], [5, 40, -7, 70], [3, 20, 30, 40], 32)
+    want = cuda.rasterize(m, q, s, o, cams, req)
+    again = cuda.rasterize(m, q, s, o, cams, req)
+    monkeypatch.setattr(cuda, "VISIBLE_CAPACITY", capacity)
+    got = cuda.rasterize(m, q, s, o, cams, req)
+    assert want.weight.numel() > 1000 and len(want.pair_view) > capacity
+    for name in ("pixel", "pair", "weight", "transmittance", "pair_view", "pair_gaussian", "pair_depth",
+                 "pixel_offsets"):
+        assert torch.equal(getattr(got, name), getattr(want, name)), name
+        assert torch.equal(getattr(again, name), getattr(want, name)), name
 
 
 @pytest.mark.gpu
@@ -248,6 +299,36 @@ def test_cuda_extension_builds(tmp_path):
             "assert hasattr(m, 'rasterize_contributions') and hasattr(m, 'composite_backward'); print('ok')")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=REPO)
     assert res.returncode == 0 and "ok" in res.stdout, (res.stdout + res.stderr)[-4000:]
+
+
+def test_composite_dispatch_keeps_cpu_behaviour():
+    """On the CPU a CudaContributions composites exactly as the plain path does, and both equal
+    an independent per-pixel sum (float64)."""
+    from virgi_ns.raster.cuda import CudaContributions
+    from virgi_ns.raster.contract import Contributions
+
+    cams = make_cams(30, 20, views=2)
+    m, q, s, o = random_scene(60, seed=2)
+    ref = reference.rasterize(m, q, s, o, cams, Request.tiles([0, 1, 1], [3, -4, 10], [2, 5, -3], 16))
+    assert ref.weight.numel() > 50
+    fields = {f: getattr(ref, f) for f in Contributions.__dataclass_fields__}
+    counts = torch.bincount(ref.pixel, minlength=ref.num_pixels)
+    offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])
+    cu_like = CudaContributions(**fields, pixel_offsets=offsets)
+    g = torch.Generator().manual_seed(5)
+    colors = torch.rand(len(ref.pair_view), 3, generator=g, dtype=torch.float64, requires_grad=True)
+    bg = torch.tensor([0.1, 0.6, 0.3], dtype=torch.float64)
+    got = composite(colors, cu_like, bg)
+    assert torch.equal(got, composite_plain(colors, ref, bg))
+    want = torch.zeros(ref.num_pixels, 3, dtype=torch.float64)
+    w = ref.weight.detach()
+    for e in range(len(w)):
+        want[ref.pixel[e]] += w[e] * colors.detach()[ref.pair[e]]
+    want += ref.transmittance.detach()[:, None] * bg
+    assert (got.detach().reshape(-1, 3) - want).abs().max() <= 1e-12
+    (gc,) = torch.autograd.grad(got.sum(), colors)
+    gw = torch.zeros(len(ref.pair_view), dtype=torch.float64).index_add(0, ref.pair, w)
+    assert torch.allclose(gc, gw[:, None].expand(-1, 3))
 
 
 def test_available_reports_a_reason_without_gpu():

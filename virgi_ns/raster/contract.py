@@ -175,10 +175,21 @@ class Contributions:
         """[T,h,w] opacity (1 - final transmittance)."""
         return (1.0 - self.transmittance).reshape(self.shape)
 
+    def composite(self, colors: Tensor, background: Tensor | float | None = None) -> Tensor:
+        """What :func:`composite` computes; a backend's subclass may override it with a fused
+        version of the same function (the plain torch path is :func:`composite_plain`)."""
+        return composite_plain(colors, self, background)
+
 
 def composite(colors: Tensor, contrib: Contributions, background: Tensor | float | None = None) -> Tensor:
     """Per-pair colours [U, D] -> images [T, h, w, D]. Differentiable in ``colors`` (and in the
-    weights, where they carry history). ``background`` is a [D] vector, a scalar, or None (0)."""
+    weights, where they carry history). ``background`` is a [D] vector, a scalar, or None (0).
+    Defers to ``contrib.composite``, so a backend's lists can use its fused kernels."""
+    return contrib.composite(colors, background)
+
+
+def composite_plain(colors: Tensor, contrib: Contributions, background: Tensor | float | None = None) -> Tensor:
+    """:func:`composite` in plain torch (gather + ``index_add``), for any backend's lists."""
     if colors.shape[0] != contrib.pair_view.shape[0]:
         raise ValueError(f"composite: {colors.shape[0]} colours for {contrib.pair_view.shape[0]} pairs")
     d = colors.shape[1]

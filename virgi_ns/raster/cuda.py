@@ -7,7 +7,8 @@ torch extension. Each request projects every Gaussian once per requested view, b
 only the requested 16-px grid tiles, and emits the contribution lists of :mod:`contract`.
 
 Weights carry no autograd history to the geometry here (use the reference backend for geometry
-gradients); :func:`composite` offers a fused forward/backward to the colours for these lists.
+gradients). The ordinary :func:`virgi_ns.raster.composite` runs a fused forward/backward to the
+colours for these lists (:meth:`CudaContributions.composite`).
 """
 
 from __future__ import annotations
@@ -24,13 +25,17 @@ import torch
 from torch import Tensor
 
 from virgi_ns.raster.contract import Cameras, Contributions, Request
-from virgi_ns.raster.contract import composite as _plain_composite
+from virgi_ns.raster.contract import composite as _composite
+from virgi_ns.raster.contract import composite_plain as _plain_composite
 
 CSRC = Path(__file__).resolve().parents[2] / "csrc"
 SOURCES = ("extension.cpp", "raster_kernels.cu", "composite_kernels.cu")
 EXTENSION_NAME = "virgi_ns_raster"
 
 TILE_BACKWARD_MIN_PIXELS = 1 << 20  # measured on an H200: per-entry atomics win below ~1 Mpix
+# Size of the compact visible-pair arrays to try first; None: the extension estimates it (tests
+# set a small value to exercise the overflow and its retry).
+VISIBLE_CAPACITY: int | None = None
 
 _LOCK = threading.Lock()
 _MODULE: ModuleType | None = None
@@ -126,6 +131,24 @@ class CudaContributions(Contributions):
     pixel_offsets: Tensor | None = None
     tile_lists: tuple | None = None
 
+    def composite(self, colors: Tensor, background: Tensor | float | None = None) -> Tensor:
+        """Fused on the GPU (float32 [U, D] colours on CUDA, weights without history); anything
+        else takes the plain torch path, as for any :class:`Contributions`."""
+        fused = (self.pixel_offsets is not None and colors.is_cuda and colors.dtype == torch.float32
+                 and colors.dim() == 2 and not self.weight.requires_grad)
+        if not fused:
+            return _plain_composite(colors, self, background)
+        if colors.shape[0] != self.pair_view.shape[0]:
+            raise ValueError(f"composite: {colors.shape[0]} colours for {self.pair_view.shape[0]} pairs")
+        d = colors.shape[1]
+        bg = None
+        if background is not None:
+            bg = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(-1).expand(d)
+            bg = bg.contiguous()
+        out = _FusedComposite.apply(colors, bg, self)
+        t, h, w = self.shape
+        return out.reshape(t, h, w, d)
+
 
 def rasterize(
     means: Tensor,
@@ -153,7 +176,7 @@ def rasterize(
         f32(opacities).reshape(n), f32(cameras.Ks), f32(cameras.viewmats),
         cameras.widths.contiguous(), cameras.heights.contiguous(),
         request.views.contiguous(), request.x0.contiguous(), request.y0.contiguous(),
-        int(request.width), int(request.height),
+        int(request.width), int(request.height), -1 if VISIBLE_CAPACITY is None else int(VISIBLE_CAPACITY),
     )
     pixel, pair, weight, transmittance, valid, offsets, pair_view, pair_gaussian, pair_depth = out[:9]
     return CudaContributions(
@@ -197,23 +220,8 @@ class _FusedComposite(torch.autograd.Function):
 
 
 def composite(colors: Tensor, contrib: Contributions, background: Tensor | float | None = None) -> Tensor:
-    """Like :func:`virgi_ns.raster.composite`, fused on the GPU for this backend's lists
-    (float32 colours, weights without history); anything else takes the plain path."""
-    fused = (isinstance(contrib, CudaContributions) and contrib.pixel_offsets is not None
-             and colors.is_cuda and colors.dtype == torch.float32 and colors.dim() == 2
-             and not contrib.weight.requires_grad)
-    if not fused:
-        return _plain_composite(colors, contrib, background)
-    if colors.shape[0] != contrib.pair_view.shape[0]:
-        raise ValueError(f"composite: {colors.shape[0]} colours for {contrib.pair_view.shape[0]} pairs")
-    d = colors.shape[1]
-    bg = None
-    if background is not None:
-        bg = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(-1).expand(d)
-        bg = bg.contiguous()
-    out = _FusedComposite.apply(colors, bg, contrib)
-    t, h, w = contrib.shape
-    return out.reshape(t, h, w, d)
+    """The same as :func:`virgi_ns.raster.composite` (kept for callers of this module)."""
+    return _composite(colors, contrib, background)
 
 
 __all__ = ["available", "build", "composite", "cuda_home", "rasterize", "CudaContributions"]
