@@ -54,6 +54,8 @@ class Args:
     """Also time gsplat (skipped with a note when it is not installed)."""
     plain: bool = True
     """Also time our backend with the plain torch composite (gather + index_add)."""
+    two_pass_row: bool = True
+    """Also time the tile batch with the rasterization forced to two passes (count + fill)."""
     seed: int = 0
     profile: bool = False
     """Print a CUDA kernel profile of our steps (stderr)."""
@@ -231,15 +233,20 @@ def run_scene(sc: Scene, args: Args, tiles, req: Request, gsplat, rows: list[Row
 
     results = {}
     for label, request, mp in (("tiles", req, mp_tiles), ("whole", whole, mp_whole)):
-        for fused in ((True, False) if args.plain else (True,)):
+        variants = [("", True, None)] + ([(" (plain composite)", False, None)] if args.plain else [])
+        if label == "tiles" and args.two_pass_row:
+            variants.append((" (two passes)", True, 0))
+        for suffix, fused, single in variants:
+            cuda.SINGLE_PASS = single
             ms, spread, peak = measure(ours(request, fused), args.iters, args.warmup)
             r_ms = measure(raster_only(request), max(5, args.iters // 2), 1)[0] if fused else None
             c, img = ours(request, fused)()
-            name = f"ours {label}" + ("" if fused else " (plain composite)")
-            rows.append(Row(sc.name, name, n, mp, ms, spread, r_ms, peak, peak / mp,
+            cuda.SINGLE_PASS = None
+            rows.append(Row(sc.name, f"ours {label}{suffix}", n, mp, ms, spread, r_ms, peak, peak / mp,
                             c.weight.numel() / request.num_pixels,
                             extra={"pairs": int(c.pair_view.numel()), "entries": int(c.weight.numel())}))
-            results[(label, fused)] = img.detach()
+            if not suffix:
+                results[(label, True)] = img.detach()
             del c, img
 
     if gsplat is not None:

@@ -12,7 +12,7 @@ t0=$(date +%s)
 (time python3 -c "from gsplat.cuda._backend import _C; print(_C)") > $OUT/build_gsplat.log 2>&1 &
 wait
 echo "builds: $(( $(date +%s) - t0 )) s"; tail -n 3 $OUT/build_ours.log $OUT/build_gsplat.log
-python3 -m pytest tests/test_raster_cuda.py tests/test_raster_reference.py -q -rf --tb=short -p no:cacheprovider ${PYTEST_ARGS:-} > $OUT/tests.log 2>&1
+python3 -m pytest ${RASTER_TESTS:-tests/test_raster_cuda.py tests/test_raster_reference.py} -q -rf --tb=short -p no:cacheprovider ${PYTEST_ARGS:-} > $OUT/tests.log 2>&1
 echo "tests rc=$? ($(( $(date +%s) - t0 )) s)"; grep -E "passed|failed|error" $OUT/tests.log | tail -5
 python3 bench/raster.py --out $OUT/bench ${BENCH_ARGS:-} 2>$OUT/bench.log
 echo "bench rc=$? ($(( $(date +%s) - t0 )) s)"

@@ -37,6 +37,11 @@ struct Plan {
 // learned from earlier calls; sizes the compact arrays (an overflow costs a second projection).
 std::atomic<double> g_visible_per_share{4.0};
 
+// Entries per pixel that the single pass reserves (learned: 1.25 x the largest count seen), and
+// the most memory its padded layout may take; larger requests use two passes.
+std::atomic<double> g_entries_cap{64.0};
+constexpr int64_t kSinglePassBytes = int64_t{768} << 20;
+
 Plan make_plan(const torch::Tensor& widths, const torch::Tensor& heights,
                const torch::Tensor& item_views, const torch::Tensor& item_x0,
                const torch::Tensor& item_y0, int item_w, int item_h) {
@@ -152,7 +157,8 @@ void check_input(const torch::Tensor& t, const char* name, int64_t cols) {
 }  // namespace
 
 // capacity: size of the compact visible-pair arrays to try first (-1: estimate; tests force an
-// overflow and its retry with a small value).
+// overflow and its retry with a small value). single_pass: -1 chooses by size; 0 forces two
+// passes; n > 0 forces one pass with n (even) entries reserved per pixel (tests).
 // Returns {pixel i32[M], pair i32[M], weight f32[M], transmittance f32[P], valid bool[P],
 //          pixel_offsets i64[P+1], pair_view i64[U], pair_gaussian i64[U], pair_depth f32[U],
 //          and the tile lists for composite_backward_tiles: plan i32 (device), meta i64[6] (cpu:
@@ -162,7 +168,7 @@ std::vector<torch::Tensor> rasterize_contributions(
     torch::Tensor means, torch::Tensor quats, torch::Tensor scales, torch::Tensor opacities,
     torch::Tensor Ks, torch::Tensor viewmats, torch::Tensor widths, torch::Tensor heights,
     torch::Tensor item_views, torch::Tensor item_x0, torch::Tensor item_y0, int64_t item_w,
-    int64_t item_h, int64_t capacity) {
+    int64_t item_h, int64_t capacity, int64_t single_pass) {
   check_input(means, "means", 3);
   check_input(quats, "quats", 4);
   check_input(scales, "scales", 3);
@@ -302,23 +308,54 @@ std::vector<torch::Tensor> rasterize_contributions(
                   ranges.data_ptr<int>(), stream));
   }
 
-  // Pass 1: entries per pixel and final transmittance.
+  // Small batches: one pass writes counts, transmittance and the entries into a padded
+  // [P, pcap] layout (pcap learned from earlier calls); a pixel with more entries than pcap
+  // sends the request down the two-pass path (count, then fill at exact offsets).
   auto px_count = torch::zeros({P}, i32);
-  VIRGI_CUDA_CHECK(launch_raster(false, plan.num_units, d_units, d_items, d_views, iw, ih, ranges.data_ptr<int>(),
-                sorted_vals.data_ptr<int>(), r0, r1, px_count.data_ptr<int>(),
-                transmittance.data_ptr<float>(), nullptr, nullptr, nullptr, stream));
-  auto offsets = torch::zeros({P + 1}, i64);
-  if (P > 0) offsets.narrow(0, 1, P).copy_(torch::cumsum(px_count, 0, torch::kInt64));
-  const int64_t M = P > 0 ? offsets[P].item<int64_t>() : 0;
-
-  // Pass 2: the entries, grouped by pixel in compositing order, as packed (flat id, weight).
-  auto packed = torch::empty({M, 2}, i32);
   auto mark = torch::zeros({std::max<int64_t>(Uc, 1)}, f32.dtype(torch::kUInt8));
-  VIRGI_CUDA_CHECK(launch_raster(true, plan.num_units, d_units, d_items, d_views, iw, ih,
-                                 ranges.data_ptr<int>(), sorted_vals.data_ptr<int>(), r0, r1,
-                                 nullptr, nullptr, offsets.data_ptr<int64_t>(),
-                                 reinterpret_cast<int2*>(packed.data_ptr<int>()),
-                                 mark.data_ptr<uint8_t>(), stream));
+  int pcap = 2 * ((static_cast<int>(g_entries_cap.load()) + 1) / 2);
+  const bool single = single_pass >= 0 ? single_pass > 0
+                                       : P * pcap * 8 <= kSinglePassBytes && P * pcap < (int64_t{1} << 31);
+  if (single_pass > 0) pcap = std::max(2, static_cast<int>(single_pass) & ~1);
+  torch::Tensor padded;
+  if (single) {
+    padded = torch::empty({P * pcap, 2}, i32);
+    VIRGI_CUDA_CHECK(launch_raster(kSingle, plan.num_units, d_units, d_items, d_views, iw, ih,
+                                   ranges.data_ptr<int>(), sorted_vals.data_ptr<int>(), r0, r1,
+                                   px_count.data_ptr<int>(), transmittance.data_ptr<float>(),
+                                   nullptr, reinterpret_cast<int2*>(padded.data_ptr<int>()),
+                                   mark.data_ptr<uint8_t>(), pcap, stream));
+  } else {
+    VIRGI_CUDA_CHECK(launch_raster(kCount, plan.num_units, d_units, d_items, d_views, iw, ih,
+                                   ranges.data_ptr<int>(), sorted_vals.data_ptr<int>(), r0, r1,
+                                   px_count.data_ptr<int>(), transmittance.data_ptr<float>(),
+                                   nullptr, nullptr, nullptr, 0, stream));
+  }
+  auto offsets = torch::zeros({P + 1}, i64);
+  int64_t M = 0, max_count = 0;
+  if (P > 0) {
+    offsets.narrow(0, 1, P).copy_(torch::cumsum(px_count, 0, torch::kInt64));
+    auto t = torch::stack({offsets[P], px_count.max().to(torch::kInt64)}).cpu();
+    M = t[0].item<int64_t>();
+    max_count = t[1].item<int64_t>();
+  }
+  if (single_pass < 0 && P > 0 && P * 64 * 8 <= kSinglePassBytes) {  // small requests only
+    g_entries_cap = std::min(std::max(1.25 * static_cast<double>(max_count), 0.95 * g_entries_cap.load()),
+                             4096.0);
+  }
+  const bool padded_ok = single && max_count <= pcap;
+
+  // Two passes: the entries, grouped by pixel in compositing order, as packed (flat id, weight).
+  torch::Tensor packed;
+  if (!padded_ok) {
+    padded = torch::Tensor();
+    packed = torch::empty({M, 2}, i32);
+    VIRGI_CUDA_CHECK(launch_raster(kFill, plan.num_units, d_units, d_items, d_views, iw, ih,
+                                   ranges.data_ptr<int>(), sorted_vals.data_ptr<int>(), r0, r1,
+                                   nullptr, nullptr, offsets.data_ptr<int64_t>(),
+                                   reinterpret_cast<int2*>(packed.data_ptr<int>()),
+                                   mark.data_ptr<uint8_t>(), 0, stream));
+  }
 
   // Distinct (view, Gaussian) pairs, ascending in view * N + gaussian (the compact arrays are
   // in that order), each entry's pair rank and weight, and each entry's pixel.
@@ -339,10 +376,17 @@ std::vector<torch::Tensor> rasterize_contributions(
                                   fids.data_ptr<int>(), d_views, r0, pair_view.data_ptr<int64_t>(),
                                   pair_gaussian.data_ptr<int64_t>(), pair_depth.data_ptr<float>(),
                                   stream));
-    VIRGI_CUDA_CHECK(launch_split(M, reinterpret_cast<const int2*>(packed.data_ptr<int>()),
-                                  rank.data_ptr<int>(), pair.data_ptr<int>(),
-                                  weight.data_ptr<float>(), stream));
-    VIRGI_CUDA_CHECK(launch_pixel_fill(P, offsets.data_ptr<int64_t>(), pixel.data_ptr<int>(), stream));
+    if (padded_ok) {
+      VIRGI_CUDA_CHECK(launch_split_padded(P, pcap, offsets.data_ptr<int64_t>(),
+                                           reinterpret_cast<const int2*>(padded.data_ptr<int>()),
+                                           rank.data_ptr<int>(), pixel.data_ptr<int>(),
+                                           pair.data_ptr<int>(), weight.data_ptr<float>(), stream));
+    } else {
+      VIRGI_CUDA_CHECK(launch_split(M, reinterpret_cast<const int2*>(packed.data_ptr<int>()),
+                                    rank.data_ptr<int>(), pair.data_ptr<int>(),
+                                    weight.data_ptr<float>(), stream));
+      VIRGI_CUDA_CHECK(launch_pixel_fill(P, offsets.data_ptr<int64_t>(), pixel.data_ptr<int>(), stream));
+    }
   }
   // The tile lists as pair ranks, for the per-tile gradient of the fused composite.
   auto list_pair = torch::empty({M > 0 ? n_isect : 0}, i32);

@@ -49,11 +49,17 @@ cudaError_t sort_pairs(void* temp, size_t& temp_bytes, int64_t n, int end_bit,
 cudaError_t launch_ranges(int64_t n, const uint64_t* keys, int* ranges, cudaStream_t stream);
 cudaError_t launch_init_pixels(int64_t P, int item_w, int item_h, const int* items,
                                const int* views, float* trans, bool* valid, cudaStream_t stream);
-cudaError_t launch_raster(bool fill, int num_units, const int* units, const int* items,
+// Raster modes: count entries per pixel (+ final T); fill them at the pixel offsets; or both in
+// one pass into a padded [P, pcap] layout (entries past pcap are counted, not written).
+constexpr int kCount = 0, kFill = 1, kSingle = 2;
+cudaError_t launch_raster(int mode, int num_units, const int* units, const int* items,
                           const int* views, int item_w, int item_h, const int* ranges,
                           const int* sorted_vals, const float4* rec0, const float4* rec1,
                           int* px_count, float* px_trans, const int64_t* px_offsets,
-                          int2* out_entry, uint8_t* mark, cudaStream_t stream);
+                          int2* out_entry, uint8_t* mark, int pcap, cudaStream_t stream);
+cudaError_t launch_split_padded(int64_t P, int pcap, const int64_t* offsets, const int2* padded,
+                                const int* rank_incl, int* pixel, int* pair, float* weight,
+                                cudaStream_t stream);
 cudaError_t launch_pairs(int64_t n, const uint8_t* mark, const int* rank_incl, int N,
                          const int* fids, const int* views, const float4* rec0, int64_t* pair_view,
                          int64_t* pair_gaussian, float* pair_depth, cudaStream_t stream);

@@ -277,9 +277,11 @@ __global__ void init_pixels_kernel(int64_t P, int item_w, int item_h, const int*
 }
 
 // One block of 16x16 threads per work unit (an item's overlap with one grid tile). Each thread
-// owns one pixel and walks the tile's depth-sorted list. Pass 1 (FILL=false) counts entries and
-// writes the final transmittance; pass 2 (FILL=true) writes the entries at the pixel's offset.
-template <bool FILL>
+// owns one pixel and walks the tile's depth-sorted list. MODE kCount counts entries and writes
+// the final transmittance; kFill (after kCount) writes the entries at the pixel's offset; kSingle
+// does both in one pass for small batches: entries go to a padded layout (slot p * pcap + k,
+// the first pcap of each pixel) while the count and transmittance are written as in kCount.
+template <int MODE>
 __global__ void __launch_bounds__(kTile* kTile)
     raster_kernel(const int* __restrict__ units, const int* __restrict__ items,
                   const int* __restrict__ views, int item_w, int item_h,
@@ -287,7 +289,8 @@ __global__ void __launch_bounds__(kTile* kTile)
                   const float4* __restrict__ rec0, const float4* __restrict__ rec1,
                   int* __restrict__ px_count, float* __restrict__ px_trans,
                   const int64_t* __restrict__ px_offsets, int2* __restrict__ out_entry,
-                  uint8_t* __restrict__ mark) {
+                  uint8_t* __restrict__ mark, int pcap) {
+  constexpr bool FILL = MODE != kCount;
   constexpr int B = kTile * kTile;
   __shared__ int s_id[B];
   __shared__ int s_used[B];
@@ -317,10 +320,14 @@ __global__ void __launch_bounds__(kTile* kTile)
   bool done = !inside;
   int64_t base = 0;
   int64_t n_out = 0;
-  if (FILL && inside) {
+  if (MODE == kFill && inside) {
     base = px_offsets[p];
     n_out = px_offsets[p + 1] - base;
     if (n_out == 0) done = true;
+  }
+  if (MODE == kSingle) {
+    base = p * pcap;
+    n_out = pcap;
   }
   float T = 1.f;
   int k = 0;
@@ -359,7 +366,7 @@ __global__ void __launch_bounds__(kTile* kTile)
         done = true;
         break;
       }
-      if (FILL) {
+      if (FILL && k < n_out) {
         // packed (flat id, weight); split into the pair / weight arrays by split_kernel
         const int2 val = make_int2(s_id[t], __float_as_int(alpha * T));
         const int64_t e = base + k;
@@ -376,7 +383,7 @@ __global__ void __launch_bounds__(kTile* kTile)
         }
         s_used[t] = 1;
         if (k + 1 == n_out) {
-          done = true;
+          if (MODE == kFill) done = true;
           if (pending_at >= 0) out_entry[pending_at] = pending;
           pending_at = -1;
         }
@@ -385,11 +392,12 @@ __global__ void __launch_bounds__(kTile* kTile)
       T = next_T;
     }
   }
+  if (FILL && pending_at >= 0) out_entry[pending_at] = pending;  // a lone last entry
   if (FILL) {
     __syncthreads();
     if (loaded && s_used[tid]) mark[s_id[tid]] = 1;
   }
-  if (!FILL && inside) {
+  if (MODE != kFill && inside) {
     px_count[p] = k;
     px_trans[p] = T;
   }
@@ -456,6 +464,39 @@ __global__ void pixel_fill_kernel(int64_t P, const int64_t* __restrict__ offsets
   }
 }
 
+// The single pass's padded entries -> pixel, pair rank and weight arrays grouped by pixel: as
+// pixel_fill_kernel, each lane finds its entry's pixel among the warp's 32, then reads entry
+// k = e - offsets[pixel] of that pixel's padded row.
+__global__ void split_padded_kernel(int64_t P, int pcap, const int64_t* __restrict__ offsets,
+                                    const int2* __restrict__ padded,
+                                    const int* __restrict__ rank_incl, int* __restrict__ pixel,
+                                    int* __restrict__ pair, float* __restrict__ weight) {
+  const int64_t p = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  const int lane = threadIdx.x & 31;
+  const int64_t p0 = p - lane;
+  if (p0 >= P) return;
+  const int64_t my_off = offsets[p < P ? p : P];
+  const int64_t start = __shfl_sync(0xffffffffu, my_off, 0);
+  const int64_t end = offsets[p0 + 32 < P ? p0 + 32 : P];
+  for (int64_t b = start; b < end; b += 32) {
+    const int64_t e = b + lane;
+    int lo = 0;
+#pragma unroll
+    for (int step = 16; step > 0; step >>= 1) {
+      const int64_t o = __shfl_sync(0xffffffffu, my_off, lo + step);
+      if (o <= e) lo += step;
+    }
+    const int64_t first = __shfl_sync(0xffffffffu, my_off, lo);
+    if (e < end) {
+      const int64_t q = p0 + lo;
+      const int2 v = padded[q * pcap + (e - first)];
+      pixel[e] = static_cast<int>(q);
+      pair[e] = rank_incl[v.x] - 1;
+      weight[e] = __int_as_float(v.y);
+    }
+  }
+}
+
 inline unsigned blocks_for(int64_t n) { return static_cast<unsigned>((n + kThreads - 1) / kThreads); }
 
 }  // namespace
@@ -519,21 +560,32 @@ cudaError_t launch_init_pixels(int64_t P, int item_w, int item_h, const int* ite
   return cudaGetLastError();
 }
 
-cudaError_t launch_raster(bool fill, int num_units, const int* units, const int* items,
+cudaError_t launch_raster(int mode, int num_units, const int* units, const int* items,
                           const int* views, int item_w, int item_h, const int* ranges,
                           const int* sorted_vals, const float4* rec0, const float4* rec1,
                           int* px_count, float* px_trans, const int64_t* px_offsets,
-                          int2* out_entry, uint8_t* mark, cudaStream_t stream) {
+                          int2* out_entry, uint8_t* mark, int pcap, cudaStream_t stream) {
   if (num_units == 0) return cudaSuccess;
-  if (fill) {
-    raster_kernel<true><<<num_units, kTile * kTile, 0, stream>>>(
-        units, items, views, item_w, item_h, ranges, sorted_vals, rec0, rec1, px_count, px_trans,
-        px_offsets, out_entry, mark);
-  } else {
-    raster_kernel<false><<<num_units, kTile * kTile, 0, stream>>>(
-        units, items, views, item_w, item_h, ranges, sorted_vals, rec0, rec1, px_count, px_trans,
-        px_offsets, out_entry, mark);
+#define VIRGI_RASTER(MM)                                                                        \
+  raster_kernel<MM><<<num_units, kTile * kTile, 0, stream>>>(                                   \
+      units, items, views, item_w, item_h, ranges, sorted_vals, rec0, rec1, px_count, px_trans, \
+      px_offsets, out_entry, mark, pcap)
+  switch (mode) {
+    case kCount: VIRGI_RASTER(kCount); break;
+    case kFill: VIRGI_RASTER(kFill); break;
+    case kSingle: VIRGI_RASTER(kSingle); break;
+    default: return cudaErrorInvalidValue;
   }
+#undef VIRGI_RASTER
+  return cudaGetLastError();
+}
+
+cudaError_t launch_split_padded(int64_t P, int pcap, const int64_t* offsets, const int2* padded,
+                                const int* rank_incl, int* pixel, int* pair, float* weight,
+                                cudaStream_t stream) {
+  if (P == 0) return cudaSuccess;
+  split_padded_kernel<<<blocks_for(P), kThreads, 0, stream>>>(P, pcap, offsets, padded, rank_incl,
+                                                              pixel, pair, weight);
   return cudaGetLastError();
 }
 

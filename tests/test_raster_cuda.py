@@ -229,7 +229,8 @@ def test_composite_dispatches_to_fused(monkeypatch):
     assert len(calls) == 1 and out64.dtype == torch.float64
     fields = {f: getattr(c, f) for f in Contributions.__dataclass_fields__}
     plain_obj = Contributions(**fields)
-    assert (composite(colors, plain_obj, 0.25) - ref).abs().max() == 0 and len(calls) == 1
+    # (index_add on the GPU sums in any order: equal to float32 rounding)
+    assert (composite(colors, plain_obj, 0.25) - ref).abs().max() <= 1e-6 and len(calls) == 1
 
 
 @pytest.mark.gpu
@@ -252,6 +253,29 @@ def test_visible_capacity_overflow_retries(capacity, monkeypatch):
                  "pixel_offsets"):
         assert torch.equal(getattr(got, name), getattr(want, name)), name
         assert torch.equal(getattr(again, name), getattr(want, name)), name
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("single", [2, 8, 512])
+def test_single_pass_equals_two_passes(single, monkeypatch):
+    """One pass into the padded layout (and its fallback when a pixel overflows it) gives exactly
+    the two-pass lists."""
+    from virgi_ns.raster import cuda
+
+    dev = torch.device("cuda")
+    cams = make_cams(96, 64, views=2).to(dev, torch.float32)
+    m, q, s, o = (a.float().to(dev) for a in random_scene(1500, seed=8, scale=(0.01, 0.15)))
+    for req in (Request.tiles([0, 1, 1, 0], [5, -9, 60, 5], [3, 30, 40, 3], 32), Request.whole_images(cams)):
+        monkeypatch.setattr(cuda, "SINGLE_PASS", 0)
+        want = cuda.rasterize(m, q, s, o, cams, req)
+        monkeypatch.setattr(cuda, "SINGLE_PASS", single)
+        got = cuda.rasterize(m, q, s, o, cams, req)
+        counts = want.pixel_offsets[1:] - want.pixel_offsets[:-1]
+        assert want.weight.numel() > 1000 and (single > 2 or int(counts.max()) > single)
+        for name in ("pixel", "pair", "weight", "transmittance", "pair_view", "pair_gaussian", "pixel_offsets"):
+            assert torch.equal(getattr(got, name), getattr(want, name)), name
+        ref = reference.rasterize(m, q, s, o, cams, req)
+        assert_same_contributions(got, ref)
 
 
 @pytest.mark.gpu

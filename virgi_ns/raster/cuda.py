@@ -36,6 +36,10 @@ TILE_BACKWARD_MIN_PIXELS = 1 << 20  # measured on an H200: per-entry atomics win
 # Size of the compact visible-pair arrays to try first; None: the extension estimates it (tests
 # set a small value to exercise the overflow and its retry).
 VISIBLE_CAPACITY: int | None = None
+# The rasterization passes: None chooses by size (one pass into a padded per-pixel layout for
+# small requests, count + fill otherwise); 0 forces two passes; n > 0 forces one pass with n
+# entries reserved per pixel (falling back to two passes where a pixel has more).
+SINGLE_PASS: int | None = None
 
 _LOCK = threading.Lock()
 _MODULE: ModuleType | None = None
@@ -177,6 +181,7 @@ def rasterize(
         cameras.widths.contiguous(), cameras.heights.contiguous(),
         request.views.contiguous(), request.x0.contiguous(), request.y0.contiguous(),
         int(request.width), int(request.height), -1 if VISIBLE_CAPACITY is None else int(VISIBLE_CAPACITY),
+        -1 if SINGLE_PASS is None else int(SINGLE_PASS),
     )
     pixel, pair, weight, transmittance, valid, offsets, pair_view, pair_gaussian, pair_depth = out[:9]
     return CudaContributions(
