@@ -41,6 +41,7 @@ from virgi_ns.recolor import RecolorRule, recolor, rule_mask
 REPO = Path(__file__).resolve().parents[1]
 SHARED_BEERCAN = REPO.parent / "shared" / "data" / "beercan"
 COLUMNS = ("photo", "render", "recoloured", "segmentation", "diffuse", "specular")
+TITLES = {"specular": "|specular| x4"}
 
 
 @dataclass
@@ -223,7 +224,7 @@ def grid_image(rows: List[Dict[str, Tensor]], labels: List[str]) -> np.ndarray:
     canvas = Image.new("RGB", (W, H), (255, 255, 255))
     draw = ImageDraw.Draw(canvas)
     for c, name in enumerate(COLUMNS):
-        draw.text((pad + c * (w + pad) + 2, 3), name, fill=(0, 0, 0))
+        draw.text((pad + c * (w + pad) + 2, 3), TITLES.get(name, name), fill=(0, 0, 0))
     for r, row in enumerate(rows):
         for c, name in enumerate(COLUMNS):
             img = row[name].detach().float().cpu().clamp(0, 1)
@@ -397,7 +398,7 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                 if len(rows) < cfg.grid_views:
                     rows.append({"photo": photo, "render": b["rgb"], "recoloured": e_rgb,
                                  "segmentation": ed["segmentation"], "diffuse": ed["diffuse"],
-                                 "specular": (ed["specular"].abs() * 2.0)})
+                                 "specular": (ed["specular"].abs() * 4.0)})
 
             # ---------------------------------------------------------- export
             exported = None
