@@ -138,8 +138,9 @@ def _pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches
     dev, dt = target.device, target.dtype
     P = contrib.num_pixels
     U = int(contrib.pair_gaussian.shape[0])
+    # int64 indices: backends may hand int32 (CUDA), and the CSR index arrays must share one dtype
     if n_batches == 1:  # the whole image: entries are already grouped by pixel
-        pix, pair = contrib.pixel.to(dev), contrib.pair.to(dev)
+        pix, pair = contrib.pixel.to(dev).long(), contrib.pair.to(dev).long()
         w = contrib.weight.detach().to(dev, dt)
         t_order = torch.argsort(pair * P + pix)
         T = contrib.transmittance.detach().to(dev, dt)
@@ -155,7 +156,7 @@ def _pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches
     starts = torch.cumsum(counts, 0) - counts
     local = torch.empty(P, dtype=torch.long, device=dev)
     local[order] = torch.arange(P, device=dev) - starts[batch_of[order]]
-    pix, pair = contrib.pixel.to(dev), contrib.pair.to(dev)
+    pix, pair = contrib.pixel.to(dev).long(), contrib.pair.to(dev).long()
     w = contrib.weight.detach().to(dev, dt)
     eb = batch_of[pix]
     e_order = torch.argsort(eb, stable=True)  # entries stay in pixel order within a batch
