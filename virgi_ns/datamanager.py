@@ -18,10 +18,9 @@ from typing import Literal, Type
 
 import torch
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
-from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
 from torch import Tensor
 
-from virgi_ns.nscams import COLMAP_TO_NS_WORLD, raster_cameras
+from virgi_ns.nscams import raster_cameras
 from virgi_ns.raster import Cameras, Request
 
 GRID = 16  # the rasterizer's tile grid (gsplat's tile size)
@@ -157,14 +156,10 @@ class VirgiDataManager(FullImageDatamanager):
         self._raster_cams: Cameras | None = None
         self._images: list[Tensor] | None = None
         self._generator = torch.Generator().manual_seed(0)
-        # the frame an imported capture-frame splat must be moved into, for the model
-        R = torch.eye(3)
-        if isinstance(self.config.dataparser, ColmapDataParserConfig) and getattr(
-            self.config.dataparser, "assume_colmap_world_coordinate_convention", True
-        ):
-            R = COLMAP_TO_NS_WORLD.clone()
+        # the frame an imported capture-frame splat must be moved into, for the model; nerfstudio's
+        # COLMAP parser already folds its world-axis swap into dataparser_transform
         T = self.train_dataparser_outputs.dataparser_transform.float()
-        capture = torch.cat([T[:3, :3] @ R, T[:3, 3:4]], dim=1)
+        capture = T[:3, :4].clone()
         meta = self.train_dataset.metadata
         meta["virgi_capture_transform"] = capture
         meta["virgi_capture_scale"] = float(self.train_dataparser_outputs.dataparser_scale)

@@ -135,11 +135,12 @@ class CaptureFrame:
 
 
 def uses_colmap_world(dataparser_config) -> bool:
-    """True for nerfstudio's COLMAP parser with its (default) world-axis swap."""
-    from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
-
-    return isinstance(dataparser_config, ColmapDataParserConfig) and bool(
-        getattr(dataparser_config, "assume_colmap_world_coordinate_convention", True))
+    """True where a run's ``dataparser_transform`` still lacks the COLMAP world-axis swap. Never
+    for nerfstudio's COLMAP parser (1.x): it folds its ``applied_transform`` into
+    ``dataparser_transform``, so that transform alone maps COLMAP's world to the run's (measured on
+    beercan: adding the swap again put every exported camera 90 degrees off)."""
+    del dataparser_config
+    return False
 
 
 # ----------------------------------------------------------------------------- directions
