@@ -103,6 +103,7 @@ def quiet(cfg, out: Path, name: str) -> None:
 
 
 def train(cfg) -> tuple[object, float, Path]:
+    cfg.save_config()  # config.yml beside the checkpoint, so bench/export.py and bench/edit.py can load the run
     trainer = cfg.setup(local_rank=0, world_size=1)
     trainer.setup()
     torch.cuda.synchronize()
@@ -193,6 +194,10 @@ def run_scene(args: Args, scene: str) -> List[Dict[str, object]]:
     cfg = copy.deepcopy(method_configs["splatfacto"])
     cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
     cfg.max_num_iterations = args.steps
+    for group in cfg.optimizers.values():  # same schedule length as virgi's geometry stage
+        sch = group.get("scheduler")
+        if sch is not None and hasattr(sch, "max_steps"):
+            sch.max_steps = args.steps
     quiet(cfg, out, f"{scene}-splatfacto")
     trainer, secs, ckpt_dir = train(cfg)
     record("splatfacto", trainer.pipeline, secs)

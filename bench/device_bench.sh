@@ -1,0 +1,71 @@
+#!/bin/bash
+# The GPU benchmarks (train / export / edit / demo geometry) in calls on the GPU machine.
+# Run from the repo root with .whl (../shared/device/wheels.sh) and .data/beercan carried;
+# STAGE picks the work: "train" (builds, then bench/train.py), "rest" (export, edit, demo geometry),
+# or any single one of export|edit|demo. Runs go under /tmp/runs (kept while the machine is warm);
+# tables, JSON, pictures and logs are packed into $OUT. Environment knobs: STEPS, COLOUR_STEPS,
+# DEMO_STEPS.
+set -o pipefail
+export TORCH_EXTENSIONS_DIR=/tmp/torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
+export PYTHONPATH=/tmp/site:$PWD NERFSTUDIO_METHOD_CONFIGS="virgi=method_configs.virgi:virgi_method"
+STEPS=${STEPS:-7000}; COLOUR_STEPS=${COLOUR_STEPS:-3000}; DEMO_STEPS=${DEMO_STEPS:-15000}
+RUNS=/tmp/runs; mkdir -p $RUNS
+t0=$(date +%s)
+el() { echo "[$(( $(date +%s) - t0 )) s] $*"; }
+
+if [ ! -f /tmp/site/.installed ]; then
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+  # a carried build cache (.extcache/ext.tgz.*) is reused when the sources look older than it
+  if [ -f .extcache/ext.tgz.aa ] && [ ! -d $TORCH_EXTENSIONS_DIR ]; then
+    # gsplat's build only (it never changes); ours always rebuilds from the working tree (~25 s)
+    find /tmp/site/gsplat -exec touch -h -d '2001-01-01' {} +
+    cat .extcache/ext.tgz.* | tar xzf - -C /tmp --wildcards 'torch_ext/gsplat_cuda*' && el "restored gsplat build"
+    # a later call on this machine must not skip our build either
+    (cd /tmp/torch_ext && ls)
+  fi
+  touch /tmp/site/.installed
+fi
+nvidia-smi --query-gpu=name,driver_version --format=csv > $OUT/gpu.txt 2>&1
+
+if [ ! -f $TORCH_EXTENSIONS_DIR/.built ] || [ -n "${REBUILD_OURS:-}" ]; then
+  (time python3 -c "from virgi_ns.raster import cuda; cuda.build(verbose=False)") > $OUT/build_ours.log 2>&1 &
+  (time python3 -c "from gsplat.cuda._backend import _C; print(_C)") > $OUT/build_gsplat.log 2>&1 &
+  wait
+  el "builds"; tail -n 4 $OUT/build_ours.log $OUT/build_gsplat.log
+  touch $TORCH_EXTENSIONS_DIR/.built
+  if [ "${SAVE_CACHE:-0}" = 1 ]; then
+    tar czf - -C /tmp torch_ext | split -b 15m - $OUT/ext.tgz. ; ls -la $OUT
+  fi
+fi
+
+stage() { case " $STAGE " in *" $1 "*) return 0;; esac; [ "$STAGE" = rest ] && [ "$1" != train ]; }
+
+if stage train; then
+  el "train bench: $STEPS + $COLOUR_STEPS steps"
+  python3 bench/train.py --data $PWD/.data --out $RUNS/train --steps $STEPS --colour-steps $COLOUR_STEPS \
+    > $OUT/train.log 2>&1; el "train rc=$?"
+  tail -n 30 $OUT/train.log
+  (cd $RUNS/train && tar czf $OUT/train_results.tgz results.json *.png) 2>/dev/null
+fi
+CFG=$RUNS/train/runs/beercan-virgi/virgi/run/config.yml
+if stage edit; then
+  el "edit bench"
+  timeout ${EDIT_TIMEOUT:-380} python3 bench/edit.py --data $PWD/.data --scenes beercan --train-out $RUNS/train --train-missing --geometry-steps $STEPS \
+    --colour-steps $COLOUR_STEPS --repeats ${EDIT_REPEATS:-5} --out $RUNS/edit > $OUT/edit.log 2>&1; el "edit rc=$?"
+  tail -n 30 $OUT/edit.log
+  (cd $RUNS/edit && tar czf $OUT/edit_results.tgz *.json *.png) 2>/dev/null
+fi
+if stage export; then
+  el "export bench"
+  python3 bench/export.py --load-config $CFG --out $RUNS/export > $OUT/export.log 2>&1; el "export rc=$?"
+  tail -n 30 $OUT/export.log
+  cp $RUNS/export/export_results.json $OUT/ 2>/dev/null
+fi
+if stage demo; then
+  el "demo geometry: $DEMO_STEPS steps"
+  python3 scripts/train_demo_geometry.py --source $PWD/.data/beercan --steps $DEMO_STEPS --out $RUNS/geometry.ply \
+    > $OUT/demo.log 2>&1; el "demo rc=$?"
+  tail -n 15 $OUT/demo.log
+  cp $RUNS/geometry.ply $OUT/ 2>/dev/null
+fi
+el done
