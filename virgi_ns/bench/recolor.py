@@ -70,8 +70,8 @@ class Recolor:
     """Apply the rule to the training 'photo' or to the model's 'render' of it."""
     steps: Optional[int] = None
     """Edit steps (default: the engine's)."""
-    pixel_batches: int = 1
-    """Pixel subsets per edit (one per step)."""
+    pixel_batches: int = 4
+    """Pixel subsets per edit (one per step; 4 is the engine's default)."""
     repeats: int = 3
     """Timed fits after one warm-up; the median is reported."""
     max_views: int = 0

@@ -50,7 +50,7 @@ class Apply:
     """Optimisation steps (default: the engine's)."""
     resize: bool = False
     """Resize an image of another size to the camera's instead of refusing it."""
-    pixel_batches: int = 1
+    pixel_batches: Optional[int] = None
     """Use 1/N of the pixels per step (N random sets)."""
 
 
@@ -244,7 +244,7 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
 
     if args.steps is not None and args.steps < 1:
         raise InputError(f"--steps must be >= 1, got {args.steps}")
-    if args.pixel_batches < 1:
+    if args.pixel_batches is not None and args.pixel_batches < 1:
         raise InputError(f"--pixel-batches must be >= 1, got {args.pixel_batches}")
     if not Path(args.load_config).is_file():
         raise InputError(f"no such config: {args.load_config}")
@@ -262,7 +262,9 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
     cams = cams.to(model.device)
     scene = FrozenScene.from_model(model)
     source = EditSource(str(Path(args.image).resolve()), cams.Ks[0].cpu(), cams.viewmats[0].cpu(), W, H, where)
-    cfg = EditConfig(pixel_batches=args.pixel_batches)
+    cfg = EditConfig()
+    if args.pixel_batches is not None:
+        cfg.pixel_batches = args.pixel_batches
     if args.steps is not None:
         cfg.steps = args.steps
     with torch.no_grad():
