@@ -51,7 +51,6 @@ class Args:
     out: Path = Path("bench_out/export")
     edit_view: int = -1
     """Training view the benchmark edit is made on (-1: where the rule selects most pixels)."""
-    edit_steps: int = 150
     timing_gaussians: int = 1_000_000
     max_views: int = 0
     """Held-out views measured (0: all)."""
@@ -150,7 +149,7 @@ class _Scaled:
 def main(args: Args) -> None:
     warnings.filterwarnings("ignore", category=FutureWarning)
     from virgi_ns.cli.export import load_run
-    from virgi_ns.edit import EditConfig, EditEngine, FrozenScene, render_view
+    from virgi_ns.edit import EditConfig, EditEngine, FrozenScene
     from virgi_ns.edit_stack import EditStack
     from virgi_ns.export import BakeConfig, CaptureFrame, bake, bake_pipeline, uses_colmap_world, write_splat
     from virgi_ns.io import load_splat
@@ -195,15 +194,16 @@ def main(args: Args) -> None:
     rule = RecolorRule(190.0, 250.0, 150.0, 0.35, 0.15)
     edit_view = args.edit_view
     if edit_view < 0:  # the training view where the rule selects most pixels (the can in full view)
-        counts = [float(recolor(render_view(scene, train_cams.index(i).to(dev), 0)["rgb"].clamp(0, 1), rule)[1]
-                        .float().mean()) for i in range(len(train_cams))]
+        counts = [float(recolor(dm.train_dataset.get_image_float32(i)[..., :3], rule)[1].float().mean())
+                  for i in range(len(train_cams))]
         edit_view = int(np.argmax(counts))
     ecam = train_cams.index(edit_view).to(dev)
-    base_view = render_view(scene, ecam, 0)["rgb"].clamp(0, 1)
-    edited, mask = recolor(base_view, rule)
+    # the rule applied to the training photo is the edit, as in virgi-bench recolor
+    photo = dm.train_dataset.get_image_float32(edit_view)[..., :3].to(dev)
+    edited, mask = recolor(photo, rule)
     console.log(f"edit on training view {edit_view}: the rule selects {float(mask.float().mean()):.1%} of it")
     stack = EditStack(model.fingerprint())
-    edit, timing = EditEngine(scene, ecam, edited, stack, EditConfig(steps=args.edit_steps)).fit()
+    edit, timing = EditEngine(scene, ecam, edited, stack, EditConfig()).fit()
     stack.add(edit)
     console.log(f"edit fitted in {timing.total_s:.2f} s")
 
