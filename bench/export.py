@@ -192,15 +192,14 @@ def main(args: Args) -> None:
     train_cams = dm.train_raster_cameras()
     scene = FrozenScene.from_model(model)
     rule = RecolorRule(190.0, 250.0, 150.0, 0.35, 0.15)
+    # the rule applied to a training photo is the edit, as in virgi-bench recolor; the photos are
+    # the undistorted ones that match train_raster_cameras
+    photos = [im[..., :3].float() / (255.0 if im.dtype == torch.uint8 else 1.0) for im in dm.train_images()]
     edit_view = args.edit_view
     if edit_view < 0:  # the training view where the rule selects most pixels (the can in full view)
-        counts = [float(recolor(dm.train_dataset.get_image_float32(i)[..., :3], rule)[1].float().mean())
-                  for i in range(len(train_cams))]
-        edit_view = int(np.argmax(counts))
+        edit_view = int(np.argmax([float(recolor(im, rule)[1].float().mean()) for im in photos]))
     ecam = train_cams.index(edit_view).to(dev)
-    # the rule applied to the training photo is the edit, as in virgi-bench recolor
-    photo = dm.train_dataset.get_image_float32(edit_view)[..., :3].to(dev)
-    edited, mask = recolor(photo, rule)
+    edited, mask = recolor(photos[edit_view].to(dev), rule)
     console.log(f"edit on training view {edit_view}: the rule selects {float(mask.float().mean()):.1%} of it")
     stack = EditStack(model.fingerprint())
     edit, timing = EditEngine(scene, ecam, edited, stack, EditConfig()).fit()
