@@ -151,7 +151,7 @@ def main(args: Args) -> None:
     from virgi_ns.cli.export import load_run
     from virgi_ns.edit import EditConfig, EditEngine, FrozenScene
     from virgi_ns.edit_stack import EditStack
-    from virgi_ns.export import BakeConfig, CaptureFrame, bake, bake_pipeline, uses_colmap_world, write_splat
+    from virgi_ns.export import BakeConfig, CaptureFrame, bake, bake_pipeline, write_splat
     from virgi_ns.io import load_splat
     from virgi_ns.nscams import raster_cameras
     from virgi_ns.recolor import RecolorRule, recolor
@@ -168,8 +168,7 @@ def main(args: Args) -> None:
     device = torch.cuda.get_device_name(0) if dev.type == "cuda" else "CPU"
     run_dir = cfg_path.parent
     dpj = run_dir / "dataparser_transforms.json"
-    colmap = uses_colmap_world(cfg.pipeline.datamanager.dataparser)
-    frame = CaptureFrame.from_transforms_json(dpj, colmap) if dpj.is_file() else CaptureFrame.from_pipeline(pipeline)
+    frame = CaptureFrame.from_transforms_json(dpj) if dpj.is_file() else CaptureFrame.from_pipeline(pipeline)
     if not model.gate_ready() and model.config.specular_gating:
         model.build_specular_gate(pipeline.datamanager.train_raster_cameras())
 

@@ -22,7 +22,7 @@ from virgi_ns.edit_stack import Edit, EditSource, EditStack, SegmentationHead
 from virgi_ns.errors import InputError
 from virgi_ns.export import BakeConfig, CaptureFrame, bake_pipeline, fibonacci_sphere, fit_sh, frame_of_model
 from virgi_ns.gaussians import SH_C0
-from virgi_ns.nscams import COLMAP_TO_NS_WORLD, rotmat_to_quat, transform_gaussians
+from virgi_ns.nscams import rotmat_to_quat, transform_gaussians
 from virgi_ns.sh import sh_basis
 from virgi_ns.io import save_ply
 from virgi_ns.raster import Cameras
@@ -200,18 +200,16 @@ def test_frame_round_trip_with_the_colmap_axis_swap():
     A = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))[0]
     A = A * torch.sign(torch.linalg.det(A))
     T = torch.cat([A, torch.randn(3, 1, generator=gen, dtype=torch.float64)], dim=1)
-    frame = CaptureFrame.from_dataparser(T, 0.37, colmap_world=True)
-    # what the datamanager hands an import: [T_R @ swap | t], then nscams moves the splat
-    cap = torch.cat([T[:, :3] @ COLMAP_TO_NS_WORLD.double(), T[:, 3:]], dim=1)
-    fm, fs, fq = transform_gaussians(means, scales, quats, cap, 0.37)
+    frame = CaptureFrame.from_dataparser(T, 0.37)
+    # what the datamanager hands an import is the dataparser transform; nscams moves the splat
+    fm, fs, fq = transform_gaussians(means, scales, quats, T, 0.37)
     bm, bs, bq = frame.gaussians_to_capture(fm, fs, fq)
     torch.testing.assert_close(bm, means, atol=1e-12, rtol=0)
     torch.testing.assert_close(bs, scales, atol=1e-12, rtol=0)
     torch.testing.assert_close(bq * torch.sign(bq[:, :1]), quats * torch.sign(quats[:, :1]), atol=1e-12, rtol=0)
-    # the swap is nerfstudio's COLMAP convention: COLMAP (x, y, z) is (x, z, -y) before the transform
-    ident = CaptureFrame.from_dataparser(torch.eye(4), 1.0, colmap_world=True)
-    p = torch.tensor([[1.0, 2.0, 3.0]], dtype=torch.float64)
-    torch.testing.assert_close(ident.points_to_capture(torch.tensor([[1.0, 3.0, -2.0]], dtype=torch.float64)), p)
+    # points: x_run = s (R x + t)  <=>  x = R^T (x_run / s - t)
+    p = torch.randn(5, 3, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(frame.points_to_capture(0.37 * (p @ A.T + T[:, 3])), p, atol=1e-12, rtol=0)
     # directions rotate with the frame; rotations of the Gaussians too
     d = torch.randn(7, 3, generator=gen, dtype=torch.float64)
     torch.testing.assert_close(frame.directions_to_capture(frame.directions_to_run(d)), d)

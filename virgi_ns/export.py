@@ -35,7 +35,7 @@ from torch import Tensor
 
 from virgi_ns.errors import InputError
 from virgi_ns.gaussians import SH_C0, Gaussians
-from virgi_ns.nscams import COLMAP_TO_NS_WORLD, transform_gaussians
+from virgi_ns.nscams import transform_gaussians
 from virgi_ns.raster import Cameras
 from virgi_ns.sh import sh_basis
 
@@ -59,15 +59,15 @@ class CaptureFrame:
         return CaptureFrame(torch.cat([torch.eye(3), torch.zeros(3, 1)], dim=1).double(), 1.0)
 
     @staticmethod
-    def from_dataparser(transform: Tensor, scale: float, colmap_world: bool = False) -> "CaptureFrame":
-        """From a dataparser's ``transform`` (3x4 or 4x4) and ``scale``; ``colmap_world`` adds the
-        COLMAP parser's world-axis swap (applied to the capture before the transform)."""
+    def from_dataparser(transform: Tensor, scale: float) -> "CaptureFrame":
+        """From a dataparser's ``transform`` (3x4 or 4x4) and ``scale``. nerfstudio 1.x's COLMAP
+        parser folds its world-axis swap into that transform, so it alone maps the capture's world
+        to the run's (checked on beercan against COLMAP's images.bin to 5e-7)."""
         T = torch.as_tensor(transform, dtype=torch.float64)[:3, :4]
-        R = COLMAP_TO_NS_WORLD.double() if colmap_world else torch.eye(3, dtype=torch.float64)
-        return CaptureFrame(torch.cat([T[:, :3] @ R, T[:, 3:4]], dim=1), float(scale))
+        return CaptureFrame(T.clone(), float(scale))
 
     @staticmethod
-    def from_transforms_json(path: str | Path, colmap_world: bool = False) -> "CaptureFrame":
+    def from_transforms_json(path: str | Path) -> "CaptureFrame":
         """From a run's ``dataparser_transforms.json`` (``transform``, ``scale``)."""
         path = Path(path)
         try:
@@ -78,20 +78,19 @@ class CaptureFrame:
             raise InputError(f"{path}: not a readable dataparser_transforms.json ({type(e).__name__})") from None
         if T.shape not in ((3, 4), (4, 4)) or not torch.isfinite(T).all() or not (s > 0 and math.isfinite(s)):
             raise InputError(f"{path}: transform must be 3x4 and scale a positive number")
-        return CaptureFrame.from_dataparser(T, s, colmap_world)
+        return CaptureFrame.from_dataparser(T, s)
 
     @staticmethod
     def from_pipeline(pipeline) -> "CaptureFrame":
         """The frame a VIRGi datamanager recorded for imports (``virgi_capture_transform``), or
-        else its dataparser's transform (with the COLMAP swap for the COLMAP parser)."""
+        else its dataparser's transform."""
         dm = pipeline.datamanager
         meta = getattr(getattr(dm, "train_dataset", None), "metadata", None) or {}
         if meta.get("virgi_capture_transform") is not None:
             return CaptureFrame(torch.as_tensor(meta["virgi_capture_transform"], dtype=torch.float64)[:3, :4],
                                 float(meta.get("virgi_capture_scale", 1.0)))
         out = dm.train_dataparser_outputs
-        return CaptureFrame.from_dataparser(out.dataparser_transform, float(out.dataparser_scale),
-                                            uses_colmap_world(dm.config.dataparser))
+        return CaptureFrame.from_dataparser(out.dataparser_transform, float(out.dataparser_scale))
 
     # ---- maps run -> capture
     @property
@@ -132,15 +131,6 @@ class CaptureFrame:
         out[:, :3, :3] = viewmats[:, :3, :3] @ R
         out[:, :3, 3] = (viewmats[:, :3, :3] @ t) + viewmats[:, :3, 3] / self.scale
         return out
-
-
-def uses_colmap_world(dataparser_config) -> bool:
-    """True where a run's ``dataparser_transform`` still lacks the COLMAP world-axis swap. Never
-    for nerfstudio's COLMAP parser (1.x): it folds its ``applied_transform`` into
-    ``dataparser_transform``, so that transform alone maps COLMAP's world to the run's (measured on
-    beercan: adding the swap again put every exported camera 90 degrees off)."""
-    del dataparser_config
-    return False
 
 
 # ----------------------------------------------------------------------------- directions

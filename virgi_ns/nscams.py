@@ -74,9 +74,6 @@ def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
     )
 
 
-# COLMAP world -> nerfstudio world as the colmap dataparser builds it (x, y, z) -> (x, z, -y)
-COLMAP_TO_NS_WORLD = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
-
 
 def transform_gaussians(means: Tensor, log_scales: Tensor, quats: Tensor, transform: Tensor, scale: float
                         ) -> tuple[Tensor, Tensor, Tensor]:

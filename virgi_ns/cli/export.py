@@ -82,7 +82,7 @@ def run(args: Export) -> str:
     """Do the export; returns the one-line summary."""
     _validate(args)
     from virgi_ns.edit_stack import EditStack
-    from virgi_ns.export import BakeConfig, CaptureFrame, bake_pipeline, uses_colmap_world, write_splat
+    from virgi_ns.export import BakeConfig, CaptureFrame, bake_pipeline, write_splat
 
     console = Console(stderr=True)
     with console.status(f"loading {args.load_config}"):
@@ -93,8 +93,7 @@ def run(args: Export) -> str:
     if args.frame == "dataparser":
         frame = CaptureFrame.identity()
     elif (run_dir / "dataparser_transforms.json").is_file():
-        frame = CaptureFrame.from_transforms_json(run_dir / "dataparser_transforms.json",
-                                                  uses_colmap_world(cfg.pipeline.datamanager.dataparser))
+        frame = CaptureFrame.from_transforms_json(run_dir / "dataparser_transforms.json")
     else:
         frame = CaptureFrame.from_pipeline(pipeline)
     k = args.specular_strength if args.specular_strength is not None else (
