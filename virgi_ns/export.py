@@ -16,8 +16,8 @@ when ``k = 0``) get their exact colour in the DC coefficient alone, as the model
 
 Geometry is moved back into the capture's original frame with :class:`CaptureFrame`, the inverse
 of the frame change an imported splat goes through (:func:`virgi_ns.nscams.transform_gaussians`):
-the dataparser's ``x -> scale (R x + t)``, preceded for COLMAP captures by the COLMAP parser's
-world-axis swap. View directions are rotated the same way before the SH basis is evaluated, so the
+the dataparser's ``x -> scale (R x + t)`` (for COLMAP captures nerfstudio folds its world-axis swap
+into that transform). View directions are rotated the same way before the SH basis is evaluated, so the
 exported colours are those the model shows from the same physical camera.
 """
 

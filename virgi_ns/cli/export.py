@@ -3,8 +3,7 @@
 The run's edits (``<run>/edits``, as the viewer panel and the edit tools keep them) and its
 specular strength are applied unless ``--no-edits``; ``--specular-strength`` overrides ``k``.
 Colours are fitted to SH degree 3 per Gaussian (:mod:`virgi_ns.export`); geometry is put back in
-the capture's original frame (the run's ``dataparser_transforms.json``, and the COLMAP parser's
-axis swap), so the file lines up with the source data and any splat imported from it.
+the capture's original frame (the inverse of the run's ``dataparser_transforms.json``), so the file lines up with the source data and any splat imported from it.
 """
 
 from __future__ import annotations
