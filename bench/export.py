@@ -36,6 +36,7 @@ from rich.console import Console
 from rich.table import Table
 
 from virgi_ns.errors import InputError, atomic_path, cli_entry
+from virgi_ns.metrics import offline_splatfacto_lpips
 
 console = Console()
 
@@ -82,7 +83,7 @@ def train_run(args: Args) -> Path:
     cfg.pipeline.datamanager.dataparser = bt.dataparser_for(args.scene, args.data)
     bt.quiet(cfg, args.out, f"{args.scene}-virgi")
     cfg.save_config()
-    bt._stub_lpips_if_offline()
+    offline_splatfacto_lpips()
     trainer, secs, _ = bt.train(cfg)
     console.log(f"trained {args.scene} in {secs:.0f} s")
     del trainer

@@ -34,6 +34,7 @@ from rich.console import Console
 from rich.table import Table
 
 from virgi_ns.errors import InputError, atomic_path, cli_entry
+from virgi_ns.metrics import offline_splatfacto_lpips
 
 console = Console()
 
@@ -53,25 +54,6 @@ class Args:
     skip_trained_virgi: bool = False
     """Only the imported-geometry virgi rows (saves one geometry training)."""
     fps_repeats: int = 3
-
-
-def _stub_lpips_if_offline() -> None:
-    """splatfacto builds torchmetrics' LPIPS on construction, which downloads AlexNet; offline, give
-    it a stand-in (this benchmark scores every row with virgi_ns.metrics instead)."""
-    from virgi_ns.metrics import make_lpips
-
-    if make_lpips() is not None:
-        return
-    import torchmetrics.image.lpip as lp
-
-    class _NoLpips(torch.nn.Module):
-        def __init__(self, *a, **k) -> None:
-            super().__init__()
-
-        def forward(self, a, b):
-            return torch.tensor(float("nan"))
-
-    lp.LearnedPerceptualImagePatchSimilarity = _NoLpips  # type: ignore[misc]
 
 
 def dataparser_for(scene: str, root: Path):
@@ -248,7 +230,7 @@ def main(args: Args) -> None:
     if not torch.cuda.is_available():
         raise InputError("bench/train.py needs a CUDA GPU (splatfacto trains with gsplat)")
     warnings.filterwarnings("ignore", category=FutureWarning)
-    _stub_lpips_if_offline()
+    offline_splatfacto_lpips()
     args.out.mkdir(parents=True, exist_ok=True)
     device = torch.cuda.get_device_name(0)
     rows: List[Dict[str, object]] = []

@@ -37,6 +37,7 @@ from rich.console import Console
 from virgi_ns.data.bundle import BUNDLED_SCENE, BundleDataParserConfig
 from virgi_ns.data.make_bundle import DEFAULT_SOURCE
 from virgi_ns.errors import InputError, cli_entry
+from virgi_ns.metrics import offline_splatfacto_lpips
 
 console = Console()
 
@@ -57,23 +58,6 @@ class Args:
     sh_degree: int = 3
     """splatfacto's SH degree while training (the file keeps degree 0)."""
     seed: int = 42
-
-
-def _stub_lpips_if_offline() -> None:
-    from virgi_ns.metrics import make_lpips
-
-    if make_lpips() is not None:
-        return
-    import torchmetrics.image.lpip as lp
-
-    class _NoLpips(torch.nn.Module):
-        def __init__(self, *a, **k) -> None:
-            super().__init__()
-
-        def forward(self, a, b):
-            return torch.tensor(float("nan"))
-
-    lp.LearnedPerceptualImagePatchSimilarity = _NoLpips  # type: ignore[misc]
 
 
 @torch.no_grad()
@@ -140,7 +124,7 @@ def _train_and_write(args: Args, tmp: Path) -> None:
         console.log(f"training on {n_views} views rebuilt at 1/{args.downscale} from {args.source}")
     else:
         console.log(f"training on the bundled images in {scene}")
-    _stub_lpips_if_offline()
+    offline_splatfacto_lpips()
     torch.manual_seed(args.seed)
     cfg = copy.deepcopy(method_configs["splatfacto"])
     cfg.pipeline.datamanager.dataparser = BundleDataParserConfig(data=scene)

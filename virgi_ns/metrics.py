@@ -122,3 +122,22 @@ def image_metrics(
             "lpips": float(fn(p, g)) if callable(fn) else math.nan,
         }
     return out
+
+
+def offline_splatfacto_lpips() -> None:
+    """Let nerfstudio's splatfacto be built offline: it constructs torchmetrics' LPIPS, which
+    downloads AlexNet. When the weights are not cached, swap that class for a stand-in that returns
+    NaN (before splatfacto is built). For benchmarks that train splatfacto as a baseline and score
+    every row with :func:`image_metrics`; our own model never builds torchmetrics' LPIPS."""
+    if make_lpips() is not None:
+        return
+    import torchmetrics.image.lpip as lp
+
+    class _NoLpips(torch.nn.Module):
+        def __init__(self, *a, **k) -> None:
+            super().__init__()
+
+        def forward(self, a, b):
+            return torch.tensor(float("nan"))
+
+    lp.LearnedPerceptualImagePatchSimilarity = _NoLpips  # type: ignore[misc]
