@@ -14,6 +14,7 @@ from nerfstudio.engine.optimizers import Optimizers
 from method_configs.virgi import virgi_trainer_config
 from virgi_ns.field import ColorFieldConfig
 from virgi_ns.nscams import raster_cameras
+from virgi_ns.pipeline import train_step
 from virgi_ns.raster import Request, rasterize
 
 from virgi_scene import GLOSSY_ALBEDO, MATTE_ALBEDO, Scene, make_scene
@@ -57,17 +58,8 @@ def build(scene: Scene, steps: int, decoupled: bool = True, batch_mode: str = "m
 def train(pipeline, optimizers, cbs, steps: int) -> list[float]:
     losses = []
     for step in range(steps):
-        for cb in cbs:
-            cb.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
-        optimizers.zero_grad_all()
-        _, loss_dict, _ = pipeline.get_train_loss_dict(step)
-        loss = sum(loss_dict.values())
-        loss.backward()
-        optimizers.optimizer_step_all()
-        optimizers.scheduler_step_all(step)
-        for cb in cbs:
-            cb.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
-        losses.append(float(loss_dict["rgb_l1"]))
+        loss_dict, _ = train_step(pipeline, optimizers, cbs, step)
+        losses.append(float(loss_dict["rgb_l1"].detach()))
     return losses
 
 

@@ -9,11 +9,12 @@ from pathlib import Path
 
 import torch
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
-from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.callbacks import TrainingCallbackAttributes
 from nerfstudio.engine.optimizers import Optimizers
 
 from method_configs.virgi import virgi_trainer_config
 from virgi_ns.field import ColorFieldConfig
+from virgi_ns.pipeline import train_step
 
 from virgi_scene import Scene
 
@@ -58,15 +59,7 @@ def train_tiny(scene: Scene, steps: int = 30, output_dir: Path | None = None, se
 
     cbs = pipeline.get_training_callbacks(TrainingCallbackAttributes(optimizers, None, pipeline, FakeTrainer()))
     for step in range(steps):
-        for cb in cbs:
-            cb.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
-        optimizers.zero_grad_all()
-        _, loss_dict, _ = pipeline.get_train_loss_dict(step)
-        sum(loss_dict.values()).backward()
-        optimizers.optimizer_step_all()
-        optimizers.scheduler_step_all(step)
-        for cb in cbs:
-            cb.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+        train_step(pipeline, optimizers, cbs, step)
     pipeline.eval()
     if output_dir is not None:
         base = cfg.get_base_dir()

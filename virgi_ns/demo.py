@@ -165,8 +165,10 @@ class _Trainer:
 def train(pipeline, tc, steps: int, on_step: Callable[[int, Dict[str, float]], None],
           before_colour: Callable[[], None]) -> None:
     """nerfstudio's training loop (callbacks, optimizers, schedulers), without checkpoints or viewer."""
-    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
     from nerfstudio.engine.optimizers import Optimizers
+
+    from virgi_ns.pipeline import train_step
 
     pipeline.train()
     opt = Optimizers(tc.optimizers, pipeline.get_param_groups())
@@ -178,15 +180,7 @@ def train(pipeline, tc, steps: int, on_step: Callable[[int, Dict[str, float]], N
             model.freeze_geometry()
             before_colour()
             prepared = True
-        for cb in cbs:
-            cb.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
-        opt.zero_grad_all()
-        _, losses, metrics = pipeline.get_train_loss_dict(step)
-        sum(losses.values()).backward()
-        opt.optimizer_step_all()
-        opt.scheduler_step_all(step)
-        for cb in cbs:
-            cb.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+        _, metrics = train_step(pipeline, opt, cbs, step)
         on_step(step, {k: float(torch.as_tensor(v).detach()) for k, v in metrics.items() if k == "psnr"})
     if not prepared:
         model.freeze_geometry()

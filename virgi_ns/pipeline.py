@@ -39,3 +39,21 @@ class VirgiPipeline(VanillaPipeline):
         metrics = model.get_metrics_dict(outputs, batch)
         losses = model.get_loss_dict(outputs, batch, metrics)
         return outputs, losses, metrics
+
+
+def train_step(pipeline, optimizers, callbacks, step: int) -> tuple[dict, dict]:
+    """One training step as nerfstudio's Trainer takes it (callbacks before, loss, backward,
+    optimizer and scheduler steps, callbacks after), without its logging and checkpoints; for
+    in-process training (the demo, tests). Returns the step's (loss dict, metrics dict)."""
+    from nerfstudio.engine.callbacks import TrainingCallbackLocation
+
+    for cb in callbacks:
+        cb.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+    optimizers.zero_grad_all()
+    _, losses, metrics = pipeline.get_train_loss_dict(step)
+    sum(losses.values()).backward()
+    optimizers.optimizer_step_all()
+    optimizers.scheduler_step_all(step)
+    for cb in callbacks:
+        cb.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+    return losses, metrics
