@@ -72,7 +72,8 @@ class DemoConfig:
     """Pixels per colour step (whole multi-view mini-batches); default 10240 on a CPU, 163840 on a GPU."""
     hash_log2: int = 17
     """log2 of the hash table size (the paper's 19 is for GPUs and large scenes)."""
-    edit_steps: int = 150
+    edit_steps: Optional[int] = None
+    """Edit steps; default: the edit engine's (its measured knee; longer fits leak the recolour)."""
     edit_source: Literal["photo", "render"] = "photo"
     """The image the rule recolours for the edit: the view's photo (as the benchmark does) or the
     model's own render of it (no reconstruction error in the edit's target)."""
@@ -360,12 +361,15 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             edited_photo, edit_mask = recolor(source_image, rule)
             if not bool(edit_mask.any()):
                 raise InputError(f"the recolour rule selects no pixel of training view {edit_view}")
-            t_ed = progress.add_task("edit", total=cfg.edit_steps, info=f"view {edit_view}")
+            edit_cfg = EditConfig(seed=cfg.seed)
+            if cfg.edit_steps is not None:
+                edit_cfg.steps = cfg.edit_steps
+            t_ed = progress.add_task("edit", total=edit_cfg.steps, info=f"view {edit_view}")
             stack = EditStack(frozen.fingerprint())
             src_name = Path(dm.train_dataset.image_filenames[edit_view]).name
             cam = train_cams.index(edit_view)
             engine = EditEngine(frozen, cam, edited_photo, stack,
-                                EditConfig(steps=cfg.edit_steps, seed=cfg.seed),
+                                edit_cfg,
                                 EditSource(f"rule({src_name})", cam.Ks[0], cam.viewmats[0],
                                            int(cam.widths[0]), int(cam.heights[0]), f"train index {edit_view}"))
             edit, timing = engine.fit(progress=lambda d, n: progress.update(t_ed, completed=d))
