@@ -8,13 +8,12 @@ from pathlib import Path
 import pytest
 import torch
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
-from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
-from nerfstudio.engine.optimizers import Optimizers
+from nerfstudio.engine.callbacks import TrainingCallbackLocation
 
 from method_configs.virgi import virgi_trainer_config
 from virgi_ns.field import ColorFieldConfig
 from virgi_ns.nscams import raster_cameras
-from virgi_ns.pipeline import train_step
+from virgi_ns.pipeline import train_step, training_state
 from virgi_ns.raster import Request, rasterize
 
 from virgi_scene import GLOSSY_ALBEDO, MATTE_ALBEDO, Scene, make_scene
@@ -45,13 +44,7 @@ def build(scene: Scene, steps: int, decoupled: bool = True, batch_mode: str = "m
     m.raster_backend = "reference"
     cfg.optimizers["field_mlp"]["optimizer"].lr = 5e-3  # few steps: learn faster than the 40k-step recipe
     pipeline = cfg.pipeline.setup(device="cpu", test_mode="val")
-    pipeline.train()
-    optimizers = Optimizers(cfg.optimizers, pipeline.get_param_groups())
-
-    class FakeTrainer:  # what the model reads from nerfstudio's Trainer
-        config = cfg
-
-    cbs = pipeline.get_training_callbacks(TrainingCallbackAttributes(optimizers, None, pipeline, FakeTrainer()))
+    optimizers, cbs = training_state(cfg, pipeline)
     return cfg, pipeline, optimizers, cbs
 
 
@@ -216,13 +209,7 @@ def test_cpu_geometry_stage_then_freeze(scene):
     m.background_color = "black"
     m.color_field = ColorFieldConfig(log2_hashmap_size=12, levels=8)
     pipeline = cfg.pipeline.setup(device="cpu", test_mode="val")
-    pipeline.train()
-    optimizers = Optimizers(cfg.optimizers, pipeline.get_param_groups())
-
-    class FakeTrainer:
-        config = cfg
-
-    cbs = pipeline.get_training_callbacks(TrainingCallbackAttributes(optimizers, None, pipeline, FakeTrainer()))
+    optimizers, cbs = training_state(cfg, pipeline)
     model = pipeline.model
     means0 = model.means.detach().clone()
     assert not model.geometry_frozen and model.means.requires_grad

@@ -9,12 +9,10 @@ from pathlib import Path
 
 import torch
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
-from nerfstudio.engine.callbacks import TrainingCallbackAttributes
-from nerfstudio.engine.optimizers import Optimizers
 
 from method_configs.virgi import virgi_trainer_config
 from virgi_ns.field import ColorFieldConfig
-from virgi_ns.pipeline import train_step
+from virgi_ns.pipeline import train_step, training_state
 
 from virgi_scene import Scene
 
@@ -51,13 +49,7 @@ def train_tiny(scene: Scene, steps: int = 30, output_dir: Path | None = None, se
     torch.manual_seed(seed)
     cfg = tiny_config(scene, steps, output_dir)
     pipeline = cfg.pipeline.setup(device="cpu", test_mode="val")
-    pipeline.train()
-    optimizers = Optimizers(cfg.optimizers, pipeline.get_param_groups())
-
-    class FakeTrainer:  # what the model reads from nerfstudio's Trainer
-        config = cfg
-
-    cbs = pipeline.get_training_callbacks(TrainingCallbackAttributes(optimizers, None, pipeline, FakeTrainer()))
+    optimizers, cbs = training_state(cfg, pipeline)
     for step in range(steps):
         train_step(pipeline, optimizers, cbs, step)
     pipeline.eval()

@@ -156,24 +156,12 @@ def geometry_steps(cfg: DemoConfig) -> int:
     return 15000 if torch.cuda.is_available() and cfg.device != "cpu" else 400
 
 
-class _Trainer:
-    """What the model's callbacks read from nerfstudio's Trainer."""
-
-    def __init__(self, config) -> None:
-        self.config = config
-
-
 def train(pipeline, tc, steps: int, on_step: Callable[[int, Dict[str, float]], None],
           before_colour: Callable[[], None]) -> None:
     """nerfstudio's training loop (callbacks, optimizers, schedulers), without checkpoints or viewer."""
-    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
-    from nerfstudio.engine.optimizers import Optimizers
+    from virgi_ns.pipeline import train_step, training_state
 
-    from virgi_ns.pipeline import train_step
-
-    pipeline.train()
-    opt = Optimizers(tc.optimizers, pipeline.get_param_groups())
-    cbs = pipeline.get_training_callbacks(TrainingCallbackAttributes(opt, None, pipeline, _Trainer(tc)))
+    opt, cbs = training_state(tc, pipeline)
     model = pipeline.model
     prepared = False
     for step in range(steps):

@@ -41,6 +41,21 @@ class VirgiPipeline(VanillaPipeline):
         return outputs, losses, metrics
 
 
+def training_state(trainer_config, pipeline) -> tuple:
+    """(optimizers, callbacks) for training ``pipeline`` in process as nerfstudio's Trainer would
+    set them up from ``trainer_config`` (the model's callbacks read the trainer's config)."""
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes
+    from nerfstudio.engine.optimizers import Optimizers
+
+    class _Trainer:  # what the callbacks read from nerfstudio's Trainer
+        config = trainer_config
+
+    pipeline.train()
+    optimizers = Optimizers(trainer_config.optimizers, pipeline.get_param_groups())
+    callbacks = pipeline.get_training_callbacks(TrainingCallbackAttributes(optimizers, None, pipeline, _Trainer()))
+    return optimizers, callbacks
+
+
 def train_step(pipeline, optimizers, callbacks, step: int) -> tuple[dict, dict]:
     """One training step as nerfstudio's Trainer takes it (callbacks before, loss, backward,
     optimizer and scheduler steps, callbacks after), without its logging and checkpoints; for
