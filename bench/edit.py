@@ -39,7 +39,6 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
-from virgi_ns.edit import EditConfig
 from virgi_ns.bench.recolor import AccuracyTime, Bench, RuleArgs, _save_png, run_accuracy_time
 from virgi_ns.errors import InputError, atomic_path, cli_entry
 
@@ -112,13 +111,13 @@ def bench_scene(args: Args, scene: str) -> dict:
     rule = RULES[scene].rule()
     b = Bench.load(pipeline, args.edit_view, args.max_views)
     edited = b.edited_image(rule, "photo")
-    edit, cold = b.fit(edited, args.steps, EditConfig.pixel_batches, args.repeats)
+    edit, cold = b.fit(edited, args.steps, None, args.repeats)
     t0 = time.perf_counter()
     b.scene.precompute_features()
     if torch.cuda.is_available():
         torch.cuda.synchronize()
     cache_s = time.perf_counter() - t0
-    _, warm = b.fit(edited, args.steps, EditConfig.pixel_batches, args.repeats)
+    _, warm = b.fit(edited, args.steps, None, args.repeats)
     res, pics = b.measure(edit, rule, lpips=True, keep=args.pictures)
     args.out.mkdir(parents=True, exist_ok=True)
     for i, p in enumerate(pics):

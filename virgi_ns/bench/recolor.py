@@ -70,8 +70,8 @@ class Recolor:
     """Apply the rule to the training 'photo' or to the model's 'render' of it."""
     steps: Optional[int] = None
     """Edit steps (default: the engine's)."""
-    pixel_batches: int = 4
-    """Pixel subsets per edit (one per step; 4 is the engine's default)."""
+    pixel_batches: Optional[int] = None
+    """Pixel subsets per edit, one per step (default: the engine's)."""
     repeats: int = 3
     """Timed fits after one warm-up; the median is reported."""
     max_views: int = 0
@@ -172,13 +172,16 @@ class Bench:
             raise InputError(f"--edit-source must be 'photo' or 'render', got {source!r}")
         return recolor(img, rule)[0]
 
-    def fit(self, edited: torch.Tensor, steps: Optional[int], pixel_batches: int, repeats: int):
-        """(edit, {setup_s, steps_s, total_s} medians) after one untimed warm-up fit."""
+    def fit(self, edited: torch.Tensor, steps: Optional[int], pixel_batches: Optional[int], repeats: int):
+        """(edit, {setup_s, steps_s, total_s} medians) after one untimed warm-up fit; ``None`` for
+        ``steps`` or ``pixel_batches`` takes the engine's default."""
         from virgi_ns.edit import EditConfig, EditEngine
 
-        cfg = EditConfig(pixel_batches=pixel_batches)
+        cfg = EditConfig()
         if steps is not None:
             cfg.steps = int(steps)
+        if pixel_batches is not None:
+            cfg.pixel_batches = int(pixel_batches)
         EditEngine(self.scene, self.edit_camera, edited, cfg=cfg).fit()  # warm-up (kernels, caches)
         times, edit = [], None
         for _ in range(max(1, repeats)):
@@ -187,7 +190,7 @@ class Bench:
         med = lambda xs: float(statistics.median(xs))  # noqa: E731
         return edit, {"setup_s": med([t.setup_s for t in times]), "steps_s": med([t.steps_s for t in times]),
                       "total_s": med([t.total_s for t in times]), "steps": cfg.steps,
-                      "pixel_batches": pixel_batches, "final_l1": times[-1].final_loss}
+                      "pixel_batches": cfg.pixel_batches, "final_l1": times[-1].final_loss}
 
     def measure(self, edit, rule: RecolorRule, lpips: bool = True, keep: int = 0) -> tuple[dict, list]:
         """Per-view and mean figures for ``edit``; the first ``keep`` views' pictures too."""
