@@ -396,11 +396,10 @@ class VirgiModel(SplatfactoModel):
         if self.segmentation_edit is not None and not 1 <= self.segmentation_edit <= len(st):
             self.segmentation_edit = None  # the selected edit was undone: show all enabled edits
         fld = self.field
-        if f is None:
+        if f is None:  # the gated path computed no features for these pairs
             uniq, inv = torch.unique(pg, return_inverse=True)
             f = fld.encode(self.means.detach()[uniq])
-            h2 = None
-        if h2 is None or h2.shape[0] != f.shape[0]:
+        if h2 is None:  # gated, or the single MLP (whose hidden layers are per pair)
             if fld.decoupled:
                 _, h2 = fld.diffuse_hidden(f)
             else:  # the single MLP's hidden layers need a direction: use each pair's
