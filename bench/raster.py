@@ -7,7 +7,9 @@ Rows per scene (random 1M / 3M Gaussians, and a real splat with cameras placed a
                          so one request), ``composite`` (fused for our lists); ``(plain)`` uses
                          ``contract.composite_plain`` (gather + index_add)
 * ``gsplat per-tile``    gsplat 1.4.0 with one camera per tile (principal point shifted)
-* ``ours whole``         our backend on the 8 whole views
+* ``ours whole``         our backend on the 8 whole views (deferred lists: the composite and its
+                         gradient walk the tile lists, ``virgi_ns.raster.cuda``); ``(eager lists)``
+                         stores every entry first, as smaller requests do
 * ``gsplat whole``       gsplat on the 8 whole views
 
 Prints one table (device named), writes ``results.json`` and ``renders.png`` under ``--out``.
@@ -233,18 +235,28 @@ def run_scene(sc: Scene, args: Args, tiles, req: Request, gsplat, rows: list[Row
 
     results = {}
     for label, request, mp in (("tiles", req, mp_tiles), ("whole", whole, mp_whole)):
-        variants = [("", True, None)] + ([(" (plain composite)", False, None)] if args.plain else [])
+        deferred_default = cuda.DEFERRED_MIN_PIXELS
+        variants = [("", True, None, deferred_default)]
+        if label == "whole":  # the stored lists, as before deferred lists
+            variants.append((" (eager lists)", True, None, None))
+        else:  # deferred lists for the tile batch too (not the default below DEFERRED_MIN_PIXELS)
+            variants.append((" (deferred lists)", True, None, 0))
+        if args.plain:
+            variants.append((" (plain composite)", False, None, deferred_default))
         if label == "tiles" and args.two_pass_row:
-            variants.append((" (two passes)", True, 0))
-        for suffix, fused, single in variants:
+            variants.append((" (two passes)", True, 0, deferred_default))
+        for suffix, fused, single, deferred in variants:
             cuda.SINGLE_PASS = single
+            cuda.DEFERRED_MIN_PIXELS = deferred
             ms, spread, peak = measure(ours(request, fused), args.iters, args.warmup)
             r_ms = measure(raster_only(request), max(5, args.iters // 2), 1)[0] if fused else None
             c, img = ours(request, fused)()
             cuda.SINGLE_PASS = None
+            cuda.DEFERRED_MIN_PIXELS = deferred_default
+            m_entries = c.num_entries
             rows.append(Row(sc.name, f"ours {label}{suffix}", n, mp, ms, spread, r_ms, peak, peak / mp,
-                            c.weight.numel() / request.num_pixels,
-                            extra={"pairs": int(c.pair_view.numel()), "entries": int(c.weight.numel())}))
+                            m_entries / request.num_pixels,
+                            extra={"pairs": int(c.pair_view.numel()), "entries": m_entries}))
             if not suffix:
                 results[(label, True)] = img.detach()
             del c, img

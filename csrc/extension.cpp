@@ -158,17 +158,23 @@ void check_input(const torch::Tensor& t, const char* name, int64_t cols) {
 
 // capacity: size of the compact visible-pair arrays to try first (-1: estimate; tests force an
 // overflow and its retry with a small value). single_pass: -1 chooses by size; 0 forces two
-// passes; n > 0 forces one pass with n (even) entries reserved per pixel (tests).
+// passes; n > 0 forces one pass with n (even) entries reserved per pixel (tests). deferred: only
+// the count pass runs (it also marks the contributing pairs); pixel, pair, weight and
+// pixel_offsets come back empty, and the state to rebuild them (materialize_lists) or to
+// composite straight from the tile lists (deferred_composite_*) comes back instead.
 // Returns {pixel i32[M], pair i32[M], weight f32[M], transmittance f32[P], valid bool[P],
 //          pixel_offsets i64[P+1], pair_view i64[U], pair_gaussian i64[U], pair_depth f32[U],
 //          and the tile lists for composite_backward_tiles: plan i32 (device), meta i64[6] (cpu:
 //          units/items/views offsets in plan, number of units, item width, height),
-//          ranges i32[2S], list_pair i32[n_isect]}.
+//          ranges i32[2S], list_pair i32[n_isect],
+//          and for deferred lists (else empty): px_count i32[P], sorted_vals i32[n_isect],
+//          rec0 f32[Uc,4], rec1 f32[Uc,4], rank i32[Uc], keep_list i32[n_isect or 0],
+//          keep_end i32[S or 0]}.
 std::vector<torch::Tensor> rasterize_contributions(
     torch::Tensor means, torch::Tensor quats, torch::Tensor scales, torch::Tensor opacities,
     torch::Tensor Ks, torch::Tensor viewmats, torch::Tensor widths, torch::Tensor heights,
     torch::Tensor item_views, torch::Tensor item_x0, torch::Tensor item_y0, int64_t item_w,
-    int64_t item_h, int64_t capacity, int64_t single_pass) {
+    int64_t item_h, int64_t capacity, int64_t single_pass, bool deferred) {
   check_input(means, "means", 3);
   check_input(quats, "quats", 4);
   check_input(scales, "scales", 3);
@@ -314,10 +320,10 @@ std::vector<torch::Tensor> rasterize_contributions(
   auto px_count = torch::zeros({P}, i32);
   auto mark = torch::zeros({std::max<int64_t>(Uc, 1)}, f32.dtype(torch::kUInt8));
   int pcap = 2 * ((static_cast<int>(g_entries_cap.load()) + 1) / 2);
-  const bool single = single_pass >= 0 ? single_pass > 0
-                                       : P * pcap * 8 <= kSinglePassBytes && P * pcap < (int64_t{1} << 31);
+  const bool single = !deferred && (single_pass >= 0 ? single_pass > 0
+                                                     : P * pcap * 8 <= kSinglePassBytes && P * pcap < (int64_t{1} << 31));
   if (single_pass > 0) pcap = std::max(2, static_cast<int>(single_pass) & ~1);
-  torch::Tensor padded;
+  torch::Tensor padded, keep_list, keep_end;
   if (single) {
     padded = torch::empty({P * pcap, 2}, i32);
     VIRGI_CUDA_CHECK(launch_raster(kSingle, plan.num_units, d_units, d_items, d_views, iw, ih,
@@ -326,18 +332,64 @@ std::vector<torch::Tensor> rasterize_contributions(
                                    nullptr, reinterpret_cast<int2*>(padded.data_ptr<int>()),
                                    mark.data_ptr<uint8_t>(), pcap, stream));
   } else {
-    VIRGI_CUDA_CHECK(launch_raster(kCount, plan.num_units, d_units, d_items, d_views, iw, ih,
-                                   ranges.data_ptr<int>(), sorted_vals.data_ptr<int>(), r0, r1,
-                                   px_count.data_ptr<int>(), transmittance.data_ptr<float>(),
-                                   nullptr, nullptr, nullptr, 0, stream));
+    // deferred lists keep, per unit, the list elements that matter to its pixels (when every
+    // slot has one unit, as for whole images: the kept elements then fit the slot's range)
+    const bool keep = deferred && plan.num_units == plan.num_slots && n_isect > 0;
+    keep_list = torch::empty({keep ? n_isect : 0}, i32);
+    keep_end = torch::empty({keep ? plan.num_slots : 0}, i32);
+    VIRGI_CUDA_CHECK(launch_raster(deferred ? kCountMark : kCount, plan.num_units, d_units, d_items,
+                                   d_views, iw, ih, ranges.data_ptr<int>(),
+                                   sorted_vals.data_ptr<int>(), r0, r1, px_count.data_ptr<int>(),
+                                   transmittance.data_ptr<float>(), nullptr, nullptr,
+                                   deferred ? mark.data_ptr<uint8_t>() : nullptr, 0, stream,
+                                   keep ? keep_list.data_ptr<int>() : nullptr,
+                                   keep ? keep_end.data_ptr<int>() : nullptr));
+  }
+  auto meta = torch::tensor({plan.units_at, plan.items_at, plan.views_at,
+                             static_cast<int64_t>(plan.num_units), item_w, item_h},
+                            torch::TensorOptions().dtype(torch::kInt64));
+  if (deferred) {
+    // Pairs and the tile lists as pair ranks; the entries themselves are not stored.
+    int64_t U = 0;
+    torch::Tensor rank = torch::empty({0}, i32);
+    if (Uc > 0) {
+      rank = torch::cumsum(mark.narrow(0, 0, Uc), 0, torch::kInt32);
+      U = rank[-1].item<int>();
+    }
+    auto pair_view = torch::empty({U}, i64);
+    auto pair_gaussian = torch::empty({U}, i64);
+    auto pair_depth = torch::empty({U}, f32);
+    auto list_pair = torch::empty({n_isect}, i32);
+    if (U > 0)
+      VIRGI_CUDA_CHECK(launch_pairs(Uc, mark.data_ptr<uint8_t>(), rank.data_ptr<int>(), N,
+                                    fids.data_ptr<int>(), d_views, r0, pair_view.data_ptr<int64_t>(),
+                                    pair_gaussian.data_ptr<int64_t>(), pair_depth.data_ptr<float>(),
+                                    stream));
+    if (n_isect > 0)
+      VIRGI_CUDA_CHECK(launch_list_pair(n_isect, sorted_vals.data_ptr<int>(), mark.data_ptr<uint8_t>(),
+                                        rank.data_ptr<int>(), list_pair.data_ptr<int>(), stream));
+    auto none_i = torch::empty({0}, i32);
+    return {none_i, none_i, torch::empty({0}, f32), transmittance, valid, torch::empty({0}, i64),
+            pair_view, pair_gaussian, pair_depth, dev, meta, ranges, list_pair,
+            px_count, sorted_vals, rec0, rec1, rank, keep_list, keep_end};
   }
   auto offsets = torch::zeros({P + 1}, i64);
   int64_t M = 0, max_count = 0;
+  // After one pass the marks are complete unless a pixel overflowed the padded layout: the pair
+  // ranks then come back with the entry count in one synchronisation instead of two.
+  torch::Tensor rank;
+  int64_t U_single = -1;
   if (P > 0) {
     offsets.narrow(0, 1, P).copy_(torch::cumsum(px_count, 0, torch::kInt64));
-    auto t = torch::stack({offsets[P], px_count.max().to(torch::kInt64)}).cpu();
+    std::vector<torch::Tensor> parts = {offsets[P], px_count.max().to(torch::kInt64)};
+    if (single && Uc > 0) {
+      rank = torch::cumsum(mark.narrow(0, 0, Uc), 0, torch::kInt32);
+      parts.push_back(rank[-1].to(torch::kInt64));
+    }
+    auto t = torch::stack(parts).cpu();
     M = t[0].item<int64_t>();
     max_count = t[1].item<int64_t>();
+    if (parts.size() == 3) U_single = t[2].item<int64_t>();
   }
   if (single_pass < 0 && P > 0 && P * 64 * 8 <= kSinglePassBytes) {  // small requests only
     g_entries_cap = std::min(std::max(1.25 * static_cast<double>(max_count), 0.95 * g_entries_cap.load()),
@@ -360,10 +412,13 @@ std::vector<torch::Tensor> rasterize_contributions(
   // Distinct (view, Gaussian) pairs, ascending in view * N + gaussian (the compact arrays are
   // in that order), each entry's pair rank and weight, and each entry's pixel.
   int64_t U = 0;
-  torch::Tensor rank;
   if (M > 0) {
-    rank = torch::cumsum(mark.narrow(0, 0, Uc), 0, torch::kInt32);
-    U = rank[-1].item<int>();
+    if (padded_ok && U_single >= 0) {
+      U = U_single;
+    } else {
+      rank = torch::cumsum(mark.narrow(0, 0, Uc), 0, torch::kInt32);
+      U = rank[-1].item<int>();
+    }
   }
   auto pair_view = torch::empty({U}, i64);
   auto pair_gaussian = torch::empty({U}, i64);
@@ -393,12 +448,12 @@ std::vector<torch::Tensor> rasterize_contributions(
   if (M > 0)
     VIRGI_CUDA_CHECK(launch_list_pair(n_isect, sorted_vals.data_ptr<int>(), mark.data_ptr<uint8_t>(),
                                       rank.data_ptr<int>(), list_pair.data_ptr<int>(), stream));
-  auto meta = torch::tensor({plan.units_at, plan.items_at, plan.views_at,
-                             static_cast<int64_t>(plan.num_units), item_w, item_h},
-                            torch::TensorOptions().dtype(torch::kInt64));
   // (The pinned host buffer's allocator waits on the upload's event before reusing it.)
-  return {pixel,         pair,      weight, transmittance, valid, offsets, pair_view,
-          pair_gaussian, pair_depth, dev,    meta,          ranges, list_pair};
+  auto none_i = torch::empty({0}, i32);
+  auto none_f = torch::empty({0, 4}, f32);
+  return {pixel,         pair,      weight, transmittance, valid,  offsets, pair_view,
+          pair_gaussian, pair_depth, dev,    meta,          ranges, list_pair,
+          none_i,        none_i,     none_f, none_f,        none_i, none_i,  none_i};
 }
 
 namespace {
@@ -494,6 +549,126 @@ torch::Tensor composite_backward_tiles(torch::Tensor grad_images, torch::Tensor 
   return grad_colors;
 }
 
+namespace {
+
+struct Units {
+  const int* units;
+  const int* items;
+  const int* views;
+  int num_units, item_w, item_h;
+};
+
+Units units_of(const torch::Tensor& plan, const torch::Tensor& meta) {
+  TORCH_CHECK(plan.is_cuda() && plan.scalar_type() == torch::kInt32, "plan must be int32 on the GPU");
+  TORCH_CHECK(meta.device().is_cpu() && meta.scalar_type() == torch::kInt64 && meta.numel() == 6,
+              "meta must be 6 cpu int64");
+  auto m = meta.accessor<int64_t, 1>();
+  const int* pl = plan.data_ptr<int>();
+  return {pl + m[0], pl + m[1], pl + m[2], static_cast<int>(m[3]), static_cast<int>(m[4]),
+          static_cast<int>(m[5])};
+}
+
+}  // namespace
+
+// Deferred lists -> {pixel i32[M], pair i32[M], weight f32[M], pixel_offsets i64[P+1]}: the fill
+// pass of the two-pass path, from the state rasterize_contributions(deferred) returned.
+std::vector<torch::Tensor> materialize_lists(torch::Tensor plan, torch::Tensor meta,
+                                             torch::Tensor ranges, torch::Tensor sorted_vals,
+                                             torch::Tensor rec0, torch::Tensor rec1,
+                                             torch::Tensor px_count, torch::Tensor rank) {
+  const c10::cuda::CUDAGuard guard(px_count.device());
+  auto stream = c10::cuda::getCurrentCUDAStream();
+  const Units u = units_of(plan, meta);
+  const int64_t P = px_count.size(0);
+  const auto i32 = px_count.options();
+  auto offsets = torch::zeros({P + 1}, i32.dtype(torch::kInt64));
+  int64_t M = 0;
+  if (P > 0) {
+    offsets.narrow(0, 1, P).copy_(torch::cumsum(px_count, 0, torch::kInt64));
+    M = offsets[P].item<int64_t>();
+  }
+  auto pixel = torch::empty({M}, i32);
+  auto pair = torch::empty({M}, i32);
+  auto weight = torch::empty({M}, i32.dtype(torch::kFloat32));
+  if (M > 0) {
+    auto packed = torch::empty({M, 2}, i32);
+    const auto* r0 = reinterpret_cast<const float4*>(rec0.data_ptr<float>());
+    const auto* r1 = reinterpret_cast<const float4*>(rec1.data_ptr<float>());
+    VIRGI_CUDA_CHECK(launch_raster(kFill, u.num_units, u.units, u.items, u.views, u.item_w, u.item_h,
+                                   ranges.data_ptr<int>(), sorted_vals.data_ptr<int>(), r0, r1,
+                                   nullptr, nullptr, offsets.data_ptr<int64_t>(),
+                                   reinterpret_cast<int2*>(packed.data_ptr<int>()), nullptr, 0,
+                                   stream));
+    VIRGI_CUDA_CHECK(launch_split(M, reinterpret_cast<const int2*>(packed.data_ptr<int>()),
+                                  rank.data_ptr<int>(), pair.data_ptr<int>(),
+                                  weight.data_ptr<float>(), stream));
+    VIRGI_CUDA_CHECK(launch_pixel_fill(P, offsets.data_ptr<int64_t>(), pixel.data_ptr<int>(), stream));
+  }
+  return {pixel, pair, weight, offsets};
+}
+
+// Images [P, D] straight from deferred lists (D in 1..8).
+torch::Tensor deferred_composite_forward(torch::Tensor colors, torch::Tensor background,
+                                         torch::Tensor plan, torch::Tensor meta,
+                                         torch::Tensor ranges, torch::Tensor sorted_vals,
+                                         torch::Tensor list_pair, torch::Tensor rec0,
+                                         torch::Tensor rec1, torch::Tensor transmittance,
+                                         torch::Tensor keep_list, torch::Tensor keep_end) {
+  check_f32(colors, "colors");
+  check_f32(transmittance, "transmittance");
+  check_i32(list_pair, "list_pair");
+  check_i32(sorted_vals, "sorted_vals");
+  TORCH_CHECK(colors.dim() == 2 && colors.size(1) >= 1 && colors.size(1) <= 8,
+              "deferred composite takes [U, D] colours with D in 1..8");
+  const c10::cuda::CUDAGuard guard(colors.device());
+  const Units u = units_of(plan, meta);
+  const int D = static_cast<int>(colors.size(1));
+  const float* bg = nullptr;
+  torch::Tensor out;
+  if (background.numel() > 0) {
+    check_f32(background, "background");
+    TORCH_CHECK(background.numel() == D, "background must hold one value per channel");
+    bg = background.data_ptr<float>();
+    // pixels of no unit (outside their image) keep T = 1: the background
+    out = transmittance.unsqueeze(1) * background.reshape({1, D});
+  } else {
+    out = torch::zeros({transmittance.size(0), D}, colors.options());
+  }
+  VIRGI_CUDA_CHECK(launch_deferred_forward(
+      u.num_units, D, u.units, u.items, u.views, u.item_w, u.item_h, ranges.data_ptr<int>(),
+      sorted_vals.data_ptr<int>(), list_pair.data_ptr<int>(),
+      reinterpret_cast<const float4*>(rec0.data_ptr<float>()),
+      reinterpret_cast<const float4*>(rec1.data_ptr<float>()), colors.data_ptr<float>(), bg,
+      out.data_ptr<float>(), keep_list.numel() ? keep_list.data_ptr<int>() : nullptr,
+      keep_list.numel() ? keep_end.data_ptr<int>() : nullptr, c10::cuda::getCurrentCUDAStream()));
+  return out;
+}
+
+// d colors [U, D] from d images [P, D], straight from deferred lists.
+torch::Tensor deferred_composite_backward(torch::Tensor grad_images, int64_t num_pairs,
+                                          torch::Tensor plan, torch::Tensor meta,
+                                          torch::Tensor ranges, torch::Tensor sorted_vals,
+                                          torch::Tensor list_pair, torch::Tensor rec0,
+                                          torch::Tensor rec1, torch::Tensor keep_list,
+                                          torch::Tensor keep_end) {
+  check_f32(grad_images, "grad_images");
+  check_i32(list_pair, "list_pair");
+  const c10::cuda::CUDAGuard guard(grad_images.device());
+  const Units u = units_of(plan, meta);
+  const int D = static_cast<int>(grad_images.size(1));
+  TORCH_CHECK(D >= 1 && D <= 8, "deferred composite takes D in 1..8");
+  auto grad_colors = torch::zeros({num_pairs, D}, grad_images.options());
+  if (num_pairs == 0) return grad_colors;
+  VIRGI_CUDA_CHECK(launch_deferred_backward(
+      u.num_units, D, u.units, u.items, u.views, u.item_w, u.item_h, ranges.data_ptr<int>(),
+      sorted_vals.data_ptr<int>(), list_pair.data_ptr<int>(),
+      reinterpret_cast<const float4*>(rec0.data_ptr<float>()),
+      reinterpret_cast<const float4*>(rec1.data_ptr<float>()), grad_images.data_ptr<float>(),
+      grad_colors.data_ptr<float>(), keep_list.numel() ? keep_list.data_ptr<int>() : nullptr,
+      keep_list.numel() ? keep_end.data_ptr<int>() : nullptr, c10::cuda::getCurrentCUDAStream()));
+  return grad_colors;
+}
+
 }  // namespace virgi
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -504,4 +679,9 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("composite_backward", &virgi::composite_backward, "Gradient of composite_forward to colours");
   m.def("composite_backward_tiles", &virgi::composite_backward_tiles,
         "Gradient of composite_forward to colours, per tile from the tile lists");
+  m.def("materialize_lists", &virgi::materialize_lists, "Entries of deferred lists");
+  m.def("deferred_composite_forward", &virgi::deferred_composite_forward,
+        "Composite straight from deferred tile lists");
+  m.def("deferred_composite_backward", &virgi::deferred_composite_backward,
+        "Gradient of deferred_composite_forward to colours");
 }

@@ -49,14 +49,16 @@ cudaError_t sort_pairs(void* temp, size_t& temp_bytes, int64_t n, int end_bit,
 cudaError_t launch_ranges(int64_t n, const uint64_t* keys, int* ranges, cudaStream_t stream);
 cudaError_t launch_init_pixels(int64_t P, int item_w, int item_h, const int* items,
                                const int* views, float* trans, bool* valid, cudaStream_t stream);
-// Raster modes: count entries per pixel (+ final T); fill them at the pixel offsets; or both in
-// one pass into a padded [P, pcap] layout (entries past pcap are counted, not written).
-constexpr int kCount = 0, kFill = 1, kSingle = 2;
+// Raster modes: count entries per pixel (+ final T; kCountMark also marks contributing pairs);
+// fill them at the pixel offsets (marking unless mark is null); or both in one pass into a
+// padded [P, pcap] layout (entries past pcap are counted, not written).
+constexpr int kCount = 0, kFill = 1, kSingle = 2, kCountMark = 3;
 cudaError_t launch_raster(int mode, int num_units, const int* units, const int* items,
                           const int* views, int item_w, int item_h, const int* ranges,
                           const int* sorted_vals, const float4* rec0, const float4* rec1,
                           int* px_count, float* px_trans, const int64_t* px_offsets,
-                          int2* out_entry, uint8_t* mark, int pcap, cudaStream_t stream);
+                          int2* out_entry, uint8_t* mark, int pcap, cudaStream_t stream,
+                          int* keep_list = nullptr, int* keep_end = nullptr);
 cudaError_t launch_split_padded(int64_t P, int pcap, const int64_t* offsets, const int2* padded,
                                 const int* rank_incl, int* pixel, int* pair, float* weight,
                                 cudaStream_t stream);
@@ -85,6 +87,22 @@ cudaError_t launch_composite_backward_tiles(int num_units, int D, const int* uni
                                             const int64_t* offsets, const int* pair,
                                             const float* weight, const float* grad,
                                             float* grad_colors, cudaStream_t stream);
+// Deferred lists (D in 1..8): the composite and its gradient straight from the tile lists,
+// weights recomputed as the raster pass computes them. The forward writes the pixels of the
+// units only; grad_colors [U, D] is pre-zeroed. keep_list / keep_end (from a kCountMark pass,
+// or null: the whole lists) name the list elements that matter to the unit's pixels.
+cudaError_t launch_deferred_forward(int num_units, int D, const int* units, const int* items,
+                                    const int* views, int item_w, int item_h, const int* ranges,
+                                    const int* sorted_vals, const int* list_pair,
+                                    const float4* rec0, const float4* rec1, const float* colors,
+                                    const float* background, float* out, const int* keep_list,
+                                    const int* keep_end, cudaStream_t stream);
+cudaError_t launch_deferred_backward(int num_units, int D, const int* units, const int* items,
+                                     const int* views, int item_w, int item_h, const int* ranges,
+                                     const int* sorted_vals, const int* list_pair,
+                                     const float4* rec0, const float4* rec1, const float* grad,
+                                     float* grad_colors, const int* keep_list, const int* keep_end,
+                                     cudaStream_t stream);
 cudaError_t launch_list_pair(int64_t n, const int* sorted_vals, const uint8_t* mark,
                              const int* rank_incl, int* list_pair, cudaStream_t stream);
 

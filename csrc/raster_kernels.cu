@@ -278,9 +278,11 @@ __global__ void init_pixels_kernel(int64_t P, int item_w, int item_h, const int*
 
 // One block of 16x16 threads per work unit (an item's overlap with one grid tile). Each thread
 // owns one pixel and walks the tile's depth-sorted list. MODE kCount counts entries and writes
-// the final transmittance; kFill (after kCount) writes the entries at the pixel's offset; kSingle
-// does both in one pass for small batches: entries go to a padded layout (slot p * pcap + k,
-// the first pcap of each pixel) while the count and transmittance are written as in kCount.
+// the final transmittance (kCountMark also marks the visible pairs that contribute); kFill
+// (after a count) writes the entries at the pixel's offset, marking when mark is not null;
+// kSingle does both in one pass for small batches: entries go to a padded layout (slot
+// p * pcap + k, the first pcap of each pixel) while the count and transmittance are written as
+// in kCount.
 template <int MODE>
 __global__ void __launch_bounds__(kTile* kTile)
     raster_kernel(const int* __restrict__ units, const int* __restrict__ items,
@@ -289,11 +291,16 @@ __global__ void __launch_bounds__(kTile* kTile)
                   const float4* __restrict__ rec0, const float4* __restrict__ rec1,
                   int* __restrict__ px_count, float* __restrict__ px_trans,
                   const int64_t* __restrict__ px_offsets, int2* __restrict__ out_entry,
-                  uint8_t* __restrict__ mark, int pcap) {
-  constexpr bool FILL = MODE != kCount;
+                  uint8_t* __restrict__ mark, int pcap, int* __restrict__ keep_list,
+                  int* __restrict__ keep_end) {
+  constexpr bool FILL = MODE == kFill || MODE == kSingle;
+  constexpr bool MARK = MODE != kCount;
+  constexpr bool KEEP = MODE == kCountMark;
   constexpr int B = kTile * kTile;
   __shared__ int s_id[B];
   __shared__ int s_used[B];
+  __shared__ int s_keep[KEEP ? B : 1];
+  __shared__ int s_keep_warp[KEEP ? B / 32 : 1];
   __shared__ float4 s_r0[B];
   __shared__ float4 s_r1[B];
 
@@ -339,9 +346,31 @@ __global__ void __launch_bounds__(kTile* kTile)
   // FILL: a Gaussian used by any pixel of the batch is marked once per block (s_used), after
   // the batch, by the thread that loaded it.
   bool loaded = false;
+  // KEEP (deferred lists, one unit per slot): the list elements that matter to some pixel of the
+  // unit -- used, or stopping a pixel -- are copied in order to keep_list[start, keep_end[slot]);
+  // the deferred composite walks only those, with the same per-pixel results.
+  const bool keep_on = KEEP && keep_list != nullptr;
+  int kept = 0, prev_j = 0;
+  auto keep_batch = [&]() {
+    const bool k_me = loaded && s_keep[tid];
+    const unsigned bal = __ballot_sync(0xffffffffu, k_me);
+    if ((tid & 31) == 0) s_keep_warp[tid >> 5] = __popc(bal);
+    __syncthreads();
+    int before = 0, total = 0;
+#pragma unroll
+    for (int w = 0; w < B / 32; ++w) {
+      const int c = s_keep_warp[w];
+      before += w < (tid >> 5) ? c : 0;
+      total += c;
+    }
+    if (k_me) keep_list[start + kept + before + __popc(bal & ((1u << (tid & 31)) - 1u))] = prev_j;
+    kept += total;
+    __syncthreads();  // s_keep_warp is rewritten by the next batch
+  };
   for (int b0 = start; b0 < end; b0 += B) {
     if (__syncthreads_count(done) == B) break;
-    if (FILL && loaded && s_used[tid]) mark[s_id[tid]] = 1;
+    if (MARK && mark && loaded && s_used[tid]) mark[s_id[tid]] = 1;
+    if (keep_on && b0 > start) keep_batch();
     const int j = b0 + tid;
     loaded = j < end;
     if (loaded) {
@@ -349,7 +378,9 @@ __global__ void __launch_bounds__(kTile* kTile)
       s_id[tid] = f;
       s_r0[tid] = rec0[f];
       s_r1[tid] = rec1[f];
-      if (FILL) s_used[tid] = 0;
+      if (MARK) s_used[tid] = 0;
+      if (KEEP) s_keep[tid] = 0;
+      prev_j = j;
     }
     __syncthreads();
     const int nb = min(B, end - b0);
@@ -363,6 +394,7 @@ __global__ void __launch_bounds__(kTile* kTile)
       if (sigma < 0.f || alpha < kAlphaMin) continue;
       const float next_T = T * (1.f - alpha);
       if (next_T <= kTMin) {
+        if (KEEP) s_keep[t] = 1;
         done = true;
         break;
       }
@@ -388,14 +420,19 @@ __global__ void __launch_bounds__(kTile* kTile)
           pending_at = -1;
         }
       }
+      if (MODE == kCountMark) s_used[t] = 1, s_keep[t] = 1;
       ++k;
       T = next_T;
     }
   }
   if (FILL && pending_at >= 0) out_entry[pending_at] = pending;  // a lone last entry
-  if (FILL) {
+  if (MARK) {
     __syncthreads();
-    if (loaded && s_used[tid]) mark[s_id[tid]] = 1;
+    if (mark && loaded && s_used[tid]) mark[s_id[tid]] = 1;
+  }
+  if (keep_on) {
+    if (end > start) keep_batch();  // (every thread gets here: the loop exits uniformly)
+    if (tid == 0) keep_end[slot] = start + kept;
   }
   if (MODE != kFill && inside) {
     px_count[p] = k;
@@ -497,6 +534,188 @@ __global__ void split_padded_kernel(int64_t P, int pcap, const int64_t* __restri
   }
 }
 
+// Deferred lists: the composite and its gradient walk the tile lists again instead of reading
+// stored entries. Every per-element step below is the raster kernel's, operation for operation,
+// so the weights (alpha T), the early stop and the final T are bit for bit those of the lists.
+// list_pair[j] is the pair rank of sorted list element j (-1: it contributes nowhere).
+//
+// Forward: out[p] = sum alpha T colors[pair] + T_final background; pixels outside every unit
+// (invalid ones) are written by the caller.
+template <int D>
+__global__ void __launch_bounds__(kTile* kTile)
+    deferred_fwd_kernel(const int* __restrict__ units, const int* __restrict__ items,
+                        const int* __restrict__ views, int item_w, int item_h,
+                        const int* __restrict__ ranges, const int* __restrict__ sorted_vals,
+                        const int* __restrict__ list_pair, const float4* __restrict__ rec0,
+                        const float4* __restrict__ rec1, const float* __restrict__ colors,
+                        const float* __restrict__ background, float* __restrict__ out,
+                        const int* __restrict__ keep_list, const int* __restrict__ keep_end) {
+  constexpr int B = kTile * kTile;
+  __shared__ float4 s_r0[B];
+  __shared__ float4 s_r1[B];
+  __shared__ float s_c[B * D];
+  const int* u = units + blockIdx.x * kUnitInts;
+  const int item = u[0], slot = u[1], gx = u[2], gy = u[3];
+  const int* it = items + item * kItemInts;
+  const int* vt = views + it[0] * kViewInts;
+  const int ix0 = it[1], iy0 = it[2], W = vt[1], H = vt[2];
+  const int tid = threadIdx.x;
+  const int lx = tid % kTile, ly = tid / kTile;
+  const int X = gx * kTile + lx, Y = gy * kTile + ly;
+  const bool inside = X >= max(ix0, 0) && X < min(ix0 + item_w, W) && Y >= max(iy0, 0) &&
+                      Y < min(iy0 + item_h, H);
+  const int64_t p = (static_cast<int64_t>(item) * item_h + (Y - iy0)) * item_w + (X - ix0);
+  const float tcx = static_cast<float>(gx * kTile) + 0.5f;
+  const float tcy = static_cast<float>(gy * kTile) + 0.5f;
+  const float flx = static_cast<float>(lx), fly = static_cast<float>(ly);
+  const int start = ranges[2 * slot];
+  const int end = keep_list ? keep_end[slot] : ranges[2 * slot + 1];
+  bool done = !inside;
+  float T = 1.f;
+  float acc[D];
+#pragma unroll
+  for (int d = 0; d < D; ++d) acc[d] = 0.f;
+  for (int b0 = start; b0 < end; b0 += B) {
+    if (__syncthreads_count(done) == B) break;
+    if (b0 + tid < end) {
+      const int j = keep_list ? keep_list[b0 + tid] : b0 + tid;
+      const int f = sorted_vals[j];
+      const int q = list_pair[j];
+      s_r0[tid] = rec0[f];
+      s_r1[tid] = rec1[f];
+#pragma unroll
+      for (int d = 0; d < D; ++d) s_c[tid * D + d] = q >= 0 ? colors[static_cast<int64_t>(q) * D + d] : 0.f;
+    }
+    __syncthreads();
+    const int nb = min(B, end - b0);
+    for (int t = 0; t < nb && !done; ++t) {
+      const float4 m = s_r0[t];
+      const float4 qq = s_r1[t];
+      const float dx = (m.x - tcx) - flx, dy = (m.y - tcy) - fly;
+      const float e = dx - qq.y * dy;
+      const float sigma = 0.5f * (qq.x * e * e + qq.z * dy * dy);
+      const float alpha = fminf(kAlphaMax, m.w * expf(-sigma));
+      if (sigma < 0.f || alpha < kAlphaMin) continue;
+      const float next_T = T * (1.f - alpha);
+      if (next_T <= kTMin) {
+        done = true;
+        break;
+      }
+      const float w = alpha * T;
+#pragma unroll
+      for (int d = 0; d < D; ++d) acc[d] += w * s_c[t * D + d];
+      T = next_T;
+    }
+  }
+  if (inside) {
+#pragma unroll
+    for (int d = 0; d < D; ++d) out[p * D + d] = background ? acc[d] + T * background[d] : acc[d];
+  }
+}
+
+// Backward: grad_colors[pair] += sum over the unit's pixels of alpha T grad[p]; the terms of list
+// element t are summed per warp (shuffles), then per block (shared memory), and the block adds
+// one global atomic per (element, channel).
+template <int D>
+__global__ void __launch_bounds__(kTile* kTile)
+    deferred_bwd_kernel(const int* __restrict__ units, const int* __restrict__ items,
+                        const int* __restrict__ views, int item_w, int item_h,
+                        const int* __restrict__ ranges, const int* __restrict__ sorted_vals,
+                        const int* __restrict__ list_pair, const float4* __restrict__ rec0,
+                        const float4* __restrict__ rec1, const float* __restrict__ grad,
+                        float* __restrict__ grad_colors, const int* __restrict__ keep_list,
+                        const int* __restrict__ keep_end) {
+  constexpr int B = kTile * kTile;
+  __shared__ float4 s_r0[B];
+  __shared__ float4 s_r1[B];
+  __shared__ int s_q[B];
+  __shared__ float s_acc[B * D];
+  const int* u = units + blockIdx.x * kUnitInts;
+  const int item = u[0], slot = u[1], gx = u[2], gy = u[3];
+  const int* it = items + item * kItemInts;
+  const int* vt = views + it[0] * kViewInts;
+  const int ix0 = it[1], iy0 = it[2], W = vt[1], H = vt[2];
+  const int tid = threadIdx.x;
+  const int lx = tid % kTile, ly = tid / kTile;
+  const int X = gx * kTile + lx, Y = gy * kTile + ly;
+  const bool inside = X >= max(ix0, 0) && X < min(ix0 + item_w, W) && Y >= max(iy0, 0) &&
+                      Y < min(iy0 + item_h, H);
+  const int64_t p = (static_cast<int64_t>(item) * item_h + (Y - iy0)) * item_w + (X - ix0);
+  const float tcx = static_cast<float>(gx * kTile) + 0.5f;
+  const float tcy = static_cast<float>(gy * kTile) + 0.5f;
+  const float flx = static_cast<float>(lx), fly = static_cast<float>(ly);
+  const int start = ranges[2 * slot];
+  const int end = keep_list ? keep_end[slot] : ranges[2 * slot + 1];
+  bool done = !inside;
+  float T = 1.f;
+  float gv[D];
+#pragma unroll
+  for (int d = 0; d < D; ++d) gv[d] = inside ? grad[p * D + d] : 0.f;
+  for (int b0 = start; b0 < end; b0 += B) {
+    if (__syncthreads_count(done) == B) break;
+    s_q[tid] = -1;
+    if (b0 + tid < end) {
+      const int j = keep_list ? keep_list[b0 + tid] : b0 + tid;
+      const int f = sorted_vals[j];
+      s_q[tid] = list_pair[j];
+      s_r0[tid] = rec0[f];
+      s_r1[tid] = rec1[f];
+    }
+#pragma unroll
+    for (int d = 0; d < D; ++d) s_acc[tid * D + d] = 0.f;
+    __syncthreads();
+    const int nb = min(B, end - b0);
+    for (int t = 0; t < nb; ++t) {
+      if (__all_sync(0xffffffffu, done)) break;
+      float w = 0.f;
+      if (!done) {
+        const float4 m = s_r0[t];
+        const float4 qq = s_r1[t];
+        const float dx = (m.x - tcx) - flx, dy = (m.y - tcy) - fly;
+        const float e = dx - qq.y * dy;
+        const float sigma = 0.5f * (qq.x * e * e + qq.z * dy * dy);
+        const float alpha = fminf(kAlphaMax, m.w * expf(-sigma));
+        if (!(sigma < 0.f || alpha < kAlphaMin)) {
+          const float next_T = T * (1.f - alpha);
+          if (next_T <= kTMin) {
+            done = true;
+          } else {
+            w = alpha * T;
+            T = next_T;
+          }
+        }
+      }
+      const unsigned bal = __ballot_sync(0xffffffffu, w != 0.f);
+      if (bal == 0u) continue;
+      if (__popc(bal) <= 2) {  // few lanes: shared atomics beat five shuffle rounds
+        if (w != 0.f)
+#pragma unroll
+          for (int d = 0; d < D; ++d) atomicAdd(&s_acc[t * D + d], w * gv[d]);
+        continue;
+      }
+      float v[D];
+#pragma unroll
+      for (int d = 0; d < D; ++d) v[d] = w * gv[d];
+#pragma unroll
+      for (int off = 16; off > 0; off >>= 1)
+#pragma unroll
+        for (int d = 0; d < D; ++d) v[d] += __shfl_down_sync(0xffffffffu, v[d], off);
+      if ((tid & 31) == 0)
+#pragma unroll
+        for (int d = 0; d < D; ++d) atomicAdd(&s_acc[t * D + d], v[d]);
+    }
+    __syncthreads();
+    const int q = s_q[tid];
+    if (q >= 0) {
+#pragma unroll
+      for (int d = 0; d < D; ++d) {
+        const float v = s_acc[tid * D + d];
+        if (v != 0.f) atomicAdd(grad_colors + static_cast<int64_t>(q) * D + d, v);
+      }
+    }
+  }
+}
+
 inline unsigned blocks_for(int64_t n) { return static_cast<unsigned>((n + kThreads - 1) / kThreads); }
 
 }  // namespace
@@ -564,16 +783,18 @@ cudaError_t launch_raster(int mode, int num_units, const int* units, const int* 
                           const int* views, int item_w, int item_h, const int* ranges,
                           const int* sorted_vals, const float4* rec0, const float4* rec1,
                           int* px_count, float* px_trans, const int64_t* px_offsets,
-                          int2* out_entry, uint8_t* mark, int pcap, cudaStream_t stream) {
+                          int2* out_entry, uint8_t* mark, int pcap, cudaStream_t stream,
+                          int* keep_list, int* keep_end) {
   if (num_units == 0) return cudaSuccess;
 #define VIRGI_RASTER(MM)                                                                        \
   raster_kernel<MM><<<num_units, kTile * kTile, 0, stream>>>(                                   \
       units, items, views, item_w, item_h, ranges, sorted_vals, rec0, rec1, px_count, px_trans, \
-      px_offsets, out_entry, mark, pcap)
+      px_offsets, out_entry, mark, pcap, keep_list, keep_end)
   switch (mode) {
     case kCount: VIRGI_RASTER(kCount); break;
     case kFill: VIRGI_RASTER(kFill); break;
     case kSingle: VIRGI_RASTER(kSingle); break;
+    case kCountMark: VIRGI_RASTER(kCountMark); break;
     default: return cudaErrorInvalidValue;
   }
 #undef VIRGI_RASTER
@@ -617,5 +838,56 @@ cudaError_t launch_pixel_fill(int64_t P, const int64_t* offsets, int* pixel, cud
   pixel_fill_kernel<<<blocks_for(P), kThreads, 0, stream>>>(P, offsets, pixel);
   return cudaGetLastError();
 }
+
+}  // namespace virgi
+
+namespace virgi {
+
+#define VIRGI_DEFERRED_CASES(MACRO) \
+  switch (D) {                      \
+    case 1: MACRO(1); break;        \
+    case 2: MACRO(2); break;        \
+    case 3: MACRO(3); break;        \
+    case 4: MACRO(4); break;        \
+    case 5: MACRO(5); break;        \
+    case 6: MACRO(6); break;        \
+    case 7: MACRO(7); break;        \
+    case 8: MACRO(8); break;        \
+    default: return cudaErrorInvalidValue; \
+  }
+
+cudaError_t launch_deferred_forward(int num_units, int D, const int* units, const int* items,
+                                    const int* views, int item_w, int item_h, const int* ranges,
+                                    const int* sorted_vals, const int* list_pair,
+                                    const float4* rec0, const float4* rec1, const float* colors,
+                                    const float* background, float* out, const int* keep_list,
+                                    const int* keep_end, cudaStream_t stream) {
+  if (num_units == 0) return cudaSuccess;
+#define VIRGI_DFWD(DD)                                                                       \
+  deferred_fwd_kernel<DD><<<num_units, kTile * kTile, 0, stream>>>(                          \
+      units, items, views, item_w, item_h, ranges, sorted_vals, list_pair, rec0, rec1, colors, \
+      background, out, keep_list, keep_end)
+  VIRGI_DEFERRED_CASES(VIRGI_DFWD)
+#undef VIRGI_DFWD
+  return cudaGetLastError();
+}
+
+cudaError_t launch_deferred_backward(int num_units, int D, const int* units, const int* items,
+                                     const int* views, int item_w, int item_h, const int* ranges,
+                                     const int* sorted_vals, const int* list_pair,
+                                     const float4* rec0, const float4* rec1, const float* grad,
+                                     float* grad_colors, const int* keep_list, const int* keep_end,
+                                     cudaStream_t stream) {
+  if (num_units == 0) return cudaSuccess;
+#define VIRGI_DBWD(DD)                                                                       \
+  deferred_bwd_kernel<DD><<<num_units, kTile * kTile, 0, stream>>>(                          \
+      units, items, views, item_w, item_h, ranges, sorted_vals, list_pair, rec0, rec1, grad, \
+      grad_colors, keep_list, keep_end)
+  VIRGI_DEFERRED_CASES(VIRGI_DBWD)
+#undef VIRGI_DBWD
+  return cudaGetLastError();
+}
+
+#undef VIRGI_DEFERRED_CASES
 
 }  // namespace virgi

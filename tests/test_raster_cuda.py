@@ -112,9 +112,14 @@ def test_cuda_backend_available():
 
 
 @pytest.mark.gpu
+@pytest.mark.parametrize("lists", ["eager", "deferred"])
 @pytest.mark.parametrize("kind", list(TILE_REQUESTS))
 @pytest.mark.parametrize("name", list(SCENES))
-def test_cuda_matches_reference(name, kind):
+def test_cuda_matches_reference(name, kind, lists, monkeypatch):
+    from virgi_ns.raster import cuda
+
+    # deferred lists composite straight from the tile lists; their entries are built on access
+    monkeypatch.setattr(cuda, "DEFERRED_MIN_PIXELS", 0 if lists == "deferred" else None)
     cams = make_cams(70, 45, views=2)
     scene = SCENES[name]()
     req = _request(kind, cams)
@@ -201,6 +206,53 @@ def test_fused_composite_matches_plain(d, kind, monkeypatch):
     assert (fused - plain).abs().max() <= 1e-5
     assert torch.allclose(g_c, p_c, atol=1e-4, rtol=1e-5)
     assert torch.allclose(g_b, p_b, atol=1e-3, rtol=1e-5)
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("kind", ["whole", "tiles"])
+@pytest.mark.parametrize("d", [3, 1, 5, 8])
+def test_deferred_lists_equal_eager(d, kind, monkeypatch):
+    """Deferred lists: the composite from the tile lists equals the fused composite of the stored
+    entries (same weights, same order), its gradients equal the plain path's, and the entries built
+    on access equal the two-pass lists exactly."""
+    from virgi_ns.raster import cuda
+
+    dev = torch.device("cuda")
+    cams = make_cams(96, 64, views=2).to(dev, torch.float32)
+    m, q, s, o = (a.float().to(dev) for a in random_scene(1500, seed=9, scale=(0.01, 0.15)))
+    req = Request.whole_images(cams) if kind == "whole" else \
+        Request.tiles([0, 1, 0, 0, 1], [5, -7, 40, 5, 80], [3, 30, 20, 3, 50], 32)
+    monkeypatch.setattr(cuda, "DEFERRED_MIN_PIXELS", None)
+    monkeypatch.setattr(cuda, "SINGLE_PASS", 0)
+    eager = cuda.rasterize(m, q, s, o, cams, req)
+    monkeypatch.setattr(cuda, "DEFERRED_MIN_PIXELS", 0)
+    lazy = cuda.rasterize(m, q, s, o, cams, req)
+    assert isinstance(lazy, cuda.DeferredCudaContributions) and lazy._lists is None
+    assert eager.weight.numel() > 1000
+    for name in ("transmittance", "valid", "pair_view", "pair_gaussian", "pair_depth"):
+        assert torch.equal(getattr(lazy, name), getattr(eager, name)), name
+    gen = torch.Generator(dev).manual_seed(d)
+    colors = torch.rand(len(eager.pair_view), d, device=dev, generator=gen).requires_grad_(True)
+    bg = torch.rand(d, device=dev, generator=gen).requires_grad_(True)
+    up = torch.randn(*eager.shape, d, device=dev, generator=gen)
+    for background in (bg, None):
+        out = composite(colors, lazy, background)
+        assert lazy._lists is None  # composited without building the entries
+        want = composite(colors, eager, background) if d in (1, 3, 4) else composite_plain(colors, eager, background)
+        assert (out - want).abs().max() <= 1e-6
+        inputs = (colors, bg) if background is not None else (colors,)
+        got_g = torch.autograd.grad((out * up).sum(), inputs)
+        want_g = torch.autograd.grad((composite_plain(colors, eager, background) * up).sum(), inputs)
+        for g, w in zip(got_g, want_g):
+            assert torch.allclose(g, w, atol=1e-4, rtol=1e-5)
+    assert lazy.num_entries == eager.weight.numel() and lazy._lists is None
+    keep, keep_end = lazy._state[9:11]
+    if kind == "whole":  # one unit per slot: the walks use the kept elements only, fewer than the lists
+        ranges = lazy._state[2].view(-1, 2)
+        kept = int((keep_end.long() - ranges[:, 0].long()).sum())
+        assert 0 < kept < int((ranges[:, 1] - ranges[:, 0]).sum()) and keep.numel() > 0
+    for name in ("pixel", "pair", "weight", "pixel_offsets"):
+        assert torch.equal(getattr(lazy, name), getattr(eager, name)), name
 
 
 @pytest.mark.gpu

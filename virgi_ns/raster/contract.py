@@ -163,6 +163,11 @@ class Contributions:
     def shape(self) -> tuple[int, int, int]:
         return len(self.request), self.request.height, self.request.width
 
+    @property
+    def num_entries(self) -> int:
+        """M, the number of (pixel, Gaussian) entries."""
+        return int(self.weight.numel())
+
     def gaussian(self) -> Tensor:
         """[M] Gaussian index of each entry."""
         return self.pair_gaussian[self.pair]

@@ -9,6 +9,15 @@ only the requested 16-px grid tiles, and emits the contribution lists of :mod:`c
 Weights carry no autograd history to the geometry here (use the reference backend for geometry
 gradients). The ordinary :func:`virgi_ns.raster.composite` runs a fused forward/backward to the
 colours for these lists (:meth:`CudaContributions.composite`).
+
+Large requests (whole images, :data:`DEFERRED_MIN_PIXELS` and up) get *deferred* lists
+(:class:`DeferredCudaContributions`): the rasterizer runs only its count pass, which finds the
+contributing pairs and each pixel's final transmittance, and the composite and its gradient
+walk the depth-sorted tile lists again, recomputing each weight exactly as the count pass did,
+instead of writing and reading hundreds of millions of stored entries; the count pass also keeps,
+per 16-px tile, only the list elements that matter to its pixels, so those walks skip the
+Gaussians that reach none of them. The entries
+(``pixel``, ``pair``, ``weight``) are built on first access, equal to the eager lists.
 """
 
 from __future__ import annotations
@@ -40,6 +49,9 @@ VISIBLE_CAPACITY: int | None = None
 # small requests, count + fill otherwise); 0 forces two passes; n > 0 forces one pass with n
 # entries reserved per pixel (falling back to two passes where a pixel has more).
 SINGLE_PASS: int | None = None
+# Requests of at least this many pixels get deferred lists (see the module docstring); 0 defers
+# every request, None none.
+DEFERRED_MIN_PIXELS: int | None = 1 << 20
 
 _LOCK = threading.Lock()
 _MODULE: ModuleType | None = None
@@ -154,6 +166,63 @@ class CudaContributions(Contributions):
         return out.reshape(t, h, w, d)
 
 
+class DeferredCudaContributions(CudaContributions):
+    """Contributions whose entries are built on first access (``pixel``, ``pair``, ``weight``,
+    ``pixel_offsets``); :meth:`composite` works from the tile lists without them."""
+
+    _LAZY = ("pixel", "pair", "weight", "pixel_offsets")
+
+    def __init__(self, state: tuple, **kw) -> None:
+        # plan, meta, ranges, list_pair, px_count, sorted_vals, rec0, rec1, rank, keep_list, keep_end
+        self._state = state
+        self._lists: dict | None = None
+        super().__init__(pixel=None, pair=None, weight=None, pixel_offsets=None, **kw)
+
+    def _materialize(self) -> dict:
+        if self._lists is None:
+            plan, meta, ranges, _list_pair, px_count, sorted_vals, rec0, rec1, rank = self._state[:9]
+            pixel, pair, weight, offsets = _load().materialize_lists(plan, meta, ranges, sorted_vals, rec0,
+                                                                    rec1, px_count, rank)
+            self._lists = {"pixel": pixel, "pair": pair, "weight": weight, "pixel_offsets": offsets}
+        return self._lists
+
+    @property
+    def num_entries(self) -> int:
+        if self._lists is not None:
+            return int(self._lists["weight"].numel())
+        return int(self._state[4].sum())
+
+    def composite(self, colors: Tensor, background: Tensor | float | None = None) -> Tensor:
+        if not (colors.is_cuda and colors.dtype == torch.float32 and colors.dim() == 2
+                and 1 <= colors.shape[1] <= 8):
+            return super().composite(colors, background)
+        if colors.shape[0] != self.pair_view.shape[0]:
+            raise ValueError(f"composite: {colors.shape[0]} colours for {self.pair_view.shape[0]} pairs")
+        d = colors.shape[1]
+        bg = None
+        if background is not None:
+            bg = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(-1).expand(d)
+            bg = bg.contiguous()
+        out = _DeferredComposite.apply(colors, bg, self)
+        t, h, w = self.shape
+        return out.reshape(t, h, w, d)
+
+
+def _lazy_field(name: str) -> property:
+    def get(self):
+        return self._materialize()[name]
+
+    def set_(self, value):
+        if value is not None:
+            self._materialize()[name] = value
+
+    return property(get, set_)
+
+
+for _name in DeferredCudaContributions._LAZY:
+    setattr(DeferredCudaContributions, _name, _lazy_field(_name))
+
+
 def rasterize(
     means: Tensor,
     quats: Tensor,
@@ -175,19 +244,27 @@ def rasterize(
         return t.detach().to(device=dev, dtype=torch.float32).contiguous()
 
     n = means.shape[0]
+    deferred = DEFERRED_MIN_PIXELS is not None and request.num_pixels >= DEFERRED_MIN_PIXELS
     out = ext.rasterize_contributions(
         f32(means).reshape(n, 3), f32(quats).reshape(n, 4), f32(scales).reshape(n, 3),
         f32(opacities).reshape(n), f32(cameras.Ks), f32(cameras.viewmats),
         cameras.widths.contiguous(), cameras.heights.contiguous(),
         request.views.contiguous(), request.x0.contiguous(), request.y0.contiguous(),
         int(request.width), int(request.height), -1 if VISIBLE_CAPACITY is None else int(VISIBLE_CAPACITY),
-        -1 if SINGLE_PASS is None else int(SINGLE_PASS),
+        -1 if SINGLE_PASS is None else int(SINGLE_PASS), deferred,
     )
     pixel, pair, weight, transmittance, valid, offsets, pair_view, pair_gaussian, pair_depth = out[:9]
+    if deferred:
+        plan, meta, ranges, list_pair = out[9:13]
+        return DeferredCudaContributions(
+            tuple(out[9:]),
+            request=request, num_gaussians=int(n), pair_view=pair_view, pair_gaussian=pair_gaussian,
+            pair_depth=pair_depth, transmittance=transmittance, valid=valid,
+            tile_lists=(plan, meta, ranges, list_pair))
     return CudaContributions(
         request=request, num_gaussians=int(n), pair_view=pair_view, pair_gaussian=pair_gaussian,
         pair_depth=pair_depth, pixel=pixel, pair=pair, weight=weight, transmittance=transmittance,
-        valid=valid, pixel_offsets=offsets, tile_lists=tuple(out[9:]),
+        valid=valid, pixel_offsets=offsets, tile_lists=tuple(out[9:13]),
     )
 
 
@@ -224,12 +301,41 @@ class _FusedComposite(torch.autograd.Function):
         return g_colors, g_bg, None
 
 
+class _DeferredComposite(torch.autograd.Function):
+    """The same function as :class:`_FusedComposite`, from deferred lists."""
+
+    @staticmethod
+    def forward(ctx, colors: Tensor, background: Tensor | None, contrib: DeferredCudaContributions) -> Tensor:
+        plan, meta, ranges, list_pair, _px_count, sorted_vals, rec0, rec1, _rank, keep, keep_end = contrib._state
+        bg = background if background is not None else torch.empty(0, device=colors.device)
+        out = _load().deferred_composite_forward(colors.contiguous(), bg.contiguous(), plan, meta, ranges,
+                                                 sorted_vals, list_pair, rec0, rec1, contrib.transmittance,
+                                                 keep, keep_end)
+        ctx.contrib = contrib
+        ctx.has_bg = background is not None
+        ctx.num_pairs = colors.shape[0]
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        c: DeferredCudaContributions = ctx.contrib
+        plan, meta, ranges, list_pair, _px_count, sorted_vals, rec0, rec1, _rank, keep, keep_end = c._state
+        g_colors = g_bg = None
+        if ctx.needs_input_grad[0]:
+            g_colors = _load().deferred_composite_backward(grad.contiguous(), ctx.num_pairs, plan, meta, ranges,
+                                                           sorted_vals, list_pair, rec0, rec1, keep, keep_end)
+        if ctx.has_bg and ctx.needs_input_grad[1]:
+            g_bg = (c.transmittance[:, None] * grad).sum(0)
+        return g_colors, g_bg, None
+
+
 def composite(colors: Tensor, contrib: Contributions, background: Tensor | float | None = None) -> Tensor:
     """The same as :func:`virgi_ns.raster.composite` (kept for callers of this module)."""
     return _composite(colors, contrib, background)
 
 
-__all__ = ["available", "build", "composite", "cuda_home", "rasterize", "CudaContributions"]
+__all__ = ["available", "build", "composite", "cuda_home", "rasterize", "CudaContributions",
+           "DeferredCudaContributions"]
 
 if __name__ == "__main__":  # pragma: no cover - manual build check: python -m virgi_ns.raster.cuda
     build(verbose=True)
