@@ -47,10 +47,11 @@ console = Console()
 RULES: Dict[str, RuleArgs] = {
     # the can's blue -> red; near-white highlights and the grey-white floor are outside the rule
     "beercan": RuleArgs(h0=190.0, h1=250.0, shift=150.0, s_min=0.35, v_min=0.15),
-    # the fern's green leaves -> magenta
-    "fern": RuleArgs(h0=60.0, h1=160.0, shift=200.0, s_min=0.25, v_min=0.1),
-    # the cup's wooden shelf (orange-brown) -> blue
-    "cup": RuleArgs(h0=15.0, h1=50.0, shift=190.0, s_min=0.3, v_min=0.25),
+    # the fern's green leaves -> magenta (s_min low enough to take the pale leaves too: with 0.25
+    # the rule split the fern into shifted and unshifted leaves)
+    "fern": RuleArgs(h0=60.0, h1=160.0, shift=200.0, s_min=0.12, v_min=0.1),
+    # the cup's wooden shelf (orange-brown) -> blue (s_min 0.2 takes the shelf's pale edge too)
+    "cup": RuleArgs(h0=15.0, h1=50.0, shift=190.0, s_min=0.2, v_min=0.25),
 }
 
 
