@@ -6,10 +6,12 @@ Two stages in one nerfstudio run:
    GPU; on a CPU the torch reference rasterizer, degree-0 colours, no densification (tiny scenes
    only). Skipped when ``geometry_from`` imports a splat. Then the Gaussians are frozen: no
    gradients, no strategy callbacks.
-2. **Colour**: batches of tiles (:mod:`virgi_ns.datamanager`) are rasterized once into
-   contribution lists; the colour field runs only for the (view, Gaussian) pairs the batch
-   touches: hash features and MLP_diff per Gaussian, MLP_spec per pair with that pair's view
-   direction. Loss ``L1 + lambda_spec * mean ||c_s||^2``, ``lambda_spec`` decaying linearly from
+2. **Colour**: first (``colour_init="geometry"``) a warm start fits the colour field to each
+   Gaussian's own degree-0 colour, per Gaussian and without rendering
+   (:meth:`VirgiModel.init_colour_field`); then batches of tiles (:mod:`virgi_ns.datamanager`)
+   are rasterized once into contribution lists; the colour field runs only for the (view,
+   Gaussian) pairs the batch touches: hash features and MLP_diff per Gaussian, MLP_spec per pair
+   with that pair's view direction. Loss ``L1 + lambda_spec * mean ||c_s||^2``, ``lambda_spec`` decaying linearly from
    ``lambda_spec_start`` to ``lambda_spec_end`` over the colour stage.
 
 After training the model measures every Gaussian's specular magnitude over the training views
@@ -74,6 +76,13 @@ class VirgiModelConfig(SplatfactoModelConfig):
     is treated as matte."""
     box_quantile: float = 0.01
     """The hash grid's box spans these quantiles of the frozen means (expanded by 10%)."""
+    colour_init: Literal["geometry", "none"] = "geometry"
+    """Start of the colour stage: 'geometry' first fits the colour field to each Gaussian's own
+    degree-0 colour (a warm start, no rendering); 'none' starts from the random field."""
+    colour_init_steps: int = 300
+    """Adam steps of the warm start (the field's own learning rates)."""
+    colour_init_batch: int = 16384
+    """Gaussians per warm-start step (drawn uniformly, weighted by opacity in the loss)."""
 
 
 class VirgiModel(SplatfactoModel):
@@ -129,6 +138,8 @@ class VirgiModel(SplatfactoModel):
         self.colour_start = 0 if self.imported else cfg.geometry_steps
         self.colour_total = max(cfg.colour_steps, 1)
         self._train_cameras_fn = None
+        self._colour_init_done = False  # the warm start runs once per process (see start_colour_stage)
+        self._field_lrs = (1e-2, 1e-3)  # hash grid, MLPs: the trainer's, once its optimizers are known
         # the edit stack applied at render time (see set_edit_stack); not part of the checkpoint
         self.edit_stack = None
         self.segmentation_edit: Optional[int] = None
@@ -214,6 +225,90 @@ class VirgiModel(SplatfactoModel):
         pad = 0.1 * (hi - lo).clamp_min(1e-3)
         self.field.aabb.copy_(torch.stack([lo - pad, hi + pad]).to(self.field.aabb))
 
+    def start_colour_stage(self) -> Optional[Dict[str, float]]:
+        """Freeze the geometry and, once per process, warm-start the colour field
+        (``colour_init``). Runs from the training callback at the colour stage's first step, so a
+        run resumed later in the colour stage keeps its trained field."""
+        self.freeze_geometry()
+        if self._colour_init_done:
+            return None
+        self._colour_init_done = True
+        if self.config.colour_init != "geometry" or self.config.colour_init_steps <= 0:
+            return None
+        return self.init_colour_field(self.config.colour_init_steps)
+
+    def geometry_colours(self) -> Tensor:
+        """Each Gaussian's own view-independent colour [N,3] in [0,1]: its SH degree-0 term
+        (splatfacto trained with ``sh_degree`` 0 stores sigmoid logits instead)."""
+        dc = self.features_dc.detach()
+        if not self.imported and self.config.sh_degree == 0 and self._use_gsplat():
+            return torch.sigmoid(dc)
+        return (SH_C0 * dc + 0.5).clamp(0.0, 1.0)
+
+    def init_colour_field(self, steps: int, batch: Optional[int] = None, eps: float = 0.01) -> Dict[str, float]:
+        """Warm start: fit the field per Gaussian (no rendering) so that ``sigmoid(c_d)`` is the
+        Gaussian's :meth:`geometry_colours` (target ``c_d = logit(colour)``, colours clamped to
+        ``(eps, 1 - eps)``) and ``c_s`` is pushed towards 0. L1 in logit space, weighted by opacity,
+        on mini-batches of Gaussians; Adam with the field's own learning rates, the trainer's
+        optimizer state untouched. Returns the opacity-weighted mean colour error before and after."""
+        fld = self.field
+        n = self.num_points
+        if n == 0 or steps <= 0:
+            return {}
+        dev = self.device
+        means = self.means.detach()
+        target = torch.logit(self.geometry_colours().clamp(eps, 1.0 - eps))
+        weight = torch.sigmoid(self.opacities.detach().reshape(-1)).clamp_min(1e-4)
+        b = min(int(batch or self.config.colour_init_batch), n)
+        grid_lr, mlp_lr = self._field_lrs
+        opt = torch.optim.Adam([{"params": fld.grid_parameters(), "lr": grid_lr},
+                                {"params": fld.mlp_parameters(), "lr": mlp_lr}], eps=1e-15)
+        before = self._colour_init_error(target)
+        with torch.enable_grad():
+            for _ in range(steps):
+                idx = torch.randint(n, (b,), device=dev) if b < n else torch.arange(n, device=dev)
+                f = fld.encode(means[idx])
+                dirs = torch.nn.functional.normalize(torch.randn(b, 3, device=dev), dim=-1)
+                if fld.decoupled:
+                    h1, h2 = fld.diffuse_hidden(f)
+                    c_d = fld.diffuse(h2)
+                    spec = (fld.specular(f, dirs, h1, h2) ** 2).sum(-1)
+                else:  # the single MLP sees directions throughout; its colour is c_d alone
+                    _, h2 = fld.diffuse_hidden(f, dirs)
+                    c_d = fld.diffuse(h2)
+                    spec = c_d.new_zeros(b)
+                w = weight[idx]
+                per = (c_d - target[idx]).abs().mean(-1) + spec
+                loss = (per * w).sum() / w.sum()
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+        for p in fld.parameters():
+            p.grad = None
+        after = self._colour_init_error(target)
+        CONSOLE.log(f"virgi: colour field warm-started from the geometry's colours ({steps} steps of {b:,} "
+                    f"Gaussians): mean colour error {before:.3f} -> {after:.3f}")
+        return {"error_before": before, "error_after": after}
+
+    @torch.no_grad()
+    def _colour_init_error(self, target_logit: Tensor, chunk: int = 65536) -> float:
+        """Opacity-weighted mean |sigmoid(c_d) - colour| over all Gaussians (a random direction per
+        Gaussian for the single MLP)."""
+        fld = self.field
+        means = self.means.detach()
+        weight = torch.sigmoid(self.opacities.detach().reshape(-1))
+        err = means.new_zeros(())
+        for s in range(0, self.num_points, chunk):
+            f = fld.encode(means[s : s + chunk])
+            if fld.decoupled:
+                _, h2 = fld.diffuse_hidden(f)
+            else:
+                dirs = torch.nn.functional.normalize(torch.randn(f.shape[0], 3, device=f.device), dim=-1)
+                _, h2 = fld.diffuse_hidden(f, dirs)
+            diff = (torch.sigmoid(fld.diffuse(h2)) - torch.sigmoid(target_logit[s : s + chunk])).abs().mean(-1)
+            err = err + (diff * weight[s : s + chunk]).sum()
+        return float(err / weight.sum().clamp_min(1e-12))
+
     @property
     def geometry_frozen(self) -> bool:
         return bool(self.frozen)
@@ -242,6 +337,16 @@ class VirgiModel(SplatfactoModel):
         cbs = super().get_training_callbacks(attrs)
         trainer = attrs.trainer
         pipeline = attrs.pipeline
+        if attrs.optimizers is not None:  # the warm start uses the field's own learning rates
+            conf = attrs.optimizers.config
+            self._field_lrs = tuple(float(conf[k]["optimizer"].lr) if k in conf else lr
+                                    for k, lr in zip(("field_grid", "field_mlp"), self._field_lrs))
+
+        def colour_start(step: int) -> None:
+            if step == self.colour_start:
+                self.start_colour_stage()
+
+        cbs.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], colour_start))
         if trainer is not None:
             total = int(trainer.config.max_num_iterations)
             self.colour_total = max(total - self.colour_start, 1)

@@ -1,0 +1,138 @@
+"""The colour stage's warm start: the field is fitted to each Gaussian's own degree-0 colour."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+from nerfstudio.engine.callbacks import TrainingCallbackLocation
+
+from method_configs.virgi import virgi_trainer_config
+from virgi_ns.field import ColorFieldConfig
+from virgi_ns.gaussians import SH_C0
+from virgi_ns.io import save_ply
+from virgi_ns.pipeline import train_step, training_state
+
+from virgi_scene import Scene, make_scene
+
+warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Scene:
+    return make_scene(tmp_path_factory.mktemp("colour_init_scene"))
+
+
+@pytest.fixture(scope="module")
+def random_ply(scene, tmp_path_factory) -> tuple[Path, torch.Tensor]:
+    """The scene's geometry with a random colour per Gaussian (and random opacities)."""
+    gen = torch.Generator().manual_seed(1)
+    n = len(scene.gaussians)
+    colours = torch.rand(n, 3, generator=gen)
+    g = replace(scene.gaussians, sh=((colours - 0.5) / SH_C0)[:, None, :],
+                opacities=torch.empty(n).uniform_(0.0, 4.0, generator=gen))
+    path = tmp_path_factory.mktemp("colour_init_ply") / "random.ply"
+    save_ply(g, path)
+    return path, colours
+
+
+def _config(scene: Scene, colour_init: str, geometry_steps: int = 0, decoupled: bool = True):
+    cfg = virgi_trainer_config("virgi-test", decoupled=decoupled, geometry_steps=geometry_steps, colour_steps=4)
+    dm = cfg.pipeline.datamanager
+    dm.data = scene.root
+    dm.dataparser = NerfstudioDataParserConfig(data=scene.root, load_3D_points=False, eval_mode="interval",
+                                               eval_interval=8)
+    dm.tile_size = 16
+    dm.pixel_budget = 5 * 256
+    dm.cache_images = "gpu"
+    m = cfg.pipeline.model
+    m.background_color = "black"
+    m.color_field = ColorFieldConfig(log2_hashmap_size=12, levels=8, decoupled=decoupled)
+    m.raster_backend = "reference"
+    m.colour_init = colour_init  # type: ignore[assignment]
+    m.colour_init_steps = 200
+    return cfg
+
+
+def _field_colours(model) -> tuple[torch.Tensor, torch.Tensor]:
+    """sigmoid(c_d) and c_s of every Gaussian (random directions; the single MLP's c_d sees them)."""
+    fld = model.field
+    with torch.no_grad():
+        f = fld.encode(model.means.detach())
+        d = torch.nn.functional.normalize(torch.randn(f.shape[0], 3, generator=torch.Generator().manual_seed(2)), dim=-1)
+        if fld.decoupled:
+            h1, h2 = fld.diffuse_hidden(f)
+            return torch.sigmoid(fld.diffuse(h2)), fld.specular(f, d, h1, h2)
+        _, h2 = fld.diffuse_hidden(f, d)
+        return torch.sigmoid(fld.diffuse(h2)), torch.zeros_like(f[:, :3])
+
+
+def _imported(scene, ply: Path, colour_init: str, decoupled: bool = True):
+    torch.manual_seed(0)
+    cfg = _config(scene, colour_init, decoupled=decoupled)
+    cfg.pipeline.model.geometry_from = ply
+    pipeline = cfg.pipeline.setup(device="cpu", test_mode="val")
+    optimizers, cbs = training_state(cfg, pipeline)
+    return pipeline, optimizers, cbs
+
+
+@pytest.mark.parametrize("decoupled", [True, False], ids=["virgi", "single-mlp"])
+def test_warm_start_fits_the_geometry_colours(scene, random_ply, decoupled):
+    ply, colours = random_ply
+    errors = {}
+    for init in ("geometry", "none"):
+        pipeline, optimizers, cbs = _imported(scene, ply, init, decoupled)
+        model = pipeline.model
+        for cb in cbs:  # the colour stage's first step starts with the warm start
+            cb.run_callback_at_location(0, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+        rgb, c_s = _field_colours(model)
+        errors[init] = float((rgb - colours).abs().mean())
+        assert float(c_s.abs().max()) < 1e-3  # the specular branch stays (near) zero
+        assert model.geometry_frozen and not model.means.requires_grad
+    assert errors["geometry"] < 0.03, errors
+    assert errors["none"] > 0.15, errors
+
+
+def test_warm_start_runs_once_and_not_on_resume(scene, random_ply):
+    ply, _ = random_ply
+    pipeline, optimizers, cbs = _imported(scene, ply, "geometry")
+    model = pipeline.model
+    # a run resumed inside the colour stage: the first step it takes is not the colour stage's first
+    before = [p.detach().clone() for p in model.field.parameters()]
+    for cb in cbs:
+        cb.run_callback_at_location(3, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+    assert all(torch.equal(a, p) for a, p in zip(before, model.field.parameters()))
+    # the colour stage's first step warm-starts; asking again does nothing
+    assert model.start_colour_stage() is not None
+    fitted = [p.detach().clone() for p in model.field.parameters()]
+    assert not all(torch.equal(a, p) for a, p in zip(before, fitted))
+    assert model.start_colour_stage() is None
+    for cb in cbs:
+        cb.run_callback_at_location(0, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+    assert all(torch.equal(a, p) for a, p in zip(fitted, model.field.parameters()))
+
+
+def test_warm_start_after_own_geometry_stage(scene):
+    """Without an import, the warm start follows the CPU geometry stage, from the trained colours."""
+    errors = {}
+    for init in ("geometry", "none"):
+        torch.manual_seed(0)
+        cfg = _config(scene, init, geometry_steps=2)
+        m = cfg.pipeline.model
+        m.random_init = True
+        m.num_random = 150
+        m.random_scale = 1.0
+        m.num_downscales = 0
+        pipeline = cfg.pipeline.setup(device="cpu", test_mode="val")
+        optimizers, cbs = training_state(cfg, pipeline)
+        model = pipeline.model
+        for step in range(3):
+            train_step(pipeline, optimizers, cbs, step)
+            assert model.geometry_frozen == (step >= 2)
+        rgb, _ = _field_colours(model)
+        errors[init] = float((rgb - model.geometry_colours()).abs().mean())
+    assert errors["geometry"] < 0.03 and errors["none"] > 0.1, errors
