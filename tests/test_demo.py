@@ -45,13 +45,17 @@ def test_demo_pipeline_on_a_tiny_capture(tmp_path):
     scene = _tiny_bundle(tmp_path)
     out = tmp_path / "out"
     cfg = DemoConfig(out=out, scene=scene, colour_steps=4, tile_size=16, views_per_anchor=3, pixel_budget=768,
-                     hash_log2=12, edit_steps=8, grid_views=1, export_directions=8)
+                     hash_log2=12, edit_steps=8, grid_views=1, export_directions=8, colour_init_steps=20,
+                     colour_init_batch=512)
     metrics = run(cfg)
     assert metrics["geometry"] == str(scene / "geometry.ply")  # the bundle's geometry was imported
     assert metrics["train_views"] == 7 and metrics["held_out_views"] == 1  # every 8th held out: frame 0
     for key in ("reconstruction_psnr", "recolour_psnr", "propagation_psnr", "edit_fit_psnr"):
         assert math.isfinite(metrics[key]) and metrics[key] > 5, key
     assert metrics["edit_time_s"]["steps_count"] == 8 and metrics["edit_time_s"]["total"] > 0
+    # the colour stage started from the geometry's colours (the model's warm start), timed on its own
+    assert metrics["colour_init"] == {"mode": "geometry", "steps": 20, "batch": 512}
+    assert metrics["times_s"]["colour_init_s"] > 0
     # files
     saved = json.loads((out / "metrics.json").read_text())
     assert saved["recolour_psnr"] == pytest.approx(metrics["recolour_psnr"])

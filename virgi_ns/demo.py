@@ -2,9 +2,10 @@
 
 1. **Geometry**: the bundle's pre-trained ``geometry.ply`` (capture frame) when present, else a
    short geometry stage on this machine (the reference rasterizer on a CPU: coarse, but it runs).
-2. **Colour**: the colour stage of ``ns-train virgi`` on multi-view tile batches. On a CPU every
-   training view is rasterized once (:class:`~virgi_ns.contrib_cache.ContributionCache`) and
-   the tiles are sliced from those lists.
+2. **Colour**: the colour stage of ``ns-train virgi``: the field is warm-started from the
+   geometry's own colours (the model's ``colour_init``), then trained on multi-view tile batches.
+   On a CPU every training view is rasterized once
+   (:class:`~virgi_ns.contrib_cache.ContributionCache`) and the tiles are sliced from those lists.
 3. **Edit**: the recolour rule (:mod:`virgi_ns.recolor`, the can's blue to red) applied to the
    photo of one training view (the one where the rule selects most pixels) is the edited image;
    :class:`~virgi_ns.edit.EditEngine` fits the edit.
@@ -65,7 +66,14 @@ class DemoConfig:
     (half at 1/4, half at 1/2 resolution, no densification: a coarse stand-in seeded from the
     sparse points)."""
     colour_steps: Optional[int] = None
-    """Colour-stage steps; default 5000 on a GPU, 600 on a CPU."""
+    """Colour-stage steps; default 5000 on a GPU, 1000 on a CPU."""
+    colour_init: Literal["geometry", "none"] = "geometry"
+    """Warm-start the colour field from the geometry's own colours before the colour steps
+    (the model's ``colour_init``), or start from a random field."""
+    colour_init_steps: Optional[int] = None
+    """Warm-start steps; default 200 on a CPU, the model's (300) on a GPU."""
+    colour_init_batch: Optional[int] = None
+    """Gaussians per warm-start step; default 4096 on a CPU, the model's (16384) on a GPU."""
     tile_size: int = 32
     views_per_anchor: int = 5
     pixel_budget: Optional[int] = None
@@ -133,6 +141,13 @@ def trainer_config(cfg: DemoConfig, scene: Path, geometry: Optional[Path], use_c
         163840 if torch.cuda.is_available() and cfg.device != "cpu" else 2 * 5 * 32 * 32)
     m = tc.pipeline.model
     m.geometry_from = geometry
+    m.colour_init = cfg.colour_init
+    if not (torch.cuda.is_available() and cfg.device != "cpu"):  # a CPU: a shorter warm start (~20 s)
+        m.colour_init_steps, m.colour_init_batch = 200, 4096
+    if cfg.colour_init_steps is not None:
+        m.colour_init_steps = cfg.colour_init_steps
+    if cfg.colour_init_batch is not None:
+        m.colour_init_batch = cfg.colour_init_batch
     m.color_field = ColorFieldConfig(log2_hashmap_size=cfg.hash_log2)
     if g_steps > 0 and (cfg.device == "cpu" or not torch.cuda.is_available()):
         m.num_downscales = 2  # a CPU affords 1/4 resolution for the first half, 1/2 for the second
@@ -147,7 +162,7 @@ def colour_steps(cfg: DemoConfig, geometry: Optional[Path]) -> int:
         return cfg.colour_steps
     if torch.cuda.is_available() and cfg.device != "cpu":
         return 5000
-    return 600
+    return 1000
 
 
 def geometry_steps(cfg: DemoConfig) -> int:
@@ -157,7 +172,7 @@ def geometry_steps(cfg: DemoConfig) -> int:
 
 
 def train(pipeline, tc, steps: int, on_step: Callable[[int, Dict[str, float]], None],
-          before_colour: Callable[[], None]) -> None:
+          before_colour: Callable[[], None], after_init: Callable[[], None] = lambda: None) -> None:
     """nerfstudio's training loop (callbacks, optimizers, schedulers), without checkpoints or viewer."""
     from virgi_ns.pipeline import train_step, training_state
 
@@ -168,6 +183,8 @@ def train(pipeline, tc, steps: int, on_step: Callable[[int, Dict[str, float]], N
         if not prepared and model.in_colour_stage(step):
             model.freeze_geometry()
             before_colour()
+            model.start_colour_stage()  # the warm start (the model's callback would run it at this step)
+            after_init()
             prepared = True
         _, metrics = train_step(pipeline, opt, cbs, step)
         on_step(step, {k: float(torch.as_tensor(v).detach()) for k, v in metrics.items() if k == "psnr"})
@@ -303,11 +320,13 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                 if not console.is_terminal and (done % max(1, n // 10) == 0 or done == n):
                     console.log(f"{stage} step {done}/{n} {info}")  # a log file gets lines, not a bar
 
-            train(pipeline, tc, total, on_step, before_colour)
+            train(pipeline, tc, total, on_step, before_colour,
+                  after_init=lambda: marks.__setitem__("init_done", time.perf_counter()))
             end = time.perf_counter()
             times["geometry_s"] = marks.get("geometry_done", end) - marks["start"]
             times["contribution_cache_s"] = marks.get("cache_done", end) - marks.get("geometry_done", end)
-            times["colour_s"] = end - marks.get("cache_done", end)
+            times["colour_init_s"] = marks.get("init_done", end) - marks.get("cache_done", end)
+            times["colour_s"] = end - marks.get("init_done", end)
             if use_cache:
                 model.contrib_cache = None  # frees the lists
 
@@ -409,6 +428,8 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             "train_views": len(dm.train_dataset), "held_out_views": n_eval,
             "resolution": [int(train_cams.widths[0]), int(train_cams.heights[0])],
             "geometry_steps": g_steps, "colour_steps": n_colour,
+            "colour_init": {"mode": cfg.colour_init, "steps": int(model.config.colour_init_steps),
+                            "batch": int(model.config.colour_init_batch)},
             "rule": rule.to_dict(),
             "edit_view": {"index": edit_view, "image": src_name, "source": cfg.edit_source,
                           "rule_pixels": int(edit_mask.sum())},
