@@ -56,6 +56,7 @@ def test_demo_pipeline_on_a_tiny_capture(tmp_path):
     # the colour stage started from the geometry's colours (the model's warm start), timed on its own
     assert metrics["colour_init"] == {"mode": "geometry", "steps": 20, "batch": 512}
     assert metrics["times_s"]["colour_init_s"] > 0
+    assert all(isinstance(v, int) and v >= 0 for v in metrics["rule_pixels"].values())
     # files
     saved = json.loads((out / "metrics.json").read_text())
     assert saved["recolour_psnr"] == pytest.approx(metrics["recolour_psnr"])

@@ -388,17 +388,21 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                 ed = render_view(frozen, eval_cams, i, stack, contrib=contribs[i])
                 b = base[i]
                 photo = eval_images[i]
-                truth, _ = recolor(photo, rule)
+                truth, truth_mask = recolor(photo, rule)
                 prop_truth, prop_mask = recolor(b["rgb"].clamp(0, 1), rule)
                 e_rgb = ed["rgb"].clamp(0, 1)
                 per_view.append({
                     "view": Path(dm.eval_dataset.image_filenames[i]).name,
                     "reconstruction_psnr": psnr(b["rgb"].clamp(0, 1), photo),
                     "recolour_psnr": psnr(e_rgb, truth),
+                    "recolour_psnr_inside_mask": psnr(e_rgb, truth, truth_mask),
+                    "unedited_psnr_inside_mask": psnr(b["rgb"].clamp(0, 1), truth, truth_mask),
                     "propagation_psnr": psnr(e_rgb, prop_truth),
                     "propagation_psnr_inside_mask": psnr(e_rgb, prop_truth, prop_mask),
                     "propagation_psnr_outside_mask": psnr(e_rgb, prop_truth, ~prop_mask),
                     "mask_fraction": float(prop_mask.float().mean()),
+                    "rule_pixels_render": int(prop_mask.sum()),
+                    "rule_pixels_photo": int(truth_mask.sum()),
                 })
                 if len(rows) < cfg.grid_views:
                     rows.append({"photo": photo, "render": b["rgb"], "recoloured": e_rgb,
@@ -435,10 +439,14 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                           "rule_pixels": int(edit_mask.sum())},
             "reconstruction_psnr": _mean([v["reconstruction_psnr"] for v in per_view]),
             "recolour_psnr": _mean([v["recolour_psnr"] for v in per_view]),
+            "recolour_psnr_inside_mask": _mean([v["recolour_psnr_inside_mask"] for v in per_view]),
+            "unedited_psnr_inside_mask": _mean([v["unedited_psnr_inside_mask"] for v in per_view]),
             "propagation_psnr": _mean([v["propagation_psnr"] for v in per_view]),
             "propagation_psnr_inside_mask": _mean([v["propagation_psnr_inside_mask"] for v in per_view]),
             "propagation_psnr_outside_mask": _mean([v["propagation_psnr_outside_mask"] for v in per_view]),
             "edit_fit_psnr": edit_fit_psnr,
+            "rule_pixels": {"unedited_renders": sum(v["rule_pixels_render"] for v in per_view),
+                            "photos": sum(v["rule_pixels_photo"] for v in per_view)},
             "edit_time_s": {"setup": timing.setup_s, "steps": timing.steps_s, "total": timing.total_s,
                             "steps_count": timing.steps},
             "times_s": times,
@@ -446,9 +454,14 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             "definitions": {
                 "reconstruction_psnr": "unedited render vs held-out photo",
                 "recolour_psnr": "edited render vs the rule applied to the held-out photo",
+                "recolour_psnr_inside_mask": "the same on the pixels the rule recolours in the photo (the can);"
+                                             " unedited_psnr_inside_mask: the unedited render there (no edit)",
                 "propagation_psnr": "edited render vs the rule applied to the unedited render (isolates the edit);"
                                     " inside_mask: pixels the rule recolours (misses), outside: the rest (leaks)",
                 "edit_fit_psnr": "edited view's render vs the edited image (the rule applied to its photo or render)",
+                "rule_pixels": "held-out pixels the rule recolours, summed over the held-out views: in the unedited"
+                               " renders (what the edit can visibly change) and in the photos",
+                "mask_fraction": "per view: share of pixels the rule recolours in the unedited render",
             },
         }
         cfg.out.mkdir(parents=True, exist_ok=True)
@@ -476,7 +489,8 @@ def summary_table(metrics: Dict[str, object]):
     t = Table(title="virgi demo")
     t.add_column("figure")
     t.add_column("value", justify="right")
-    for key in ("reconstruction_psnr", "recolour_psnr", "propagation_psnr", "propagation_psnr_inside_mask",
+    for key in ("reconstruction_psnr", "recolour_psnr", "recolour_psnr_inside_mask", "unedited_psnr_inside_mask",
+                "propagation_psnr", "propagation_psnr_inside_mask",
                 "propagation_psnr_outside_mask", "edit_fit_psnr"):
         t.add_row(key.replace("_", " "), f"{metrics[key]:.2f} dB")
     et = metrics["edit_time_s"]
