@@ -7,6 +7,7 @@
 #include <cuda_runtime.h>
 
 #include "kernels.h"
+#include "unit_pixel.cuh"
 
 namespace virgi {
 
@@ -83,22 +84,16 @@ __global__ void __launch_bounds__(kTile* kTile)
   constexpr int B = kTile * kTile;
   __shared__ int s_pair[B];
   __shared__ float s_acc[B * D];
-  const int* u = units + blockIdx.x * kUnitInts;
-  const int item = u[0], slot = u[1], gx = u[2], gy = u[3];
-  const int* it = items + item * kItemInts;
-  const int* vt = views + it[0] * kViewInts;
-  const int ix0 = it[1], iy0 = it[2], W = vt[1], H = vt[2];
-  const int tid = threadIdx.x;
-  const int X = gx * kTile + tid % kTile, Y = gy * kTile + tid / kTile;
-  const bool inside = X >= max(ix0, 0) && X < min(ix0 + item_w, W) && Y >= max(iy0, 0) &&
-                      Y < min(iy0 + item_h, H);
+  const UnitPixel px = unit_pixel(units, items, views, item_w, item_h);
+  const int tid = threadIdx.x, slot = px.slot;
+  const bool inside = px.inside;
   int64_t e = 0, e_end = 0;
   int q = -1;
   float gv[D];
 #pragma unroll
   for (int d = 0; d < D; ++d) gv[d] = 0.f;
   if (inside) {
-    const int64_t p = (static_cast<int64_t>(item) * item_h + (Y - iy0)) * item_w + (X - ix0);
+    const int64_t p = px.p;
     e = offsets[p];
     e_end = offsets[p + 1];
     if (e < e_end) q = pair[e];

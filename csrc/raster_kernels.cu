@@ -14,6 +14,7 @@
 #include <cuda_runtime.h>
 
 #include "kernels.h"
+#include "unit_pixel.cuh"
 
 namespace virgi {
 
@@ -23,9 +24,6 @@ constexpr int kThreads = 256;
 constexpr float kNear = 0.01f;
 constexpr float kFar = 1e10f;
 constexpr float kEps2d = 0.3f;
-constexpr float kAlphaMin = 1.f / 255.f;
-constexpr float kAlphaMax = 0.999f;
-constexpr float kTMin = 1e-4f;
 
 // Tile rectangle [x0, x1) x [y0, y1) of a projected Gaussian on a gw x gh grid.
 __device__ __forceinline__ void tile_rect(float mx, float my, float radius, int gw, int gh, int& x0,
@@ -304,24 +302,10 @@ __global__ void __launch_bounds__(kTile* kTile)
   __shared__ float4 s_r0[B];
   __shared__ float4 s_r1[B];
 
-  const int* u = units + blockIdx.x * kUnitInts;
-  const int item = u[0], slot = u[1], gx = u[2], gy = u[3];
-  const int* it = items + item * kItemInts;
-  const int* vt = views + it[0] * kViewInts;
-  const int ix0 = it[1], iy0 = it[2], W = vt[1], H = vt[2];
-  const int tid = threadIdx.x;
-  const int lx = tid % kTile, ly = tid / kTile;
-  const int X = gx * kTile + lx;
-  const int Y = gy * kTile + ly;
-  const bool inside = X >= max(ix0, 0) && X < min(ix0 + item_w, W) && Y >= max(iy0, 0) &&
-                      Y < min(iy0 + item_h, H);
-  const int64_t p =
-      (static_cast<int64_t>(item) * item_h + (Y - iy0)) * item_w + (X - ix0);
-  // Offsets from the centre of the tile's first pixel, then the pixel within the tile (the
-  // reference's order of operations).
-  const float tcx = static_cast<float>(gx * kTile) + 0.5f;
-  const float tcy = static_cast<float>(gy * kTile) + 0.5f;
-  const float flx = static_cast<float>(lx), fly = static_cast<float>(ly);
+  const UnitPixel px = unit_pixel(units, items, views, item_w, item_h);
+  const int tid = threadIdx.x, slot = px.slot;
+  const bool inside = px.inside;
+  const int64_t p = px.p;
 
   const int start = ranges[2 * slot], end = ranges[2 * slot + 1];
   bool done = !inside;
@@ -385,13 +369,8 @@ __global__ void __launch_bounds__(kTile* kTile)
     __syncthreads();
     const int nb = min(B, end - b0);
     for (int t = 0; t < nb && !done; ++t) {
-      const float4 m = s_r0[t];
-      const float4 q = s_r1[t];
-      const float dx = (m.x - tcx) - flx, dy = (m.y - tcy) - fly;
-      const float e = dx - q.y * dy;
-      const float sigma = 0.5f * (q.x * e * e + q.z * dy * dy);
-      const float alpha = fminf(kAlphaMax, m.w * expf(-sigma));
-      if (sigma < 0.f || alpha < kAlphaMin) continue;
+      float alpha;
+      if (!pixel_alpha(s_r0[t], s_r1[t], px, alpha)) continue;
       const float next_T = T * (1.f - alpha);
       if (next_T <= kTMin) {
         if (KEEP) s_keep[t] = 1;
@@ -554,20 +533,10 @@ __global__ void __launch_bounds__(kTile* kTile)
   __shared__ float4 s_r0[B];
   __shared__ float4 s_r1[B];
   __shared__ float s_c[B * D];
-  const int* u = units + blockIdx.x * kUnitInts;
-  const int item = u[0], slot = u[1], gx = u[2], gy = u[3];
-  const int* it = items + item * kItemInts;
-  const int* vt = views + it[0] * kViewInts;
-  const int ix0 = it[1], iy0 = it[2], W = vt[1], H = vt[2];
-  const int tid = threadIdx.x;
-  const int lx = tid % kTile, ly = tid / kTile;
-  const int X = gx * kTile + lx, Y = gy * kTile + ly;
-  const bool inside = X >= max(ix0, 0) && X < min(ix0 + item_w, W) && Y >= max(iy0, 0) &&
-                      Y < min(iy0 + item_h, H);
-  const int64_t p = (static_cast<int64_t>(item) * item_h + (Y - iy0)) * item_w + (X - ix0);
-  const float tcx = static_cast<float>(gx * kTile) + 0.5f;
-  const float tcy = static_cast<float>(gy * kTile) + 0.5f;
-  const float flx = static_cast<float>(lx), fly = static_cast<float>(ly);
+  const UnitPixel px = unit_pixel(units, items, views, item_w, item_h);
+  const int tid = threadIdx.x, slot = px.slot;
+  const bool inside = px.inside;
+  const int64_t p = px.p;
   const int start = ranges[2 * slot];
   const int end = keep_list ? keep_end[slot] : ranges[2 * slot + 1];
   bool done = !inside;
@@ -589,13 +558,8 @@ __global__ void __launch_bounds__(kTile* kTile)
     __syncthreads();
     const int nb = min(B, end - b0);
     for (int t = 0; t < nb && !done; ++t) {
-      const float4 m = s_r0[t];
-      const float4 qq = s_r1[t];
-      const float dx = (m.x - tcx) - flx, dy = (m.y - tcy) - fly;
-      const float e = dx - qq.y * dy;
-      const float sigma = 0.5f * (qq.x * e * e + qq.z * dy * dy);
-      const float alpha = fminf(kAlphaMax, m.w * expf(-sigma));
-      if (sigma < 0.f || alpha < kAlphaMin) continue;
+      float alpha;
+      if (!pixel_alpha(s_r0[t], s_r1[t], px, alpha)) continue;
       const float next_T = T * (1.f - alpha);
       if (next_T <= kTMin) {
         done = true;
@@ -630,20 +594,10 @@ __global__ void __launch_bounds__(kTile* kTile)
   __shared__ float4 s_r1[B];
   __shared__ int s_q[B];
   __shared__ float s_acc[B * D];
-  const int* u = units + blockIdx.x * kUnitInts;
-  const int item = u[0], slot = u[1], gx = u[2], gy = u[3];
-  const int* it = items + item * kItemInts;
-  const int* vt = views + it[0] * kViewInts;
-  const int ix0 = it[1], iy0 = it[2], W = vt[1], H = vt[2];
-  const int tid = threadIdx.x;
-  const int lx = tid % kTile, ly = tid / kTile;
-  const int X = gx * kTile + lx, Y = gy * kTile + ly;
-  const bool inside = X >= max(ix0, 0) && X < min(ix0 + item_w, W) && Y >= max(iy0, 0) &&
-                      Y < min(iy0 + item_h, H);
-  const int64_t p = (static_cast<int64_t>(item) * item_h + (Y - iy0)) * item_w + (X - ix0);
-  const float tcx = static_cast<float>(gx * kTile) + 0.5f;
-  const float tcy = static_cast<float>(gy * kTile) + 0.5f;
-  const float flx = static_cast<float>(lx), fly = static_cast<float>(ly);
+  const UnitPixel px = unit_pixel(units, items, views, item_w, item_h);
+  const int tid = threadIdx.x, slot = px.slot;
+  const bool inside = px.inside;
+  const int64_t p = px.p;
   const int start = ranges[2 * slot];
   const int end = keep_list ? keep_end[slot] : ranges[2 * slot + 1];
   bool done = !inside;
@@ -668,21 +622,14 @@ __global__ void __launch_bounds__(kTile* kTile)
     for (int t = 0; t < nb; ++t) {
       if (__all_sync(0xffffffffu, done)) break;
       float w = 0.f;
-      if (!done) {
-        const float4 m = s_r0[t];
-        const float4 qq = s_r1[t];
-        const float dx = (m.x - tcx) - flx, dy = (m.y - tcy) - fly;
-        const float e = dx - qq.y * dy;
-        const float sigma = 0.5f * (qq.x * e * e + qq.z * dy * dy);
-        const float alpha = fminf(kAlphaMax, m.w * expf(-sigma));
-        if (!(sigma < 0.f || alpha < kAlphaMin)) {
-          const float next_T = T * (1.f - alpha);
-          if (next_T <= kTMin) {
-            done = true;
-          } else {
-            w = alpha * T;
-            T = next_T;
-          }
+      float alpha;
+      if (!done && pixel_alpha(s_r0[t], s_r1[t], px, alpha)) {
+        const float next_T = T * (1.f - alpha);
+        if (next_T <= kTMin) {
+          done = true;
+        } else {
+          w = alpha * T;
+          T = next_T;
         }
       }
       const unsigned bal = __ballot_sync(0xffffffffu, w != 0.f);

@@ -154,6 +154,11 @@ class CudaContributions(Contributions):
                  and colors.dim() == 2 and not self.weight.requires_grad)
         if not fused:
             return _plain_composite(colors, self, background)
+        return self._run(_FusedComposite, colors, background)
+
+    def _run(self, fn, colors: Tensor, background: Tensor | float | None) -> Tensor:
+        """Check the colours against the pairs, shape the background as [D], apply the kernels'
+        autograd function ``fn`` and return the [T, h, w, D] images."""
         if colors.shape[0] != self.pair_view.shape[0]:
             raise ValueError(f"composite: {colors.shape[0]} colours for {self.pair_view.shape[0]} pairs")
         d = colors.shape[1]
@@ -161,7 +166,7 @@ class CudaContributions(Contributions):
         if background is not None:
             bg = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(-1).expand(d)
             bg = bg.contiguous()
-        out = _FusedComposite.apply(colors, bg, self)
+        out = fn.apply(colors, bg, self)
         t, h, w = self.shape
         return out.reshape(t, h, w, d)
 
@@ -196,16 +201,7 @@ class DeferredCudaContributions(CudaContributions):
         if not (colors.is_cuda and colors.dtype == torch.float32 and colors.dim() == 2
                 and 1 <= colors.shape[1] <= 8):
             return super().composite(colors, background)
-        if colors.shape[0] != self.pair_view.shape[0]:
-            raise ValueError(f"composite: {colors.shape[0]} colours for {self.pair_view.shape[0]} pairs")
-        d = colors.shape[1]
-        bg = None
-        if background is not None:
-            bg = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(-1).expand(d)
-            bg = bg.contiguous()
-        out = _DeferredComposite.apply(colors, bg, self)
-        t, h, w = self.shape
-        return out.reshape(t, h, w, d)
+        return self._run(_DeferredComposite, colors, background)
 
 
 def _lazy_field(name: str) -> property:
