@@ -4,7 +4,7 @@
 # STAGE picks the work: "train" (builds, then bench/train.py), "rest" (export, edit, demo geometry),
 # or any single one of export|edit|demo. Runs go under /tmp/runs (kept while the machine is warm);
 # tables, JSON, pictures and logs are packed into $OUT. Environment knobs: STEPS, COLOUR_STEPS,
-# DEMO_STEPS.
+# DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE.
 set -o pipefail
 export TORCH_EXTENSIONS_DIR=/tmp/torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
 export PYTHONPATH=/tmp/site:$PWD NERFSTUDIO_METHOD_CONFIGS="virgi=method_configs.virgi:virgi_method"
@@ -62,10 +62,14 @@ if stage export; then
   cp $RUNS/export/export_results.json $OUT/ 2>/dev/null
 fi
 if stage demo; then
-  el "demo geometry: $DEMO_STEPS steps"
-  python3 scripts/train_demo_geometry.py --source $PWD/.data/beercan --steps $DEMO_STEPS --out $RUNS/geometry.ply \
-    > $OUT/demo.log 2>&1; el "demo rc=$?"
-  tail -n 15 $OUT/demo.log
-  cp $RUNS/geometry.ply $OUT/ 2>/dev/null
+  # DEMO_VARIANTS: space-separated downscale:cap pairs, one geometry file each
+  for v in ${DEMO_VARIANTS:-2:60000}; do
+    ds=${v%%:*}; cap=${v##*:}
+    el "demo geometry: $DEMO_STEPS steps, 1/$ds, cap $cap"
+    python3 scripts/train_demo_geometry.py --source $PWD/.data/beercan --steps $DEMO_STEPS --downscale $ds --cap $cap \
+      --finetune-steps ${DEMO_FINETUNE:-3000} --out $RUNS/geometry_ds${ds}_${cap}.ply > $OUT/demo_ds${ds}_${cap}.log 2>&1
+    el "demo rc=$?"; grep -a "wrote\|kept\|fine-tuned\|Error" $OUT/demo_ds${ds}_${cap}.log | tail -n 5
+    cp $RUNS/geometry_ds${ds}_${cap}.ply $OUT/ 2>/dev/null
+  done
 fi
 el done

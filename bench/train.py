@@ -84,15 +84,53 @@ def quiet(cfg, out: Path, name: str) -> None:
     cfg.viewer.quit_on_train_completion = True
 
 
-def train(cfg) -> tuple[object, float, Path]:
+def train(cfg) -> tuple[object, float, Path, Dict[str, float]]:
+    """Train; returns (trainer, seconds, checkpoint folder, breakdown). The breakdown sums the
+    wall time of nerfstudio's train iterations by stage without extra synchronisation (the CPU runs
+    at most a few steps ahead of the GPU, and every 10th step logs a loss, which synchronises), and
+    names the time spent outside the iterations (checkpoint writing, the trainer's own set-up)."""
     cfg.save_config()  # config.yml beside the checkpoint, so bench/export.py and bench/edit.py can load the run
     trainer = cfg.setup(local_rank=0, world_size=1)
     trainer.setup()
+    steps: List[tuple[int, float]] = []
+    inner = trainer.train_iteration
+
+    def timed_iteration(step: int):
+        t = time.perf_counter()
+        out = inner(step)
+        steps.append((step, time.perf_counter() - t))
+        return out
+
+    trainer.train_iteration = timed_iteration  # type: ignore[method-assign]
     torch.cuda.synchronize()
     t0 = time.perf_counter()
     trainer.train()
     torch.cuda.synchronize()
-    return trainer, time.perf_counter() - t0, Path(cfg.get_base_dir()) / "nerfstudio_models"
+    total = time.perf_counter() - t0
+    return trainer, total, Path(cfg.get_base_dir()) / "nerfstudio_models", breakdown(trainer, steps, total)
+
+
+def breakdown(trainer, steps: List[tuple[int, float]], total: float) -> Dict[str, float]:
+    """Seconds by stage: geometry steps, the colour stage's first step (warm start included), the
+    other colour steps, the last step (the specular gate's measurement), outside the iterations."""
+    from virgi_ns.model import VirgiModel
+
+    model = trainer.pipeline.model
+    res: Dict[str, float] = {"iterations_s": sum(s for _, s in steps)}
+    res["outside_iterations_s"] = total - res["iterations_s"]
+    if isinstance(model, VirgiModel) and steps:
+        c0, last = model.colour_start, steps[-1][0]
+        geo = [s for i, s in steps if i < c0]
+        col = [s for i, s in steps if c0 < i < last]
+        res["geometry_steps_s"] = sum(geo)
+        res["first_colour_step_s"] = sum(s for i, s in steps if i == c0)
+        res["colour_steps_s"] = sum(col)
+        res["colour_step_ms"] = 1e3 * sum(col) / max(len(col), 1)
+        res["last_step_s"] = sum(s for i, s in steps if i == last and i != c0)
+        res.update({k: float(v) for k, v in model.stage_seconds.items()})
+    elif steps:
+        res["step_ms"] = 1e3 * res["iterations_s"] / len(steps)
+    return res
 
 
 @torch.no_grad()
@@ -166,9 +204,9 @@ def run_scene(args: Args, scene: str) -> List[Dict[str, object]]:
     rows: List[Dict[str, object]] = []
     out = args.out
 
-    def record(name: str, pipeline, seconds: float) -> None:
+    def record(name: str, pipeline, seconds: float, parts: Dict[str, float]) -> None:
         res = evaluate(pipeline, args.fps_repeats, out / f"{scene}_{name.replace(' ', '_')}.png")
-        row = {"scene": scene, "method": name, "train_s": seconds, **res}
+        row = {"scene": scene, "method": name, "train_s": seconds, **res, "train_breakdown": parts}
         console.log(row)
         rows.append(row)
 
@@ -181,8 +219,8 @@ def run_scene(args: Args, scene: str) -> List[Dict[str, object]]:
         if sch is not None and hasattr(sch, "max_steps"):
             sch.max_steps = args.steps
     quiet(cfg, out, f"{scene}-splatfacto")
-    trainer, secs, ckpt_dir = train(cfg)
-    record("splatfacto", trainer.pipeline, secs)
+    trainer, secs, ckpt_dir, parts = train(cfg)
+    record("splatfacto", trainer.pipeline, secs, parts)
     ckpt = sorted(ckpt_dir.glob("*.ckpt"))[-1]
     del trainer
     torch.cuda.empty_cache()
@@ -192,8 +230,8 @@ def run_scene(args: Args, scene: str) -> List[Dict[str, object]]:
         cfg = virgi_trainer_config("virgi", geometry_steps=args.steps, colour_steps=args.colour_steps)
         cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
         quiet(cfg, out, f"{scene}-virgi")
-        trainer, secs, _ = train(cfg)
-        record("virgi", trainer.pipeline, secs)
+        trainer, secs, _, parts = train(cfg)
+        record("virgi", trainer.pipeline, secs, parts)
         del trainer
         torch.cuda.empty_cache()
 
@@ -208,8 +246,8 @@ def run_scene(args: Args, scene: str) -> List[Dict[str, object]]:
         cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
         cfg.pipeline.model.geometry_from = ckpt
         quiet(cfg, out, f"{scene}-{name.replace(' ', '_').replace(',', '')}")
-        trainer, secs, _ = train(cfg)
-        record(name, trainer.pipeline, secs)
+        trainer, secs, _, parts = train(cfg)
+        record(name, trainer.pipeline, secs, parts)
         del trainer
         torch.cuda.empty_cache()
     return rows
@@ -224,6 +262,16 @@ def print_table(rows: List[Dict[str, object]], device: str) -> None:
     for r in rows:
         t.add_row(*[f"{r[c]:.4g}" if isinstance(r.get(c), float) else str(r.get(c, "")) for c in cols])
     console.print(t)
+    b = Table(title="train time by stage (s)")
+    keys = ["geometry_steps_s", "warm_start_s", "first_colour_step_s", "colour_steps_s", "colour_step_ms", "gate_s",
+            "last_step_s", "outside_iterations_s", "step_ms"]
+    b.add_column("method")
+    for k in keys:
+        b.add_column(k.replace("_s", "").replace("_", " ") if k.endswith("_s") else k)
+    for r in rows:
+        parts = r.get("train_breakdown", {})
+        b.add_row(str(r["method"]), *[f"{parts[k]:.3g}" if k in parts else "" for k in keys])
+    console.print(b)
 
 
 def main(args: Args) -> None:
@@ -231,6 +279,14 @@ def main(args: Args) -> None:
         raise InputError("bench/train.py needs a CUDA GPU (splatfacto trains with gsplat)")
     warnings.filterwarnings("ignore", category=FutureWarning)
     offline_splatfacto_lpips()
+    # both methods' CUDA extensions are built and loaded before any timing (one-time per machine)
+    from gsplat.cuda._backend import _C  # noqa: F401
+
+    from virgi_ns.raster import cuda as virgi_cuda
+
+    ok, why = virgi_cuda.available()
+    if not ok:
+        raise InputError(why)
     args.out.mkdir(parents=True, exist_ok=True)
     device = torch.cuda.get_device_name(0)
     rows: List[Dict[str, object]] = []

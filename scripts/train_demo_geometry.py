@@ -7,10 +7,15 @@ The demo imports ``geometry.ply`` from the bundle when it is there (``virgi_ns.d
 spares a CPU the geometry stage. This script trains nerfstudio's splatfacto (gsplat, CUDA) on the
 bundle's *training* views only (the same every-8th hold-out as the demo, so the demo's held-out
 views stay unseen), on the same views rebuilt at ``--downscale`` from the COLMAP beercan when
-``--source`` is present (sharper geometry), else on the bundled 1/4-size images. It then
+``--source`` is present (sharper geometry), else on the bundled 1/4-size images. With
+``--all-views`` (the default when ``--source`` is there) it trains on every photo of the capture
+except the bundle's held-out ones (67 of 71 for beercan: far fewer floaters in views between the
+training photos); the held-out photos are never seen either way. It then
 
 - keeps the ``--cap`` Gaussians with the largest ``opacity * size`` (geometric mean of the three
   scales), after dropping those below ``--min-opacity``;
+- trains the kept Gaussians for ``--finetune-steps`` more steps without densification (pruning
+  leaves holes that a few thousand steps close again);
 - moves them from the run's frame back into the capture frame (COLMAP's; the inverse of the
   dataparser's orient/centre/scale), and writes SH degree 0 (the colour field replaces colours);
 - prints the held-out PSNR of the splatfacto render before and after pruning.
@@ -40,6 +45,7 @@ from virgi_ns.errors import InputError, cli_entry
 from virgi_ns.metrics import offline_splatfacto_lpips
 
 console = Console()
+HOLDOUT_INTERVAL = BundleDataParserConfig.eval_interval  # the demo holds out every 8th frame of the bundle
 
 
 @dataclass
@@ -49,12 +55,16 @@ class Args:
     source: Path = DEFAULT_SOURCE
     """COLMAP beercan; when present the bundle's views are rebuilt from it at --downscale."""
     downscale: int = 2
+    all_views: bool = True
+    """With --source: train on every photo of the capture but the bundle's held-out ones."""
     """Downscale of the rebuilt views (1: 720x1280). Ignored without --source."""
     out: Path = BUNDLED_SCENE / "geometry.ply"
     steps: int = 15000
     cap: int = 60000
     """Most Gaussians kept."""
     min_opacity: float = 0.02
+    finetune_steps: int = 3000
+    """Steps of training the kept Gaussians after pruning (splatfacto's loss, no densification)."""
     sh_degree: int = 3
     """splatfacto's SH degree while training (the file keeps degree 0)."""
     seed: int = 42
@@ -118,10 +128,25 @@ def _train_and_write(args: Args, tmp: Path) -> None:
         from virgi_ns.data.make_bundle import Args as BundleArgs
         from virgi_ns.data.make_bundle import make_bundle
 
-        n_views = len(json.loads((scene / "transforms.json").read_text())["frames"])
-        make_bundle(BundleArgs(source=args.source, out=tmp / "scene", views=n_views, downscale=args.downscale))
+        frames = json.loads((scene / "transforms.json").read_text())["frames"]
+        held_out = [f["file_path"] for i, f in enumerate(frames) if i % HOLDOUT_INTERVAL == 0]
+        n_views = len(frames)
+        if args.all_views:
+            from nerfstudio.data.utils.colmap_parsing_utils import read_images_binary
+
+            n_views = len(read_images_binary(args.source / "sparse" / "0" / "images.bin"))
+        meta = make_bundle(BundleArgs(source=args.source, out=tmp / "scene", views=n_views, downscale=args.downscale))
+        names = [f["file_path"] for f in meta["frames"]]
+        missing = sorted(set(held_out) - set(names))
+        if missing:
+            raise InputError(f"the rebuilt views lack the bundle's held-out photos {missing}")
+        # nerfstudio's explicit split: the bundle's held-out photos are the eval views
+        meta["train_filenames"] = [n for n in names if n not in held_out]
+        meta["val_filenames"] = meta["test_filenames"] = held_out
+        (tmp / "scene" / "transforms.json").write_text(json.dumps(meta, indent=1) + "\n")
         scene = tmp / "scene"
-        console.log(f"training on {n_views} views rebuilt at 1/{args.downscale} from {args.source}")
+        console.log(f"training on {len(meta['train_filenames'])} views rebuilt at 1/{args.downscale} from "
+                    f"{args.source}; held out: {', '.join(held_out)}")
     else:
         console.log(f"training on the bundled images in {scene}")
     offline_splatfacto_lpips()
@@ -160,14 +185,49 @@ def _train_and_write(args: Args, tmp: Path) -> None:
     for k in list(model.gauss_params.keys()):
         model.gauss_params[k] = torch.nn.Parameter(p[k][keep])
     psnr_pruned = heldout_psnr(pipeline)
+    console.log(f"kept {len(keep):,} of {n_all:,} Gaussians: held-out PSNR {psnr_full:.2f} -> {psnr_pruned:.2f} dB")
+    psnr_tuned = psnr_pruned
+    if args.finetune_steps > 0:
+        finetune(pipeline, args.finetune_steps, start_step=args.steps)
+        psnr_tuned = heldout_psnr(pipeline)
+        console.log(f"fine-tuned {args.finetune_steps} steps: held-out PSNR {psnr_tuned:.2f} dB")
 
     out = pipeline.datamanager.train_dataparser_outputs
-    g = to_capture_frame({k: v[keep] for k, v in p.items()}, out.dataparser_transform,
-                         float(out.dataparser_scale))
+    tuned = {k: v.detach() for k, v in model.gauss_params.items()}
+    g = to_capture_frame(tuned, out.dataparser_transform, float(out.dataparser_scale))
     save_ply(g, args.out)
     console.log(f"wrote {args.out}: {len(g):,} of {n_all:,} Gaussians "
                 f"({args.out.stat().st_size / 1e6:.1f} MB); held-out PSNR {psnr_full:.2f} dB before pruning, "
-                f"{psnr_pruned:.2f} dB after")
+                f"{psnr_pruned:.2f} dB after, {psnr_tuned:.2f} dB after fine-tuning")
+
+
+# learning rates of the fine-tuning (splatfacto's, the means' at its schedule's end x10, decaying 10x)
+FINETUNE_LRS = {"means": 1.6e-5, "features_dc": 0.0025, "features_rest": 0.0025 / 20, "opacities": 0.05,
+                "scales": 0.005, "quats": 0.001}
+
+
+def finetune(pipeline, steps: int, start_step: int) -> None:
+    """Train the model's Gaussians ``steps`` steps with splatfacto's loss, no densification or
+    pruning (the trainer's callbacks are not run), Adam from fresh state."""
+    from rich.progress import track
+
+    model = pipeline.model
+    model.train()
+    groups = [{"params": [model.gauss_params[k]], "lr": lr, "initial_lr": lr}
+              for k, lr in FINETUNE_LRS.items() if k in model.gauss_params]
+    for g in groups:
+        g["params"][0].requires_grad_(True)
+    opt = torch.optim.Adam(groups, eps=1e-15)
+    decay = 0.1 ** (1.0 / max(steps, 1))
+    for i in track(range(steps), description="fine-tuning after pruning", console=console):
+        model.step = start_step + i
+        _, losses, _ = pipeline.get_train_loss_dict(start_step + i)
+        opt.zero_grad(set_to_none=True)
+        sum(losses.values()).backward()
+        opt.step()
+        for g in groups:
+            g["lr"] *= decay
+    model.eval()
 
 
 if __name__ == "__main__":

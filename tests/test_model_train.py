@@ -234,3 +234,8 @@ def test_cpu_geometry_stage_then_freeze(scene):
     torch.testing.assert_close(model.means.detach(), moved)  # frozen: colour steps leave geometry alone
     # the hash grid's box was fitted to the frozen means
     assert bool((model.field.aabb[1] > model.field.aabb[0]).all())
+    # a fresh model loading this state is frozen too, loaded through the pipeline as nerfstudio does
+    fresh = cfg.pipeline.setup(device="cpu", test_mode="val")
+    assert not fresh.model.geometry_frozen
+    fresh.load_state_dict(pipeline.state_dict())
+    assert fresh.model.geometry_frozen and not fresh.model.means.requires_grad

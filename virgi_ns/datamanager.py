@@ -52,20 +52,18 @@ class VirgiDataManagerConfig(FullImageDatamanagerConfig):
     """Anchors are drawn among Gaussians at least this opaque (all of them if none is)."""
 
 
-def _gather_tiles(images: list[Tensor], request: Request, valid: Tensor) -> Tensor:
-    """Ground-truth pixels [T,s,s,C] of the request's tiles (zeros outside the image)."""
+def _gather_tiles(stack: Tensor, request: Request, valid: Tensor) -> Tensor:
+    """Ground-truth pixels [T,s,s,C] of the request's tiles from the training images stacked as
+    [V,H_max,W_max,C] (zeros where ``valid`` [P] is False: outside the tile's image), in one
+    gather."""
+    dev = stack.device
     s_h, s_w = request.height, request.width
-    c = images[0].shape[-1]
-    out = images[0].new_zeros(len(request), s_h, s_w, c)
-    for i in range(len(request)):
-        img = images[int(request.views[i])]
-        H, W = img.shape[:2]
-        x0, y0 = int(request.x0[i]), int(request.y0[i])
-        xa, ya = max(x0, 0), max(y0, 0)
-        xb, yb = min(x0 + s_w, W), min(y0 + s_h, H)
-        if xb > xa and yb > ya:
-            out[i, ya - y0 : yb - y0, xa - x0 : xb - x0] = img[ya:yb, xa:xb]
-    return out
+    views = request.views.to(dev)
+    ys = (request.y0.to(dev)[:, None] + torch.arange(s_h, device=dev)).clamp(0, stack.shape[1] - 1)
+    xs = (request.x0.to(dev)[:, None] + torch.arange(s_w, device=dev)).clamp(0, stack.shape[2] - 1)
+    out = stack[views[:, None, None], ys[:, :, None], xs[:, None, :]]  # [T,s_h,s_w,C]
+    inside = valid.to(dev).reshape(len(request), s_h, s_w, 1)
+    return torch.where(inside, out, torch.zeros((), dtype=out.dtype, device=dev))
 
 
 def sample_tiles(
@@ -122,15 +120,12 @@ def sample_tiles(
             return Request.tiles(torch.arange(len(cameras))[:views_per_anchor],
                                  (Wc[:views_per_anchor] - tile_size).clamp_min(0) // 2,
                                  (Hc[:views_per_anchor] - tile_size).clamp_min(0) // 2, tile_size)
-        views, xs, ys = [], [], []
-        for a in ok_anchor.tolist():
-            sel = top.indices[a][top.values[a] >= 1.0]
-            aa = torch.full_like(sel, a)
-            x0, y0 = origin(aa, sel)
-            views.append(sel)
-            xs.append(x0)
-            ys.append(y0)
-        return Request.tiles(torch.cat(views), torch.cat(xs), torch.cat(ys), tile_size)
+        # each anchor's visible views among its top scores, anchor by anchor, best score first
+        idx = top.indices[ok_anchor]  # [A,k]
+        keep = top.values[ok_anchor] >= 1.0
+        views = idx[keep]
+        x0, y0 = origin(ok_anchor[:, None].expand_as(idx)[keep], views)
+        return Request.tiles(views, x0, y0, tile_size)
 
     # single view: one random view with visible anchors
     counts = vis.sum(0)
@@ -146,6 +141,23 @@ def sample_tiles(
     return Request.tiles(vv, x0, y0, tile_size)
 
 
+def _stack_images(cached: list[dict]) -> Tensor:
+    """Stack the cached images [V,H_max,W_max,C] (zero padded) and make each cache entry a view
+    into the stack, so the images are held once."""
+    imgs = [c["image"] for c in cached]
+    H = max(int(i.shape[0]) for i in imgs)
+    W = max(int(i.shape[1]) for i in imgs)
+    if all(tuple(i.shape[:2]) == (H, W) for i in imgs):
+        stack = torch.stack(imgs)
+    else:
+        stack = imgs[0].new_zeros(len(imgs), H, W, imgs[0].shape[-1])
+        for k, img in enumerate(imgs):
+            stack[k, : img.shape[0], : img.shape[1]] = img
+    for k, c in enumerate(cached):
+        c["image"] = stack[k, : imgs[k].shape[0], : imgs[k].shape[1]]
+    return stack
+
+
 class VirgiDataManager(FullImageDatamanager):
     """Whole images while geometry trains; multi-view tile batches for the colour field."""
 
@@ -154,7 +166,7 @@ class VirgiDataManager(FullImageDatamanager):
     def __init__(self, config: VirgiDataManagerConfig, *args, **kwargs) -> None:
         super().__init__(config, *args, **kwargs)
         self._raster_cams: Cameras | None = None
-        self._images: list[Tensor] | None = None
+        self._image_stack: Tensor | None = None
         self._generator = torch.Generator().manual_seed(0)
         # the frame an imported capture-frame splat must be moved into, for the model; nerfstudio's
         # COLMAP parser already folds its world-axis swap into dataparser_transform
@@ -169,14 +181,20 @@ class VirgiDataManager(FullImageDatamanager):
         """All training views as rasterizer cameras (after undistortion), on the manager's device."""
         if self._raster_cams is None:
             cached = self.cached_train  # undistorts and fixes the cameras' intrinsics first
-            self._images = [c["image"] for c in cached]
+            self._image_stack = _stack_images(cached)
             self._raster_cams = raster_cameras(self.train_dataset.cameras).to(self.device)
         return self._raster_cams
 
     def train_images(self) -> list[Tensor]:
+        """The training images (views into :meth:`train_image_stack`)."""
         self.train_raster_cameras()
-        assert self._images is not None
-        return self._images
+        return [c["image"] for c in self.cached_train]
+
+    def train_image_stack(self) -> Tensor:
+        """The training images as one [V,H_max,W_max,C] tensor (zero padded), where they are cached."""
+        self.train_raster_cameras()
+        assert self._image_stack is not None
+        return self._image_stack
 
     def next_tile_batch(self, step: int, means: Tensor, opacities: Tensor) -> tuple[TileBatch, dict]:
         """One colour-stage batch: the tiles and their ground truth (``image`` [T,s,s,3] float in
@@ -189,7 +207,7 @@ class VirgiDataManager(FullImageDatamanager):
             req = sample_tiles(means, pool, cams, self.config.tile_size, self.config.views_per_anchor,
                                self.config.pixel_budget, self.config.batch_mode, self._generator)
         valid = req.valid_mask(cams)
-        gt = _gather_tiles(self.train_images(), req, valid)
+        gt = _gather_tiles(self.train_image_stack(), req, valid)
         if gt.dtype == torch.uint8:
             gt = gt.float() / 255.0
         gt = gt.to(self.device)

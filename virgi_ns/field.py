@@ -63,6 +63,64 @@ class ColorFieldConfig:
         return int(round(self.base_res * self.growth ** max(self.levels - 1, 0)))
 
 
+class _GatherRows(torch.autograd.Function):
+    """``table[index]`` whose backward accumulates with ``index_add_`` (atomic adds on a GPU)
+    instead of advanced indexing's sort-based accumulation, which dominated a colour step."""
+
+    @staticmethod
+    def forward(ctx, table: Tensor, index: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(index)
+        ctx.rows = table.shape[0]
+        return table[index]
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):  # type: ignore[override]
+        (index,) = ctx.saved_tensors
+        width = grad.shape[-1]
+        g = grad.new_zeros(ctx.rows, width).index_add_(0, index.reshape(-1), grad.reshape(-1, width))
+        return g, None
+
+
+class GridEncoding(HashEncoding):
+    """nerfstudio's torch :class:`HashEncoding` (same hash, same trilinear arithmetic, same
+    parameter), with the eight corner look-ups done as one gather whose gradient is accumulated by
+    ``index_add_`` (:class:`_GatherRows`)."""
+
+    def pytorch_fwd(self, in_tensor: Float[Tensor, "*bs input_dim"]) -> Float[Tensor, "*bs output_dim"]:
+        assert in_tensor.shape[-1] == 3
+        in_tensor = in_tensor[..., None, :]  # [..., 1, 3]
+        scaled = in_tensor * self.scalings.view(-1, 1).to(in_tensor.device)  # [..., L, 3]
+        c = torch.ceil(scaled).type(torch.int32)
+        f = torch.floor(scaled).type(torch.int32)
+        offset = scaled - f
+        # corners in the parent's order: ccc, cfc, ffc, fcc, ccf, cff, fff, fcf (x, y, z)
+        xs = torch.stack([c[..., 0], c[..., 0], f[..., 0], f[..., 0], c[..., 0], c[..., 0], f[..., 0], f[..., 0]], -1)
+        ys = torch.stack([c[..., 1], f[..., 1], f[..., 1], c[..., 1], c[..., 1], f[..., 1], f[..., 1], c[..., 1]], -1)
+        zs = torch.stack([c[..., 2], c[..., 2], c[..., 2], c[..., 2], f[..., 2], f[..., 2], f[..., 2], f[..., 2]], -1)
+        hashed = self._corner_hash(xs, ys, zs)  # [..., L, 8]
+        feats = _GatherRows.apply(self.hash_table, hashed)  # [..., L, 8, F]
+        f_0, f_1, f_2, f_3, f_4, f_5, f_6, f_7 = feats.unbind(-2)
+        o0, o1, o2 = offset[..., 0:1], offset[..., 1:2], offset[..., 2:3]
+        f_03 = f_0 * o0 + f_3 * (1 - o0)
+        f_12 = f_1 * o0 + f_2 * (1 - o0)
+        f_56 = f_5 * o0 + f_6 * (1 - o0)
+        f_47 = f_4 * o0 + f_7 * (1 - o0)
+        f0312 = f_03 * o1 + f_12 * (1 - o1)
+        f4756 = f_47 * o1 + f_56 * (1 - o1)
+        encoded = f0312 * o2 + f4756 * (1 - o2)  # [..., L, F]
+        return torch.flatten(encoded, start_dim=-2, end_dim=-1)
+
+    def _corner_hash(self, xs: Tensor, ys: Tensor, zs: Tensor) -> Tensor:
+        """The parent's ``hash_fn`` on corner coordinates [..., L, 8] (each level's table offset
+        broadcast over the corners)."""
+        # int64 products, as the parent's (its int32 coordinates times an int64 prime tensor)
+        x = torch.bitwise_xor(xs.long(), ys.long() * 2654435761)
+        x = torch.bitwise_xor(x, zs.long() * 805459861)
+        x %= self.hash_table_size
+        x += self.hash_offset.to(x.device)[:, None]
+        return x
+
+
 class DecoupledColorField(nn.Module):
     """Per-point colour ``sigmoid(c_d + c_s)`` from hash features and a view direction."""
 
@@ -74,7 +132,7 @@ class DecoupledColorField(nn.Module):
             raise ValueError(f"DecoupledColorField: empty scene box {aabb.tolist()}")
         self.register_buffer("aabb", aabb.clone())
         self.contraction = SceneContraction(order=float("inf"))
-        self.hash = HashEncoding(
+        self.hash = GridEncoding(
             num_levels=cfg.levels,
             min_res=cfg.base_res,
             max_res=max(cfg.max_res, cfg.base_res),

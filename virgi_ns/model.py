@@ -25,6 +25,8 @@ a splat; it replaces the pieces that assume a GPU.
 from __future__ import annotations
 
 import math
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Type, Union
@@ -131,7 +133,9 @@ class VirgiModel(SplatfactoModel):
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
 
         self.field = DecoupledColorField(cfg.color_field, self._scene_aabb())
-        self.register_buffer("frozen", torch.tensor(False))
+        self.register_buffer("frozen", torch.tensor(False))  # in checkpoints
+        self._frozen = False  # its host copy: the flag is read every step, and reading a GPU buffer syncs
+        self.register_load_state_dict_post_hook(lambda m, _keys: setattr(m, "_frozen", bool(m.frozen)))
         # specular gate (filled by build_specular_gate; sizes follow the Gaussians)
         self.register_buffer("spec_magnitude", torch.zeros(0))
         self.register_buffer("diffuse_cache", torch.zeros(0, 3))
@@ -139,6 +143,7 @@ class VirgiModel(SplatfactoModel):
         self.colour_total = max(cfg.colour_steps, 1)
         self._train_cameras_fn = None
         self._colour_init_done = False  # the warm start runs once per process (see start_colour_stage)
+        self.stage_seconds: Dict[str, float] = {}  # wall time of the warm start and the gate, for benchmarks
         self._field_lrs = (1e-2, 1e-3)  # hash grid, MLPs: the trainer's, once its optimizers are known
         # the edit stack applied at render time (see set_edit_stack); not part of the checkpoint
         self.edit_stack = None
@@ -211,8 +216,9 @@ class VirgiModel(SplatfactoModel):
         """Stop geometry training; fit the hash grid's box to the frozen means."""
         for p in self.gauss_params.values():
             p.requires_grad_(False)
-        if bool(self.frozen):
+        if self._frozen:
             return
+        self._frozen = True
         self.frozen.fill_(True)
         m = self.means.detach()
         op = torch.sigmoid(self.opacities.detach().reshape(-1))
@@ -235,7 +241,20 @@ class VirgiModel(SplatfactoModel):
         self._colour_init_done = True
         if self.config.colour_init != "geometry" or self.config.colour_init_steps <= 0:
             return None
-        return self.init_colour_field(self.config.colour_init_steps)
+        with self._timed("warm_start_s"):
+            return self.init_colour_field(self.config.colour_init_steps)
+
+    @contextmanager
+    def _timed(self, name: str):
+        """Record the block's wall time (GPU work included) in ``stage_seconds[name]``."""
+        sync = torch.cuda.synchronize if self.device.type == "cuda" else (lambda: None)
+        sync()
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            sync()
+            self.stage_seconds[name] = time.perf_counter() - t0
 
     def geometry_colours(self) -> Tensor:
         """Each Gaussian's own view-independent colour [N,3] in [0,1]: its SH degree-0 term
@@ -311,7 +330,7 @@ class VirgiModel(SplatfactoModel):
 
     @property
     def geometry_frozen(self) -> bool:
-        return bool(self.frozen)
+        return self._frozen
 
     def in_colour_stage(self, step: int) -> bool:
         return self.geometry_frozen or step >= self.colour_start
@@ -358,7 +377,8 @@ class VirgiModel(SplatfactoModel):
 
             def finish(step: int) -> None:
                 if step == last and self.config.specular_gating and self._train_cameras_fn is not None:
-                    self.build_specular_gate(self._train_cameras_fn())
+                    with self._timed("gate_s"):
+                        self.build_specular_gate(self._train_cameras_fn())
 
             cbs.append(TrainingCallback([TrainingCallbackLocation.AFTER_TRAIN_ITERATION], finish))
         return cbs
