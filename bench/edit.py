@@ -72,6 +72,8 @@ class Args:
     steps: Optional[int] = None
     """Edit steps (default: the engine's)."""
     repeats: int = 5
+    whole_photo: bool = False
+    """Fit the whole edited photo instead of only the pixels the rule recoloured."""
     max_views: int = 0
     pictures: int = 3
     sweep: bool = True
@@ -112,20 +114,21 @@ def bench_scene(args: Args, scene: str) -> dict:
     rule = RULES[scene].rule()
     b = Bench.load(pipeline, args.edit_view, args.max_views)
     edited = b.edited_image(rule, "photo")
-    edit, cold = b.fit(edited, args.steps, None, args.repeats)
+    original = b.original("photo", args.whole_photo)
+    edit, cold = b.fit(edited, args.steps, None, args.repeats, original)
     t0 = time.perf_counter()
     b.scene.precompute_features()
     if torch.cuda.is_available():
         torch.cuda.synchronize()
     cache_s = time.perf_counter() - t0
-    _, warm = b.fit(edited, args.steps, None, args.repeats)
+    _, warm = b.fit(edited, args.steps, None, args.repeats, original)
     res, pics = b.measure(edit, rule, lpips=True, keep=args.pictures)
     args.out.mkdir(parents=True, exist_ok=True)
     for i, p in enumerate(pics):
         _save_png(args.out / f"{scene}_view{i}.png", p)
     _save_png(args.out / f"{scene}_edit.png", torch.cat([b.edit_photo.cpu(), edited.cpu()], 1))
     m = res["mean"]
-    row = {"scene": scene, "config": str(cfg), "gaussians": int(b.scene.means.shape[0]),
+    row = {"scene": scene, "whole_photo": args.whole_photo, "config": str(cfg), "gaussians": int(b.scene.means.shape[0]),
            "image": f"{int(b.edit_camera.widths[0])}x{int(b.edit_camera.heights[0])}", "rule": rule.to_dict(),
            "views": len(res["views"]), **m, "timing_cold": cold, "timing_cached": warm,
            "feature_cache_s": cache_s, "per_view": res["views"]}
@@ -140,7 +143,8 @@ def bench_scene(args: Args, scene: str) -> dict:
         if args.sweep:
             run_accuracy_time(AccuracyTime(cfg, out=args.out / "beercan_accuracy_time.json", rule=RULES[scene],
                                            edit_view=args.edit_view, repeats=max(1, args.repeats // 2),
-                                           max_views=args.max_views), pipeline, console)
+                                           max_views=args.max_views, whole_photo=args.whole_photo), pipeline,
+                              console)
     del pipeline, b
     torch.cuda.empty_cache()
     return row

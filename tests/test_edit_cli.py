@@ -186,3 +186,30 @@ def test_rgba_is_accepted_with_a_note_and_resize_and_image_name_work(saved, tmp_
 
 if __name__ == "__main__":
     sys.exit(pytest.main([__file__, "-q"]))
+
+
+def test_original_image_limits_the_fit_to_changed_pixels(saved, tmp_path):
+    """--original (here the render the edit was made from): the saved edit records the share of
+    pixels the rule changed; --whole-image fits them all; an --original of another size is refused
+    with nothing saved."""
+    from virgi_ns.edit_stack import EditStack
+
+    pl = saved["pipeline"]
+    cam = pl.datamanager.train_dataset.cameras[0:1]
+    with torch.no_grad():
+        rgb = pl.model.get_outputs_for_camera(cam)["rgb"].cpu()
+    orig = tmp_path / "render.png"
+    Image.fromarray((rgb.numpy() * 255 + 0.5).astype(np.uint8)).save(orig)
+    _, mask = recolor(rgb, RULE)
+    try:
+        run(_apply(saved, original=orig), _quiet(), pl)
+        run(_apply(saved, whole_image=True), _quiet(), pl)
+        st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
+        fr = [e.edit.info["changed_fraction"] for e in st.entries]
+        assert abs(fr[0] - float(mask.float().mean())) < 0.03 and fr[0] < 0.9, fr
+        assert fr[1] == 1.0
+        small = tmp_path / "small.png"
+        Image.fromarray(np.zeros((4, 5, 3), np.uint8)).save(small)
+        _refused(saved, _apply(saved, original=small), "--original is 5x4")
+    finally:
+        run(Reset(saved["config"]), _quiet(), pl)

@@ -378,7 +378,8 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             engine = EditEngine(frozen, cam, edited_photo, stack,
                                 edit_cfg,
                                 EditSource(f"rule({src_name})", cam.Ks[0], cam.viewmats[0],
-                                           int(cam.widths[0]), int(cam.heights[0]), f"train index {edit_view}"))
+                                           int(cam.widths[0]), int(cam.heights[0]), f"train index {edit_view}"),
+                                original=source_image)
             edit, timing = engine.fit(progress=lambda d, n: progress.update(t_ed, completed=d))
             stack.add(edit)
             edit_fit_psnr = psnr(engine.preview()["rgb"].clamp(0, 1), edited_photo)

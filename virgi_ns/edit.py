@@ -11,7 +11,13 @@ only a copy of the diffuse head and a segmentation head::
     alpha = sigmoid(MLP_seg([f, h_diff]))      (starts near 0)
     c_d'' = alpha c_d' + (1 - alpha) c_d
     C'    = sigmoid(c_d'' + k c_s)
-    loss  = L1(A C' + T bg, I_edit)            (Adam; optionally on a subset of pixels per step)
+    loss  = L1(A C' + T bg, I_target)          (Adam; optionally on a subset of pixels per step)
+
+``I_target`` is the edited image. When the unedited image is known too (``original``: the
+training photo the user recoloured), only the pixels the user changed keep the edited colour;
+every other pixel's target is the scene's current render there. Otherwise the edit would also
+"repair" the model's reconstruction error all over the view (the photo is not the render), and
+that repair would leak into every view.
 
 and the result is an :class:`~virgi_ns.edit_stack.Edit` for the :class:`EditStack`.
 
@@ -197,6 +203,9 @@ class EditConfig:
     image every step); 4 is as accurate as 1 on beercan at a third of the step time."""
     seed: int = 0
     """Seeds the segmentation head's initialisation and the pixel sets."""
+    unchanged_tol: float = 3.0 / 255.0
+    """With an ``original`` image: pixels whose colour moved by at most this (every channel) are
+    not part of the edit (their target is the current render). Covers 8-bit and JPEG round trips."""
 
 
 @dataclass
@@ -229,6 +238,7 @@ class EditEngine:
         stack: Optional[EditStack] = None,
         cfg: Optional[EditConfig] = None,
         source: Optional[EditSource] = None,
+        original: Optional[Float[Tensor, "H W 3"]] = None,
     ) -> None:
         self.scene = scene
         self.cfg = cfg or EditConfig()
@@ -241,19 +251,22 @@ class EditEngine:
         if tuple(edited.shape[:2]) != (H, W):
             raise InputError(f"the edited image is {edited.shape[1]}x{edited.shape[0]} but the camera renders "
                              f"{W}x{H}")
+        if original is not None and tuple(original.shape) != tuple(edited.shape):
+            raise InputError(f"the original image is {tuple(original.shape)}, the edited one {tuple(edited.shape)}")
         self.camera = camera
         self.source = source or EditSource("", camera.Ks[0], camera.viewmats[0], W, H, "")
+        self.changed_fraction = 1.0
         self.fingerprint = stack.fingerprint if stack is not None else scene.fingerprint()
         dev = scene.device
         _sync(dev)
         t0 = time.perf_counter()
-        self._setup(edited.to(dev, torch.float32))
+        self._setup(edited.to(dev, torch.float32), None if original is None else original.to(dev, torch.float32))
         _sync(dev)
         self.setup_s = time.perf_counter() - t0
 
     # ------------------------------------------------------------------ setup
     @torch.no_grad()
-    def _setup(self, edited: Tensor) -> None:
+    def _setup(self, edited: Tensor, original: Optional[Tensor]) -> None:
         sc, cfg = self.scene, self.cfg
         dev = sc.device
         cams = self.camera.to(dev, torch.float32)
@@ -274,6 +287,13 @@ class EditEngine:
         self.c_s = fld.specular(self.feats, dirs, h1, h2).float()
         self.k = self.stack.specular_strength if self.stack is not None else 1.0
         bg = sc.background.to(dev, torch.float32).reshape(3)
+        if original is not None:  # untouched pixels: the current render is their target
+            changed = (edited - original).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
+            if not bool(changed.any()):
+                raise InputError("the edited image does not differ from the original: nothing to edit")
+            current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), contrib, bg)[0]
+            edited = torch.where(changed, edited, current)
+            self.changed_fraction = float(changed.float().mean())
         self.batches = _pixel_batches(contrib, edited.reshape(-1, 3), bg, max(1, cfg.pixel_batches), cfg.seed)
         # trainable copies
         head = fld.diffuse_head
@@ -326,7 +346,7 @@ class EditEngine:
 
     def edit(self, timing: Optional[EditTiming] = None) -> Edit:
         """The current heads as an :class:`Edit` (copies)."""
-        info = new_edit_info(k=self.k, **({"steps": timing.steps, "setup_s": timing.setup_s,
+        info = new_edit_info(k=self.k, changed_fraction=self.changed_fraction, **({"steps": timing.steps, "setup_s": timing.setup_s,
                                             "steps_s": timing.steps_s, "loss": timing.final_loss}
                                            if timing is not None else {}))
         return Edit(self.weight.detach().clone(), self.bias.detach().clone(), copy.deepcopy(self.seg).eval(),

@@ -68,6 +68,9 @@ class Recolor:
     """Training image to edit."""
     edit_source: str = "photo"
     """Apply the rule to the training 'photo' or to the model's 'render' of it."""
+    whole_photo: bool = False
+    """Fit the whole edited photo (also the pixels the rule left alone) instead of only the
+    recoloured pixels, as when the unedited photo is not known."""
     steps: Optional[int] = None
     """Edit steps (default: the engine's)."""
     pixel_batches: Optional[int] = None
@@ -92,6 +95,7 @@ class AccuracyTime:
     rule: RuleArgs = field(default_factory=RuleArgs)
     edit_view: int = 0
     edit_source: str = "photo"
+    whole_photo: bool = False
     steps: tuple[int, ...] = (10, 25, 50, 75, 100, 150, 200, 300, 500)
     pixel_batches: tuple[int, ...] = (1, 4)
     repeats: int = 3
@@ -172,9 +176,17 @@ class Bench:
             raise InputError(f"--edit-source must be 'photo' or 'render', got {source!r}")
         return recolor(img, rule)[0]
 
-    def fit(self, edited: torch.Tensor, steps: Optional[int], pixel_batches: Optional[int], repeats: int):
+    def original(self, source: str, whole_photo: bool = False):
+        """The unedited image the engine compares the edit with (only changed pixels are fitted to
+        the edit): the photo for a photo edit; None for a render edit (its untouched pixels are
+        the render already) or with ``whole_photo`` (fit the whole edited photo)."""
+        return self.edit_photo if source == "photo" and not whole_photo else None
+
+    def fit(self, edited: torch.Tensor, steps: Optional[int], pixel_batches: Optional[int], repeats: int,
+            original: Optional[torch.Tensor] = None):
         """(edit, {setup_s, steps_s, total_s} medians) after one untimed warm-up fit; ``None`` for
-        ``steps`` or ``pixel_batches`` takes the engine's default."""
+        ``steps`` or ``pixel_batches`` takes the engine's default. ``original``: the unedited image
+        (the engine then fits only the changed pixels to ``edited``)."""
         from virgi_ns.edit import EditConfig, EditEngine
 
         cfg = EditConfig()
@@ -182,10 +194,10 @@ class Bench:
             cfg.steps = int(steps)
         if pixel_batches is not None:
             cfg.pixel_batches = int(pixel_batches)
-        EditEngine(self.scene, self.edit_camera, edited, cfg=cfg).fit()  # warm-up (kernels, caches)
+        EditEngine(self.scene, self.edit_camera, edited, cfg=cfg, original=original).fit()  # warm-up
         times, edit = [], None
         for _ in range(max(1, repeats)):
-            edit, t = EditEngine(self.scene, self.edit_camera, edited, cfg=cfg).fit()
+            edit, t = EditEngine(self.scene, self.edit_camera, edited, cfg=cfg, original=original).fit()
             times.append(t)
         med = lambda xs: float(statistics.median(xs))  # noqa: E731
         return edit, {"setup_s": med([t.setup_s for t in times]), "steps_s": med([t.steps_s for t in times]),
@@ -254,12 +266,13 @@ def run_recolor(args: Recolor, pipeline=None, console: Optional[Console] = None)
         b = Bench.load(pipeline, args.edit_view, args.max_views)
     edited = b.edited_image(rule, args.edit_source)
     with console.status("fitting the edit"):
-        edit, timing = b.fit(edited, args.steps, args.pixel_batches, args.repeats)
+        edit, timing = b.fit(edited, args.steps, args.pixel_batches, args.repeats,
+                             b.original(args.edit_source, args.whole_photo))
     with console.status("measuring"):
         res, pics = b.measure(edit, rule, args.lpips, args.pictures)
     out = {"config": str(args.load_config), "device": _device_name(b.scene.device),
            "gaussians": int(b.scene.means.shape[0]), "rule": rule.to_dict(), "edit_view": args.edit_view,
-           "edit_source": args.edit_source, "timing": timing, **res}
+           "edit_source": args.edit_source, "whole_photo": args.whole_photo, "timing": timing, **res}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for i, p in enumerate(pics):
         _save_png(args.out.with_name(f"{args.out.stem}_view{i}.png"), p)
@@ -292,7 +305,7 @@ def run_accuracy_time(args: AccuracyTime, pipeline=None, console: Optional[Conso
     points = []
     for pb in args.pixel_batches:
         for s in args.steps:
-            edit, timing = b.fit(edited, s, pb, args.repeats)
+            edit, timing = b.fit(edited, s, pb, args.repeats, b.original(args.edit_source, args.whole_photo))
             res, _ = b.measure(edit, rule, lpips=False)
             points.append({**timing, **res["mean"]})
             console.print(f"pixel_batches {pb} steps {s}: {timing['total_s']:.3f} s, recolour "

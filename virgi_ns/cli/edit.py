@@ -52,6 +52,11 @@ class Apply:
     """Resize an image of another size to the camera's instead of refusing it."""
     pixel_batches: Optional[int] = None
     """Use 1/N of the pixels per step (N random sets)."""
+    original: Optional[Path] = None
+    """The unedited image (default: the training photo of --camera-index / --image-name). Pixels
+    the edit left unchanged keep the scene's current colours instead of being fitted to the image."""
+    whole_image: bool = False
+    """Fit every pixel of the edited image, also those equal to the original."""
 
 
 @dataclass
@@ -192,6 +197,37 @@ def resolve_camera(pipeline, args: Apply):
     return camera_from_json(pipeline.model, Path(args.camera_json)), f"camera {Path(args.camera_json).name}"
 
 
+def original_image(pipeline, args: Apply, shape: tuple, console: Console):
+    """The unedited image as float32 HxWx3 in [0,1]: ``--original``, else the chosen training (or
+    evaluation) photo; None for a --camera-json view without --original, or (with a note) when
+    the photo's size differs from the edited image's."""
+    if args.original is not None:
+        img, _ = load_edited_image(args.original)
+        where = str(args.original)
+    else:
+        found = None
+        if args.camera_index is not None:
+            found = (pipeline.datamanager.train_dataset, args.camera_index)
+        elif args.image_name is not None:
+            for ds in _datasets(pipeline):
+                for i, fn in enumerate(ds.image_filenames):
+                    p = Path(fn)
+                    if found is None and args.image_name in (p.name, p.stem, str(p)):
+                        found = (ds, i)
+        if found is None:
+            return None
+        ds, i = found
+        img = ds.get_image_float32(i)[..., :3].numpy()
+        where = Path(ds.image_filenames[i]).name
+    if tuple(img.shape) != tuple(shape):
+        if args.original is not None:
+            raise InputError(f"--original is {img.shape[1]}x{img.shape[0]}, the edited image {shape[1]}x{shape[0]}")
+        console.print(f"note: the photo {where} is {img.shape[1]}x{img.shape[0]}, not the edited image's size: "
+                      "fitting every pixel of the edited image")
+        return None
+    return img.astype(np.float32)
+
+
 def camera_from_json(model, path: Path):
     """Raster Cameras of a CAM.json; ``"frame": "dataparser"`` means the run's own frame, anything
     else the capture's (as the viewer saves views)."""
@@ -260,6 +296,7 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
     for n in notes + more:
         console.print(f"note: {n}")
     cams = cams.to(model.device)
+    original = None if args.whole_image else original_image(pipeline, args, image.shape, console)
     scene = FrozenScene.from_model(model)
     source = EditSource(str(Path(args.image).resolve()), cams.Ks[0].cpu(), cams.viewmats[0].cpu(), W, H, where)
     cfg = EditConfig()
@@ -268,7 +305,8 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
     if args.steps is not None:
         cfg.steps = args.steps
     with torch.no_grad():
-        engine = EditEngine(scene, cams, torch.from_numpy(image), stack.to(model.device), cfg, source)
+        engine = EditEngine(scene, cams, torch.from_numpy(image), stack.to(model.device), cfg, source,
+                            original=None if original is None else torch.from_numpy(original))
     with Progress(TextColumn("fitting the edit"), BarColumn(), TextColumn("{task.completed}/{task.total} steps"),
                   TimeElapsedColumn(), console=console, transient=True) as bar:
         task = bar.add_task("edit", total=cfg.steps)
