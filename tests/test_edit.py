@@ -349,3 +349,30 @@ def test_unchanged_pixels_keep_the_render_when_the_original_is_known(world):
         EditEngine(S.scene, cam, photo, original=photo)
     with pytest.raises(InputError, match="original image"):
         EditEngine(S.scene, cam, edited, original=photo[:10])
+
+
+def test_a_small_edit_is_not_outvoted_by_the_unchanged_pixels(world):
+    """A user recolours a 7x7 patch of the blue object (under 1% of the view). With the original
+    known, the changed pixels carry half the loss (``changed_share``): the whole object turns red in
+    the held-out views. Weighted by their number instead, the unchanged pixels (asking for no change
+    at all) win and nothing happens."""
+    S = world["S"]
+    rgb = world["before"][EDIT_VIEW]["rgb"]
+    edited, mask = recolor(rgb, BLUE_TO_RED)
+    ys, xs = torch.nonzero(mask, as_tuple=True)
+    cy, cx = int(ys.float().mean()), int(xs.float().mean())
+    patch = torch.zeros_like(mask)
+    patch[cy - 3 : cy + 4, cx - 3 : cx + 4] = True
+    patch &= mask
+    assert 0 < float(patch.float().mean()) < 0.01
+    small = torch.where(patch[..., None], edited, rgb)
+    miss = {}
+    for name, share in (("balanced", 0.5), ("by count", float(patch.float().mean()))):
+        eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), small, cfg=EditConfig(steps=40, changed_share=share),
+                         original=rgb)
+        stack = _stack(world, eng.fit()[0])
+        b = world["before"][HELD_OUT[0]]["rgb"]
+        truth, m = recolor(b, BLUE_TO_RED)
+        miss[name] = float((_render(world, HELD_OUT[0], stack)["rgb"] - truth).abs()[m].mean())
+    assert miss["balanced"] < 0.25 * miss["by count"], miss
+    assert miss["balanced"] < 0.1

@@ -135,12 +135,18 @@ class _PixelBatch:
     At: Tensor  # [U, p] CSR
     background: Tensor  # [p, 3] T * bg
     target: Tensor  # [p, 3]
+    weight: Optional[Tensor] = None  # [p] per-pixel loss weights summing to 1 (None: the plain mean)
 
 
-def _pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches: int, seed: int
-                   ) -> list[_PixelBatch]:
+def _pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches: int, seed: int,
+                   weight: Optional[Tensor] = None) -> list[_PixelBatch]:
     """Split the view's pixels into ``n_batches`` random, equally sized sets, each with its own
-    rows of ``A`` (pixels ascending within a set) and its own ``A^T``."""
+    rows of ``A`` (pixels ascending within a set) and its own ``A^T``. ``weight`` [P]: per-pixel
+    loss weights (each set's are normalised to sum to 1)."""
+
+    def norm(w: Optional[Tensor]) -> Optional[Tensor]:
+        return None if w is None else w / w.sum().clamp_min(1e-30)
+
     dev, dt = target.device, target.dtype
     P = contrib.num_pixels
     U = int(contrib.pair_gaussian.shape[0])
@@ -151,7 +157,7 @@ def _pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches
         t_order = torch.argsort(pair * P + pix)
         T = contrib.transmittance.detach().to(dev, dt)
         return [_PixelBatch(_csr(pix, pair, w, (P, U)), _csr(pair[t_order], pix[t_order], w[t_order], (U, P)),
-                            T[:, None] * bg[None, :], target)]
+                            T[:, None] * bg[None, :], target, norm(weight))]
     gen = torch.Generator().manual_seed(seed)
     batch_of = torch.empty(P, dtype=torch.long)
     batch_of[torch.randperm(P, generator=gen)] = torch.arange(P) % n_batches
@@ -179,7 +185,8 @@ def _pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches
         t_order = torch.argsort(cols * max(p_b, 1) + rows)
         At = _csr(cols[t_order], rows[t_order], vals[t_order], (U, p_b))
         pixels = order[int(starts[b]) : int(starts[b]) + p_b]
-        out.append(_PixelBatch(A, At, T[pixels, None] * bg[None, :], target[pixels]))
+        out.append(_PixelBatch(A, At, T[pixels, None] * bg[None, :], target[pixels],
+                               None if weight is None else norm(weight[pixels])))
     return out
 
 
@@ -206,6 +213,10 @@ class EditConfig:
     unchanged_tol: float = 3.0 / 255.0
     """With an ``original`` image: pixels whose colour moved by at most this (every channel) are
     not part of the edit (their target is the current render). Covers 8-bit and JPEG round trips."""
+    changed_share: float = 0.5
+    """With an ``original`` image: the share of the loss carried by the changed pixels (the rest by
+    the unchanged ones), whatever their numbers; a small edit (2% of the view) would otherwise be
+    outvoted by the pixels asking for no change."""
 
 
 @dataclass
@@ -293,8 +304,15 @@ class EditEngine:
                 raise InputError("the edited image does not differ from the original: nothing to edit")
             current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), contrib, bg)[0]
             edited = torch.where(changed, edited, current)
-            self.changed_fraction = float(changed.float().mean())
-        self.batches = _pixel_batches(contrib, edited.reshape(-1, 3), bg, max(1, cfg.pixel_batches), cfg.seed)
+            ch = changed.reshape(-1)
+            n_ch = int(ch.sum())
+            self.changed_fraction = n_ch / ch.numel()
+            share = cfg.changed_share if n_ch < ch.numel() else 1.0
+            weight = torch.where(ch, share / n_ch, (1.0 - share) / max(ch.numel() - n_ch, 1)).float()
+        else:
+            weight = None
+        self.batches = _pixel_batches(contrib, edited.reshape(-1, 3), bg, max(1, cfg.pixel_batches), cfg.seed,
+                                      weight)
         # trainable copies
         head = fld.diffuse_head
         self.weight = head.weight.detach().float().clone().requires_grad_(True)
@@ -319,7 +337,8 @@ class EditEngine:
         self.opt.zero_grad(set_to_none=True)
         C, _ = self.colours()
         img = _SparseRender.apply(C, batch.A, batch.At) + batch.background
-        loss = (img - batch.target).abs().mean()
+        err = (img - batch.target).abs()
+        loss = err.mean() if batch.weight is None else (err.mean(-1) * batch.weight).sum()
         loss.backward()
         self.opt.step()
         return loss.detach()
