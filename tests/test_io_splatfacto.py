@@ -69,3 +69,14 @@ def test_corrupt_checkpoint_and_empty_run_are_refused(tmp_path):
     (tmp_path / "config.yml").write_text("x: 1\n")
     with pytest.raises(InputError, match="no step-\\*.ckpt checkpoint"):
         load_splat(tmp_path / "config.yml")
+
+
+def test_degree_zero_checkpoint_colours_are_the_sigmoid_of_features_dc(tmp_path):
+    """splatfacto with sh_degree 0 renders sigmoid(features_dc); loaded, band 0 must give that colour
+    through the SH rule ``0.2820948 * f_dc + 0.5``."""
+    ckpt, p = _checkpoint(40, 0, seed=3)
+    torch.save(ckpt, tmp_path / "step-000000003.ckpt")
+    g = load_splat(tmp_path / "step-000000003.ckpt")
+    assert g.sh_degree == 0
+    colour = 0.28209479177387814 * g.sh[:, 0].double() + 0.5
+    torch.testing.assert_close(colour, torch.sigmoid(p["features_dc"].double()), atol=1e-6, rtol=0)

@@ -3,7 +3,9 @@
 A splatfacto checkpoint is a torch pickle ``{"step", "pipeline": state_dict, ...}`` whose
 pipeline state holds ``_model.gauss_params.{means, scales, quats, features_dc, features_rest,
 opacities}`` (older checkpoints: ``_model.{means, ...}``). The conventions are already ours:
-log scales, wxyz quaternions, logit opacities, ``features_dc`` = SH band 0.
+log scales, wxyz quaternions, logit opacities, ``features_dc`` = SH band 0, except for runs with
+``sh_degree`` 0 (no ``features_rest`` bands): splatfacto then stores the colour's logit in
+``features_dc`` (its colour is ``sigmoid(features_dc)``), which is converted to band 0 here.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import numpy as np
 import torch
 
 from virgi_ns.errors import InputError
-from virgi_ns.gaussians import Gaussians
+from virgi_ns.gaussians import SH_C0, Gaussians
 
 PARAMS = ("means", "scales", "quats", "features_dc", "features_rest", "opacities")
 
@@ -63,7 +65,10 @@ def gaussians_from_state(state: dict, where: str = "checkpoint") -> Gaussians:
     n = f["means"].shape[0]
     try:
         rest = f["features_rest"].reshape(n, -1, 3)
-        sh = torch.cat([f["features_dc"].reshape(n, 1, 3), rest], dim=1)
+        dc = f["features_dc"].reshape(n, 1, 3)
+        if rest.shape[1] == 0:  # sh_degree 0: splatfacto's colour is sigmoid(features_dc)
+            dc = (torch.sigmoid(dc) - 0.5) / SH_C0
+        sh = torch.cat([dc, rest], dim=1)
         return Gaussians(f["means"], f["scales"], f["quats"], f["opacities"].reshape(n), sh.contiguous())
     except (ValueError, RuntimeError) as e:
         raise InputError(f"{where}: Gaussian parameters have inconsistent shapes ({e})") from None
