@@ -97,7 +97,7 @@ def _config_for(args: Args, scene: str) -> Path:
     c.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
     quiet(c, args.train_out, f"{scene}-virgi")
     console.log(f"training {scene} ({args.geometry_steps} + {args.colour_steps} steps)")
-    trainer, secs, _ = train(c)
+    trainer, secs, _, _ = train(c)
     console.log(f"trained {scene} in {secs:.0f} s")
     del trainer
     torch.cuda.empty_cache()

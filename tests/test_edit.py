@@ -333,7 +333,7 @@ def test_unchanged_pixels_keep_the_render_when_the_original_is_known(world):
         eng = EditEngine(S.scene, cam, edited, cfg=cfg, original=orig)
         edit, _ = eng.fit()
         fits[name] = (eng, _stack(world, edit))
-    assert fits["whole"][0].changed_fraction == 1.0
+    assert fits["whole"][0].changed_fraction == 1.0 and fits["whole"][0].mode == "whole image"
     assert abs(fits["changed"][0].changed_fraction - float(mask.float().mean())) < 0.02
     for v in HELD_OUT:
         before = world["before"][v]["rgb"]
@@ -376,3 +376,11 @@ def test_a_small_edit_is_not_outvoted_by_the_unchanged_pixels(world):
         miss[name] = float((_render(world, HELD_OUT[0], stack)["rgb"] - truth).abs()[m].mean())
     assert miss["balanced"] < 0.25 * miss["by count"], miss
     assert miss["balanced"] < 0.1
+    # without the original: the edited render's untouched pixels are recognised as such
+    eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), small, cfg=EditConfig(steps=40))
+    assert eng.mode == "changed pixels (an edited render)"
+    assert abs(eng.changed_fraction - float(patch.float().mean())) < 0.002
+    stack = _stack(world, eng.fit()[0])
+    b = world["before"][HELD_OUT[0]]["rgb"]
+    truth, m = recolor(b, BLUE_TO_RED)
+    assert float((_render(world, HELD_OUT[0], stack)["rgb"] - truth).abs()[m].mean()) < 0.1

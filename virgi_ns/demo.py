@@ -382,7 +382,8 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                                 original=source_image)
             edit, timing = engine.fit(progress=lambda d, n: progress.update(t_ed, completed=d))
             stack.add(edit)
-            edit_fit_psnr = psnr(engine.preview()["rgb"].clamp(0, 1), edited_photo)
+            # on the pixels the rule changed: elsewhere the edit's target is the unedited render
+            edit_fit_psnr = psnr(engine.preview()["rgb"].clamp(0, 1), edited_photo, edit_mask)
 
             rows, per_view = [], []
             for i in range(n_eval):
@@ -459,7 +460,8 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                                              " unedited_psnr_inside_mask: the unedited render there (no edit)",
                 "propagation_psnr": "edited render vs the rule applied to the unedited render (isolates the edit);"
                                     " inside_mask: pixels the rule recolours (misses), outside: the rest (leaks)",
-                "edit_fit_psnr": "edited view's render vs the edited image (the rule applied to its photo or render)",
+                "edit_fit_psnr": "edited view's render vs the edited image (the rule applied to its photo or render), "
+                                 "on the pixels the rule changed",
                 "rule_pixels": "held-out pixels the rule recolours, summed over the held-out views: in the unedited"
                                " renders (what the edit can visibly change) and in the photos",
                 "mask_fraction": "per view: share of pixels the rule recolours in the unedited render",

@@ -17,7 +17,10 @@ only a copy of the diffuse head and a segmentation head::
 training photo the user recoloured), only the pixels the user changed keep the edited colour;
 every other pixel's target is the scene's current render there. Otherwise the edit would also
 "repair" the model's reconstruction error all over the view (the photo is not the render), and
-that repair would leak into every view.
+that repair would leak into every view. An edited *render* needs no original: most of its pixels
+equal the current render, which identifies the changed ones. The changed pixels carry half the
+loss however few they are (``changed_share``), so a small edit is not outvoted by the many
+pixels that ask for no change.
 
 and the result is an :class:`~virgi_ns.edit_stack.Edit` for the :class:`EditStack`.
 
@@ -217,6 +220,10 @@ class EditConfig:
     """With an ``original`` image: the share of the loss carried by the changed pixels (the rest by
     the unchanged ones), whatever their numbers; a small edit (2% of the view) would otherwise be
     outvoted by the pixels asking for no change."""
+    render_match_min: float = 0.5
+    """Without an ``original``: when at least this share of the edited image's pixels equal the
+    current render (within ``unchanged_tol``), the image is an edited render and only the other
+    pixels are fitted to it (as with an original); otherwise every pixel is."""
 
 
 @dataclass
@@ -267,6 +274,7 @@ class EditEngine:
         self.camera = camera
         self.source = source or EditSource("", camera.Ks[0], camera.viewmats[0], W, H, "")
         self.changed_fraction = 1.0
+        self.mode = "whole image"  # what the loss fits (set by _setup)
         self.fingerprint = stack.fingerprint if stack is not None else scene.fingerprint()
         dev = scene.device
         _sync(dev)
@@ -298,19 +306,27 @@ class EditEngine:
         self.c_s = fld.specular(self.feats, dirs, h1, h2).float()
         self.k = self.stack.specular_strength if self.stack is not None else 1.0
         bg = sc.background.to(dev, torch.float32).reshape(3)
-        if original is not None:  # untouched pixels: the current render is their target
+        current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), contrib, bg)[0]
+        weight = None
+        self.mode = "whole image"
+        if original is not None:
             changed = (edited - original).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
             if not bool(changed.any()):
                 raise InputError("the edited image does not differ from the original: nothing to edit")
-            current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), contrib, bg)[0]
+            self.mode = "changed pixels (original given)"
+        else:  # an edited render? its untouched pixels equal the current render
+            changed = (edited - current).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
+            if float(changed.float().mean()) <= 1.0 - cfg.render_match_min:
+                self.mode = "changed pixels (an edited render)"
+            else:
+                changed = None
+        if changed is not None:  # untouched pixels: the current render is their target
             edited = torch.where(changed, edited, current)
             ch = changed.reshape(-1)
             n_ch = int(ch.sum())
             self.changed_fraction = n_ch / ch.numel()
             share = cfg.changed_share if n_ch < ch.numel() else 1.0
-            weight = torch.where(ch, share / n_ch, (1.0 - share) / max(ch.numel() - n_ch, 1)).float()
-        else:
-            weight = None
+            weight = torch.where(ch, share / max(n_ch, 1), (1.0 - share) / max(ch.numel() - n_ch, 1)).float()
         self.batches = _pixel_batches(contrib, edited.reshape(-1, 3), bg, max(1, cfg.pixel_batches), cfg.seed,
                                       weight)
         # trainable copies
@@ -365,7 +381,7 @@ class EditEngine:
 
     def edit(self, timing: Optional[EditTiming] = None) -> Edit:
         """The current heads as an :class:`Edit` (copies)."""
-        info = new_edit_info(k=self.k, changed_fraction=self.changed_fraction, **({"steps": timing.steps, "setup_s": timing.setup_s,
+        info = new_edit_info(k=self.k, changed_fraction=self.changed_fraction, fit=self.mode, **({"steps": timing.steps, "setup_s": timing.setup_s,
                                             "steps_s": timing.steps_s, "loss": timing.final_loss}
                                            if timing is not None else {}))
         return Edit(self.weight.detach().clone(), self.bias.detach().clone(), copy.deepcopy(self.seg).eval(),
