@@ -115,13 +115,13 @@ def bench_scene(args: Args, scene: str) -> dict:
     b = Bench.load(pipeline, args.edit_view, args.max_views)
     edited = b.edited_image(rule, "photo")
     original = b.original("photo", args.whole_photo)
-    edit, cold = b.fit(edited, args.steps, None, args.repeats, original)
+    edit, cold = b.fit(edited, args.steps, None, args.repeats, original, args.whole_photo)
     t0 = time.perf_counter()
     b.scene.precompute_features()
     if torch.cuda.is_available():
         torch.cuda.synchronize()
     cache_s = time.perf_counter() - t0
-    _, warm = b.fit(edited, args.steps, None, args.repeats, original)
+    _, warm = b.fit(edited, args.steps, None, args.repeats, original, args.whole_photo)
     res, pics = b.measure(edit, rule, lpips=True, keep=args.pictures)
     args.out.mkdir(parents=True, exist_ok=True)
     for i, p in enumerate(pics):

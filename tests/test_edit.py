@@ -380,6 +380,8 @@ def test_a_small_edit_is_not_outvoted_by_the_unchanged_pixels(world):
     eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), small, cfg=EditConfig(steps=40))
     assert eng.mode == "changed pixels (an edited render)"
     assert abs(eng.changed_fraction - float(patch.float().mean())) < 0.002
+    whole = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), small, cfg=EditConfig(whole_image=True))
+    assert whole.mode == "whole image" and whole.changed_fraction == 1.0
     stack = _stack(world, eng.fit()[0])
     b = world["before"][HELD_OUT[0]]["rgb"]
     truth, m = recolor(b, BLUE_TO_RED)

@@ -220,6 +220,8 @@ class EditConfig:
     """With an ``original`` image: the share of the loss carried by the changed pixels (the rest by
     the unchanged ones), whatever their numbers; a small edit (2% of the view) would otherwise be
     outvoted by the pixels asking for no change."""
+    whole_image: bool = False
+    """Fit every pixel to the edited image (no original, no edited-render detection)."""
     render_match_min: float = 0.5
     """Without an ``original``: when at least this share of the edited image's pixels equal the
     current render (within ``unchanged_tol``), the image is an edited render and only the other
@@ -309,7 +311,9 @@ class EditEngine:
         current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), contrib, bg)[0]
         weight = None
         self.mode = "whole image"
-        if original is not None:
+        if cfg.whole_image:
+            changed = None
+        elif original is not None:
             changed = (edited - original).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
             if not bool(changed.any()):
                 raise InputError("the edited image does not differ from the original: nothing to edit")

@@ -558,7 +558,7 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
         self._refresh_edits()
         self._rerender()
         return (f"edit {number} applied from {name} ({timing.steps} steps, {timing.total_s:.1f} s, "
-                f"L1 {timing.final_loss:.4f})")
+                f"L1 {timing.final_loss:.4f}; fitted {engine.mode}, {engine.changed_fraction:.0%} of the view)")
 
     def wait(self, timeout: Optional[float] = None) -> None:
         """Join a running edit or export (for scripts and tests)."""

@@ -183,10 +183,10 @@ class Bench:
         return self.edit_photo if source == "photo" and not whole_photo else None
 
     def fit(self, edited: torch.Tensor, steps: Optional[int], pixel_batches: Optional[int], repeats: int,
-            original: Optional[torch.Tensor] = None):
+            original: Optional[torch.Tensor] = None, whole_image: bool = False):
         """(edit, {setup_s, steps_s, total_s} medians) after one untimed warm-up fit; ``None`` for
         ``steps`` or ``pixel_batches`` takes the engine's default. ``original``: the unedited image
-        (the engine then fits only the changed pixels to ``edited``)."""
+        (the engine then fits only the changed pixels to ``edited``); ``whole_image``: fit every pixel."""
         from virgi_ns.edit import EditConfig, EditEngine
 
         cfg = EditConfig()
@@ -194,6 +194,7 @@ class Bench:
             cfg.steps = int(steps)
         if pixel_batches is not None:
             cfg.pixel_batches = int(pixel_batches)
+        cfg.whole_image = whole_image
         EditEngine(self.scene, self.edit_camera, edited, cfg=cfg, original=original).fit()  # warm-up
         times, edit = [], None
         for _ in range(max(1, repeats)):
@@ -267,7 +268,7 @@ def run_recolor(args: Recolor, pipeline=None, console: Optional[Console] = None)
     edited = b.edited_image(rule, args.edit_source)
     with console.status("fitting the edit"):
         edit, timing = b.fit(edited, args.steps, args.pixel_batches, args.repeats,
-                             b.original(args.edit_source, args.whole_photo))
+                             b.original(args.edit_source, args.whole_photo), args.whole_photo)
     with console.status("measuring"):
         res, pics = b.measure(edit, rule, args.lpips, args.pictures)
     out = {"config": str(args.load_config), "device": _device_name(b.scene.device),
@@ -305,7 +306,8 @@ def run_accuracy_time(args: AccuracyTime, pipeline=None, console: Optional[Conso
     points = []
     for pb in args.pixel_batches:
         for s in args.steps:
-            edit, timing = b.fit(edited, s, pb, args.repeats, b.original(args.edit_source, args.whole_photo))
+            edit, timing = b.fit(edited, s, pb, args.repeats, b.original(args.edit_source, args.whole_photo),
+                                 args.whole_photo)
             res, _ = b.measure(edit, rule, lpips=False)
             points.append({**timing, **res["mean"]})
             console.print(f"pixel_batches {pb} steps {s}: {timing['total_s']:.3f} s, recolour "

@@ -304,6 +304,7 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
         cfg.pixel_batches = args.pixel_batches
     if args.steps is not None:
         cfg.steps = args.steps
+    cfg.whole_image = args.whole_image
     with torch.no_grad():
         engine = EditEngine(scene, cams, torch.from_numpy(image), stack.to(model.device), cfg, source,
                             original=None if original is None else torch.from_numpy(original))
@@ -313,7 +314,8 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
         edit, timing = engine.fit(progress=lambda done, total: bar.update(task, completed=done))
     number = stack.add(edit)
     return (f"edit {number} saved to {stack.directory / stack.entries[-1].file} ({where}; {timing.steps} steps, "
-            f"setup {timing.setup_s:.3f} s + steps {timing.steps_s:.3f} s, L1 {timing.final_loss:.4f})")
+            f"setup {timing.setup_s:.3f} s + steps {timing.steps_s:.3f} s, L1 {timing.final_loss:.4f}; fitted "
+            f"{engine.mode}, {engine.changed_fraction:.0%} of the view)")
 
 
 def run(cmd: object, console: Optional[Console] = None, pipeline=None) -> str:
