@@ -1,7 +1,7 @@
 """(GPU) Train the demo's geometry: splatfacto on the bundle's views, pruned, as an INRIA .ply.
 
     python scripts/train_demo_geometry.py                     # -> virgi_ns/assets/beercan_small/geometry.ply
-    python scripts/train_demo_geometry.py --steps 15000 --cap 60000 --downscale 2
+    python scripts/train_demo_geometry.py --steps 15000 --cap 60000 --downscale 4   # how the bundled file was made
 
 The demo imports ``geometry.ply`` from the bundle when it is there (``virgi_ns.demo``), which
 spares a CPU the geometry stage. This script trains nerfstudio's splatfacto (gsplat, CUDA) on the
@@ -18,7 +18,7 @@ training photos); the held-out photos are never seen either way. It then
   leaves holes that a few thousand steps close again);
 - moves them from the run's frame back into the capture frame (COLMAP's; the inverse of the
   dataparser's orient/centre/scale), and writes SH degree 0 (the colour field replaces colours);
-- prints the held-out PSNR of the splatfacto render before and after pruning.
+- prints the held-out PSNR of the splatfacto render before pruning, after it, and after fine-tuning.
 
 Nothing is downloaded: splatfacto's LPIPS metric (which fetches AlexNet) is replaced by a NaN
 stand-in when its weights are not cached.
@@ -55,9 +55,9 @@ class Args:
     source: Path = DEFAULT_SOURCE
     """COLMAP beercan; when present the bundle's views are rebuilt from it at --downscale."""
     downscale: int = 2
+    """Downscale of the rebuilt views (1: 720x1280). Ignored without --source."""
     all_views: bool = True
     """With --source: train on every photo of the capture but the bundle's held-out ones."""
-    """Downscale of the rebuilt views (1: 720x1280). Ignored without --source."""
     out: Path = BUNDLED_SCENE / "geometry.ply"
     steps: int = 15000
     cap: int = 60000
@@ -129,7 +129,9 @@ def _train_and_write(args: Args, tmp: Path) -> None:
         from virgi_ns.data.make_bundle import make_bundle
 
         frames = json.loads((scene / "transforms.json").read_text())["frames"]
-        held_out = [f["file_path"] for i, f in enumerate(frames) if i % HOLDOUT_INTERVAL == 0]
+        # nerfstudio sorts the frames by file name before taking every 8th as held out
+        names_sorted = sorted(f["file_path"] for f in frames)
+        held_out = [n for i, n in enumerate(names_sorted) if i % HOLDOUT_INTERVAL == 0]
         n_views = len(frames)
         if args.all_views:
             from nerfstudio.data.utils.colmap_parsing_utils import read_images_binary

@@ -83,6 +83,17 @@ def test_sparse_pixel_batches_reproduce_composite(world):
     torch.testing.assert_close(gs, gr, atol=1e-5, rtol=1e-5)
     (g1,) = torch.autograd.grad(((_SparseRender.apply(colours, one.A, one.At)) * w).sum(), colours)
     torch.testing.assert_close(g1, gr, atol=1e-5, rtol=1e-5)
+    # with changed pixels: every set holds its part of them, and they carry the share in every set
+    changed = torch.zeros(c.num_pixels, dtype=torch.bool)
+    changed[torch.randperm(c.num_pixels, generator=g)[:9]] = True
+    for n in (1, 4):
+        sets = _pixel_batches(c, target, bg, n, seed=2, changed=changed, share=0.5)
+        assert sum(b.target.shape[0] for b in sets) == c.num_pixels
+        for b in sets:
+            is_changed = (b.target[:, None] == target[changed][None]).all(-1).any(-1)
+            assert int(is_changed.sum()) in (9 // n, 9 // n + 1)
+            assert abs(float(b.weight.sum()) - 1.0) < 1e-5
+            assert abs(float(b.weight[is_changed].sum()) - 0.5) < 1e-5
 
 
 def test_fresh_edit_changes_nothing(world):
@@ -382,6 +393,12 @@ def test_a_small_edit_is_not_outvoted_by_the_unchanged_pixels(world):
     assert abs(eng.changed_fraction - float(patch.float().mean())) < 0.002
     whole = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), small, cfg=EditConfig(whole_image=True))
     assert whole.mode == "whole image" and whole.changed_fraction == 1.0
+    # a render edited for a training view: the photo given as the original is not what it started from
+    photo = (rgb + 0.2).clamp(0, 1)
+    eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), small, original=photo)
+    assert eng.mode == "changed pixels (an edited render)"
+    with pytest.raises(InputError, match="current render"):
+        EditEngine(S.scene, S.cameras.index(EDIT_VIEW), rgb)
     stack = _stack(world, eng.fit()[0])
     b = world["before"][HELD_OUT[0]]["rgb"]
     truth, m = recolor(b, BLUE_TO_RED)

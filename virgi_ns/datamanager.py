@@ -143,18 +143,19 @@ def sample_tiles(
 
 def _stack_images(cached: list[dict]) -> Tensor:
     """Stack the cached images [V,H_max,W_max,C] (zero padded) and make each cache entry a view
-    into the stack, so the images are held once."""
-    imgs = [c["image"] for c in cached]
-    H = max(int(i.shape[0]) for i in imgs)
-    W = max(int(i.shape[1]) for i in imgs)
-    if all(tuple(i.shape[:2]) == (H, W) for i in imgs):
-        stack = torch.stack(imgs)
-    else:
-        stack = imgs[0].new_zeros(len(imgs), H, W, imgs[0].shape[-1])
-        for k, img in enumerate(imgs):
-            stack[k, : img.shape[0], : img.shape[1]] = img
+    into the stack, so the images are held once (each original is released as it is copied; a
+    pinned cache stays pinned)."""
+    shapes = [tuple(c["image"].shape) for c in cached]
+    H = max(s[0] for s in shapes)
+    W = max(s[1] for s in shapes)
+    first = cached[0]["image"]
+    pinned = first.device.type == "cpu" and first.is_pinned()
+    stack = torch.zeros((len(cached), H, W, shapes[0][2]), dtype=first.dtype, device=first.device,
+                        pin_memory=pinned)
     for k, c in enumerate(cached):
-        c["image"] = stack[k, : imgs[k].shape[0], : imgs[k].shape[1]]
+        h, w = shapes[k][:2]
+        stack[k, :h, :w] = c["image"]
+        c["image"] = stack[k, :h, :w]
     return stack
 
 

@@ -141,14 +141,24 @@ class _PixelBatch:
     weight: Optional[Tensor] = None  # [p] per-pixel loss weights summing to 1 (None: the plain mean)
 
 
-def _pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches: int, seed: int,
-                   weight: Optional[Tensor] = None) -> list[_PixelBatch]:
-    """Split the view's pixels into ``n_batches`` random, equally sized sets, each with its own
-    rows of ``A`` (pixels ascending within a set) and its own ``A^T``. ``weight`` [P]: per-pixel
-    loss weights (each set's are normalised to sum to 1)."""
+def _group_weights(changed: Optional[Tensor], share: float) -> Optional[Tensor]:
+    """Per-pixel loss weights [p] summing to 1: the ``changed`` pixels carry ``share`` of the loss and
+    the others the rest, whatever their numbers (all of it when one group is empty)."""
+    if changed is None:
+        return None
+    n_c = int(changed.sum())
+    n_u = changed.numel() - n_c
+    if n_c == 0 or n_u == 0:
+        return torch.full(changed.shape, 1.0 / max(changed.numel(), 1), device=changed.device)
+    return torch.where(changed, share / n_c, (1.0 - share) / n_u).float()
 
-    def norm(w: Optional[Tensor]) -> Optional[Tensor]:
-        return None if w is None else w / w.sum().clamp_min(1e-30)
+
+def _pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches: int, seed: int,
+                   changed: Optional[Tensor] = None, share: float = 0.5) -> list[_PixelBatch]:
+    """Split the view's pixels into ``n_batches`` random, equally sized sets, each with its own
+    rows of ``A`` (pixels ascending within a set) and its own ``A^T``. With ``changed`` [P] (the
+    pixels an edit changed) the changed and the other pixels are each spread evenly over the sets,
+    and within every set the changed ones carry ``share`` of the loss (:func:`_group_weights`)."""
 
     dev, dt = target.device, target.dtype
     P = contrib.num_pixels
@@ -160,10 +170,15 @@ def _pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches
         t_order = torch.argsort(pair * P + pix)
         T = contrib.transmittance.detach().to(dev, dt)
         return [_PixelBatch(_csr(pix, pair, w, (P, U)), _csr(pair[t_order], pix[t_order], w[t_order], (U, P)),
-                            T[:, None] * bg[None, :], target, norm(weight))]
+                            T[:, None] * bg[None, :], target, _group_weights(changed, share))]
     gen = torch.Generator().manual_seed(seed)
     batch_of = torch.empty(P, dtype=torch.long)
-    batch_of[torch.randperm(P, generator=gen)] = torch.arange(P) % n_batches
+    if changed is None:
+        batch_of[torch.randperm(P, generator=gen)] = torch.arange(P) % n_batches
+    else:  # stratified: each set gets its part of the changed pixels and of the others
+        ch = changed.cpu()
+        for idx in (ch.nonzero().flatten(), (~ch).nonzero().flatten()):
+            batch_of[idx[torch.randperm(len(idx), generator=gen)]] = torch.arange(len(idx)) % n_batches
     batch_of = batch_of.to(dev)
     # local row of each pixel: its rank among its batch's pixels, in ascending pixel order
     order = torch.argsort(batch_of, stable=True)
@@ -189,7 +204,7 @@ def _pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches
         At = _csr(cols[t_order], rows[t_order], vals[t_order], (U, p_b))
         pixels = order[int(starts[b]) : int(starts[b]) + p_b]
         out.append(_PixelBatch(A, At, T[pixels, None] * bg[None, :], target[pixels],
-                               None if weight is None else norm(weight[pixels])))
+                               None if changed is None else _group_weights(changed[pixels], share)))
     return out
 
 
@@ -214,8 +229,10 @@ class EditConfig:
     seed: int = 0
     """Seeds the segmentation head's initialisation and the pixel sets."""
     unchanged_tol: float = 3.0 / 255.0
-    """With an ``original`` image: pixels whose colour moved by at most this (every channel) are
-    not part of the edit (their target is the current render). Covers 8-bit and JPEG round trips."""
+    """Pixels whose colour moved by at most this (every channel) from the image the user started
+    from (the original, or the current render) are not part of the edit: their target is the current
+    render. Covers an 8-bit round trip; strong JPEG compression of the edited image can exceed it
+    (noise then counts as a change: save edits as PNG)."""
     changed_share: float = 0.5
     """With an ``original`` image: the share of the loss carried by the changed pixels (the rest by
     the unchanged ones), whatever their numbers; a small edit (2% of the view) would otherwise be
@@ -309,30 +326,28 @@ class EditEngine:
         self.k = self.stack.specular_strength if self.stack is not None else 1.0
         bg = sc.background.to(dev, torch.float32).reshape(3)
         current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), contrib, bg)[0]
-        weight = None
         self.mode = "whole image"
-        if cfg.whole_image:
-            changed = None
-        elif original is not None:
-            changed = (edited - original).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
-            if not bool(changed.any()):
-                raise InputError("the edited image does not differ from the original: nothing to edit")
-            self.mode = "changed pixels (original given)"
-        else:  # an edited render? its untouched pixels equal the current render
-            changed = (edited - current).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
-            if float(changed.float().mean()) <= 1.0 - cfg.render_match_min:
-                self.mode = "changed pixels (an edited render)"
-            else:
-                changed = None
+        changed = None
+        if not cfg.whole_image:
+            # the untouched pixels equal the image the user started from: the original, or the render
+            off_render = (edited - current).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
+            render_match = 1.0 - float(off_render.float().mean())
+            if original is not None:
+                off_orig = (edited - original).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
+                if render_match > 1.0 - float(off_orig.float().mean()):  # e.g. a render edited for a training view
+                    changed, self.mode = off_render, "changed pixels (an edited render)"
+                else:
+                    changed, self.mode = off_orig, "changed pixels (original given)"
+            elif render_match >= cfg.render_match_min:
+                changed, self.mode = off_render, "changed pixels (an edited render)"
+            if changed is not None and not bool(changed.any()):
+                raise InputError("the edited image does not differ from the "
+                                 f"{'original' if self.mode.endswith('given)') else 'current render'}: nothing to edit")
         if changed is not None:  # untouched pixels: the current render is their target
             edited = torch.where(changed, edited, current)
-            ch = changed.reshape(-1)
-            n_ch = int(ch.sum())
-            self.changed_fraction = n_ch / ch.numel()
-            share = cfg.changed_share if n_ch < ch.numel() else 1.0
-            weight = torch.where(ch, share / max(n_ch, 1), (1.0 - share) / max(ch.numel() - n_ch, 1)).float()
+            self.changed_fraction = float(changed.float().mean())
         self.batches = _pixel_batches(contrib, edited.reshape(-1, 3), bg, max(1, cfg.pixel_batches), cfg.seed,
-                                      weight)
+                                      None if changed is None else changed.reshape(-1), cfg.changed_share)
         # trainable copies
         head = fld.diffuse_head
         self.weight = head.weight.detach().float().clone().requires_grad_(True)

@@ -135,7 +135,7 @@ class VirgiModel(SplatfactoModel):
         self.field = DecoupledColorField(cfg.color_field, self._scene_aabb())
         self.register_buffer("frozen", torch.tensor(False))  # in checkpoints
         self._frozen = False  # its host copy: the flag is read every step, and reading a GPU buffer syncs
-        self.register_load_state_dict_post_hook(lambda m, _keys: setattr(m, "_frozen", bool(m.frozen)))
+        self.register_load_state_dict_post_hook(VirgiModel._sync_frozen)
         # specular gate (filled by build_specular_gate; sizes follow the Gaussians)
         self.register_buffer("spec_magnitude", torch.zeros(0))
         self.register_buffer("diffuse_cache", torch.zeros(0, 3))
@@ -230,6 +230,11 @@ class VirgiModel(SplatfactoModel):
         hi = torch.quantile(keep.float(), 1 - q, dim=0)
         pad = 0.1 * (hi - lo).clamp_min(1e-3)
         self.field.aabb.copy_(torch.stack([lo - pad, hi + pad]).to(self.field.aabb))
+
+    @staticmethod
+    def _sync_frozen(module: "VirgiModel", _keys) -> None:
+        """After a state dict is loaded: the host copy of the ``frozen`` buffer."""
+        module._frozen = bool(module.frozen)
 
     def start_colour_stage(self) -> Optional[Dict[str, float]]:
         """Freeze the geometry and, once per process, warm-start the colour field

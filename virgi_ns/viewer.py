@@ -551,7 +551,10 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
         cams = raster_cameras(view.camera).to(m.device)
         source = EditSource(name, cams.Ks[0].cpu(), cams.viewmats[0].cpu(), int(cams.widths[0]),
                             int(cams.heights[0]), view.name)
-        engine = EditEngine(scene, cams, torch.from_numpy(image), stack, source=source)
+        # the view's saved render is what the user painted over: the pixels they left alone match it
+        original = torch.from_numpy(np.ascontiguousarray(view.image[..., :3], dtype=np.float32)) \
+            if view.image is not None and tuple(view.image.shape[:2]) == tuple(image.shape[:2]) else None
+        engine = EditEngine(scene, cams, torch.from_numpy(image), stack, source=source, original=original)
         edit, timing = engine.fit(steps, progress)
         with self._lock():
             number = stack.add(edit)

@@ -202,7 +202,8 @@ def original_image(pipeline, args: Apply, shape: tuple, console: Console):
     evaluation) photo; None for a --camera-json view without --original, or (with a note) when
     the photo's size differs from the edited image's."""
     if args.original is not None:
-        img, _ = load_edited_image(args.original)
+        img, _ = load_edited_image(args.original)  # read as the edited image is (alpha dropped)
+        img, _ = fit_size(img, shape[1], shape[0], args.resize, "--original")
         where = str(args.original)
     else:
         found = None
@@ -217,11 +218,10 @@ def original_image(pipeline, args: Apply, shape: tuple, console: Console):
         if found is None:
             return None
         ds, i = found
-        img = ds.get_image_float32(i)[..., :3].numpy()
+        # the file's own pixels, alpha dropped as for the edited image (not blended onto a background)
+        img = ds.get_numpy_image(i)[..., :3].astype(np.float32) / 255.0
         where = Path(ds.image_filenames[i]).name
     if tuple(img.shape) != tuple(shape):
-        if args.original is not None:
-            raise InputError(f"--original is {img.shape[1]}x{img.shape[0]}, the edited image {shape[1]}x{shape[0]}")
         console.print(f"note: the photo {where} is {img.shape[1]}x{img.shape[0]}, not the edited image's size: "
                       "fitting every pixel of the edited image")
         return None

@@ -66,7 +66,8 @@ def gaussians_from_state(state: dict, where: str = "checkpoint") -> Gaussians:
     try:
         rest = f["features_rest"].reshape(n, -1, 3)
         dc = f["features_dc"].reshape(n, 1, 3)
-        if rest.shape[1] == 0:  # sh_degree 0: splatfacto's colour is sigmoid(features_dc)
+        virgi = any(str(k).endswith("frozen") or ".field.hash." in str(k) for k in state)
+        if rest.shape[1] == 0 and not virgi:  # sh_degree 0: splatfacto's colour is sigmoid(features_dc)
             dc = (torch.sigmoid(dc) - 0.5) / SH_C0
         sh = torch.cat([dc, rest], dim=1)
         return Gaussians(f["means"], f["scales"], f["quats"], f["opacities"].reshape(n), sh.contiguous())
