@@ -81,6 +81,9 @@ class _GatherRows(torch.autograd.Function):
         return g, None
 
 
+_CORNERS = ((1, 1, 1), (1, 0, 1), (0, 0, 1), (0, 1, 1), (1, 1, 0), (1, 0, 0), (0, 0, 0), (0, 1, 0))
+
+
 class GridEncoding(HashEncoding):
     """nerfstudio's torch :class:`HashEncoding` (same hash, same trilinear arithmetic, same
     parameter), with the eight corner look-ups done as one gather whose gradient is accumulated by
@@ -93,13 +96,13 @@ class GridEncoding(HashEncoding):
         c = torch.ceil(scaled).type(torch.int32)
         f = torch.floor(scaled).type(torch.int32)
         offset = scaled - f
-        # corners in the parent's order: ccc, cfc, ffc, fcc, ccf, cff, fff, fcf (x, y, z)
-        xs = torch.stack([c[..., 0], c[..., 0], f[..., 0], f[..., 0], c[..., 0], c[..., 0], f[..., 0], f[..., 0]], -1)
-        ys = torch.stack([c[..., 1], f[..., 1], f[..., 1], c[..., 1], c[..., 1], f[..., 1], f[..., 1], c[..., 1]], -1)
-        zs = torch.stack([c[..., 2], c[..., 2], c[..., 2], c[..., 2], f[..., 2], f[..., 2], f[..., 2], f[..., 2]], -1)
-        hashed = self._corner_hash(xs, ys, zs)  # [..., L, 8]
-        feats = _GatherRows.apply(self.hash_table, hashed)  # [..., L, 8, F]
-        f_0, f_1, f_2, f_3, f_4, f_5, f_6, f_7 = feats.unbind(-2)
+        # the eight corners [..., 8, L, 3] in the parent's order (x, y, z; 1 = ceil): ccc, cfc, ffc,
+        # fcc, ccf, cff, fff, fcf; with corners before levels, the parent's hash_fn adds each level's
+        # table offset as it does for one corner
+        ceil = torch.tensor(_CORNERS, dtype=torch.bool, device=c.device).view(8, 1, 3)
+        hashed = self.hash_fn(torch.where(ceil, c[..., None, :, :], f[..., None, :, :]))  # [..., 8, L]
+        feats = _GatherRows.apply(self.hash_table, hashed)  # [..., 8, L, F]
+        f_0, f_1, f_2, f_3, f_4, f_5, f_6, f_7 = feats.unbind(-3)
         o0, o1, o2 = offset[..., 0:1], offset[..., 1:2], offset[..., 2:3]
         f_03 = f_0 * o0 + f_3 * (1 - o0)
         f_12 = f_1 * o0 + f_2 * (1 - o0)
@@ -109,16 +112,6 @@ class GridEncoding(HashEncoding):
         f4756 = f_47 * o1 + f_56 * (1 - o1)
         encoded = f0312 * o2 + f4756 * (1 - o2)  # [..., L, F]
         return torch.flatten(encoded, start_dim=-2, end_dim=-1)
-
-    def _corner_hash(self, xs: Tensor, ys: Tensor, zs: Tensor) -> Tensor:
-        """The parent's ``hash_fn`` on corner coordinates [..., L, 8] (each level's table offset
-        broadcast over the corners)."""
-        # int64 products, as the parent's (its int32 coordinates times an int64 prime tensor)
-        x = torch.bitwise_xor(xs.long(), ys.long() * 2654435761)
-        x = torch.bitwise_xor(x, zs.long() * 805459861)
-        x %= self.hash_table_size
-        x += self.hash_offset.to(x.device)[:, None]
-        return x
 
 
 class DecoupledColorField(nn.Module):
