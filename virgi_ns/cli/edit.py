@@ -170,6 +170,17 @@ def _datasets(pipeline) -> list:
     return [d for d in (getattr(dm, "train_dataset", None), getattr(dm, "eval_dataset", None)) if d is not None]
 
 
+def _find_image(pipeline, name: str):
+    """(dataset, index) of the training (or evaluation) image called ``name`` (file name, stem or
+    path), or None."""
+    for ds in _datasets(pipeline):
+        for i, fn in enumerate(ds.image_filenames):
+            p = Path(fn)
+            if name in (p.name, p.stem, str(p)):
+                return ds, i
+    return None
+
+
 def resolve_camera(pipeline, args: Apply):
     """(raster Cameras of one view, a description) for the chosen camera of ``args``."""
     from virgi_ns.nscams import raster_cameras
@@ -187,11 +198,10 @@ def resolve_camera(pipeline, args: Apply):
         return raster_cameras(train.cameras[i : i + 1]), f"train index {i} ({Path(train.image_filenames[i]).name})"
     if args.image_name is not None:
         want = args.image_name
-        for ds in _datasets(pipeline):
-            for i, fn in enumerate(ds.image_filenames):
-                p = Path(fn)
-                if want in (p.name, p.stem, str(p)):
-                    return raster_cameras(ds.cameras[i : i + 1]), f"image {p.name}"
+        found = _find_image(pipeline, want)
+        if found is not None:
+            ds, i = found
+            return raster_cameras(ds.cameras[i : i + 1]), f"image {Path(ds.image_filenames[i]).name}"
         some = [Path(f).name for f in pipeline.datamanager.train_dataset.image_filenames[:3]]
         raise InputError(f"no image named {want!r} in the run (e.g. {', '.join(some)})")
     return camera_from_json(pipeline.model, Path(args.camera_json)), f"camera {Path(args.camera_json).name}"
@@ -210,11 +220,7 @@ def original_image(pipeline, args: Apply, shape: tuple, console: Console):
         if args.camera_index is not None:
             found = (pipeline.datamanager.train_dataset, args.camera_index)
         elif args.image_name is not None:
-            for ds in _datasets(pipeline):
-                for i, fn in enumerate(ds.image_filenames):
-                    p = Path(fn)
-                    if found is None and args.image_name in (p.name, p.stem, str(p)):
-                        found = (ds, i)
+            found = _find_image(pipeline, args.image_name)
         if found is None:
             return None
         ds, i = found
