@@ -325,27 +325,30 @@ class EditEngine:
         self.c_s = fld.specular(self.feats, dirs, h1, h2).float()
         self.k = self.stack.specular_strength if self.stack is not None else 1.0
         bg = sc.background.to(dev, torch.float32).reshape(3)
-        current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), contrib, bg)[0]
-        self.mode = "whole image"
-        changed = None
+        changed, self.mode = None, "whole image"
         if not cfg.whole_image:
             # the untouched pixels equal the image the user started from: the original, or the render
-            off_render = (edited - current).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
-            render_match = 1.0 - float(off_render.float().mean())
+            current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), contrib, bg)[0]
+
+            def off(ref: Tensor) -> Tensor:
+                return (edited - ref).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
+
+            off_render, ref = off(current), "current render"
             if original is not None:
-                off_orig = (edited - original).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
-                if render_match > 1.0 - float(off_orig.float().mean()):  # e.g. a render edited for a training view
-                    changed, self.mode = off_render, "changed pixels (an edited render)"
-                else:
-                    changed, self.mode = off_orig, "changed pixels (original given)"
-            elif render_match >= cfg.render_match_min:
-                changed, self.mode = off_render, "changed pixels (an edited render)"
-            if changed is not None and not bool(changed.any()):
-                raise InputError("the edited image does not differ from the "
-                                 f"{'original' if self.mode.endswith('given)') else 'current render'}: nothing to edit")
-        if changed is not None:  # untouched pixels: the current render is their target
-            edited = torch.where(changed, edited, current)
-            self.changed_fraction = float(changed.float().mean())
+                off_orig = off(original)
+                if float(off_orig.float().mean()) <= float(off_render.float().mean()):
+                    changed, ref = off_orig, "original"
+                else:  # e.g. a render edited for a training view
+                    changed = off_render
+            elif 1.0 - float(off_render.float().mean()) >= cfg.render_match_min:
+                changed = off_render
+            if changed is not None:  # untouched pixels: the current render is their target
+                if not bool(changed.any()):
+                    raise InputError(f"the edited image does not differ from the {ref}: nothing to edit")
+                self.mode = "changed pixels (original given)" if ref == "original" else \
+                    "changed pixels (an edited render)"
+                edited = torch.where(changed, edited, current)
+                self.changed_fraction = float(changed.float().mean())
         self.batches = _pixel_batches(contrib, edited.reshape(-1, 3), bg, max(1, cfg.pixel_batches), cfg.seed,
                                       None if changed is None else changed.reshape(-1), cfg.changed_share)
         # trainable copies
