@@ -114,7 +114,7 @@ def bench_scene(args: Args, scene: str) -> dict:
     rule = RULES[scene].rule()
     b = Bench.load(pipeline, args.edit_view, args.max_views)
     edited = b.edited_image(rule, "photo")
-    original = b.original("photo", args.whole_photo)
+    original = b.original("photo")
     edit, cold = b.fit(edited, args.steps, None, args.repeats, original, args.whole_photo)
     t0 = time.perf_counter()
     b.scene.precompute_features()

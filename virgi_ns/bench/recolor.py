@@ -176,11 +176,11 @@ class Bench:
             raise InputError(f"--edit-source must be 'photo' or 'render', got {source!r}")
         return recolor(img, rule)[0]
 
-    def original(self, source: str, whole_photo: bool = False):
+    def original(self, source: str):
         """The unedited image the engine compares the edit with (only changed pixels are fitted to
-        the edit): the photo for a photo edit; None for a render edit (its untouched pixels are
-        the render already) or with ``whole_photo`` (fit the whole edited photo)."""
-        return self.edit_photo if source == "photo" and not whole_photo else None
+        the edit): the photo for a photo edit; None for a render edit (the engine recognises an
+        edited render by itself)."""
+        return self.edit_photo if source == "photo" else None
 
     def fit(self, edited: torch.Tensor, steps: Optional[int], pixel_batches: Optional[int], repeats: int,
             original: Optional[torch.Tensor] = None, whole_image: bool = False):
@@ -268,7 +268,7 @@ def run_recolor(args: Recolor, pipeline=None, console: Optional[Console] = None)
     edited = b.edited_image(rule, args.edit_source)
     with console.status("fitting the edit"):
         edit, timing = b.fit(edited, args.steps, args.pixel_batches, args.repeats,
-                             b.original(args.edit_source, args.whole_photo), args.whole_photo)
+                             b.original(args.edit_source), args.whole_photo)
     with console.status("measuring"):
         res, pics = b.measure(edit, rule, args.lpips, args.pictures)
     out = {"config": str(args.load_config), "device": _device_name(b.scene.device),
@@ -306,8 +306,7 @@ def run_accuracy_time(args: AccuracyTime, pipeline=None, console: Optional[Conso
     points = []
     for pb in args.pixel_batches:
         for s in args.steps:
-            edit, timing = b.fit(edited, s, pb, args.repeats, b.original(args.edit_source, args.whole_photo),
-                                 args.whole_photo)
+            edit, timing = b.fit(edited, s, pb, args.repeats, b.original(args.edit_source), args.whole_photo)
             res, _ = b.measure(edit, rule, lpips=False)
             points.append({**timing, **res["mean"]})
             console.print(f"pixel_batches {pb} steps {s}: {timing['total_s']:.3f} s, recolour "
