@@ -8,7 +8,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.callbacks import TrainingCallbackLocation
 
 from method_configs.virgi import virgi_trainer_config
@@ -17,7 +16,7 @@ from virgi_ns.gaussians import SH_C0
 from virgi_ns.io import save_ply
 from virgi_ns.pipeline import train_step, training_state
 
-from virgi_scene import Scene, make_scene
+from virgi_scene import Scene, make_scene, use_scene
 
 warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
 
@@ -42,13 +41,7 @@ def random_ply(scene, tmp_path_factory) -> tuple[Path, torch.Tensor]:
 
 def _config(scene: Scene, colour_init: str, geometry_steps: int = 0, decoupled: bool = True):
     cfg = virgi_trainer_config("virgi-test", decoupled=decoupled, geometry_steps=geometry_steps, colour_steps=4)
-    dm = cfg.pipeline.datamanager
-    dm.data = scene.root
-    dm.dataparser = NerfstudioDataParserConfig(data=scene.root, load_3D_points=False, eval_mode="interval",
-                                               eval_interval=8)
-    dm.tile_size = 16
-    dm.pixel_budget = 5 * 256
-    dm.cache_images = "gpu"
+    use_scene(cfg, scene, pixel_budget=5 * 256)
     m = cfg.pipeline.model
     m.background_color = "black"
     m.color_field = ColorFieldConfig(log2_hashmap_size=12, levels=8, decoupled=decoupled)

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.callbacks import TrainingCallbackLocation
 
 from method_configs.virgi import virgi_trainer_config
@@ -16,7 +15,7 @@ from virgi_ns.nscams import raster_cameras
 from virgi_ns.pipeline import train_step, training_state
 from virgi_ns.raster import Request, rasterize
 
-from virgi_scene import GLOSSY_ALBEDO, MATTE_ALBEDO, Scene, make_scene
+from virgi_scene import GLOSSY_ALBEDO, MATTE_ALBEDO, Scene, make_scene, use_scene
 
 warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
 
@@ -30,13 +29,7 @@ def build(scene: Scene, steps: int, decoupled: bool = True, batch_mode: str = "m
     torch.manual_seed(seed)
     cfg = virgi_trainer_config("virgi-test", decoupled=decoupled, batch_mode=batch_mode, geometry_steps=0,
                                colour_steps=steps)
-    dm = cfg.pipeline.datamanager
-    dm.data = scene.root
-    dm.dataparser = NerfstudioDataParserConfig(data=scene.root, load_3D_points=False, eval_mode="interval",
-                                               eval_interval=8)
-    dm.tile_size = 16
-    dm.pixel_budget = 5 * 256 * 2
-    dm.cache_images = "gpu"  # "gpu" caching keeps tensors on the manager's device (cpu here)
+    use_scene(cfg, scene, pixel_budget=5 * 256 * 2)
     m = cfg.pipeline.model
     m.geometry_from = scene.ply
     m.background_color = "black"
@@ -195,12 +188,7 @@ def test_cpu_geometry_stage_then_freeze(scene):
     """Without an import, geometry trains through the differentiable reference (CPU), then freezes."""
     torch.manual_seed(0)
     cfg = virgi_trainer_config("virgi-test", geometry_steps=3, colour_steps=2)
-    dm = cfg.pipeline.datamanager
-    dm.data = scene.root
-    dm.dataparser = NerfstudioDataParserConfig(data=scene.root, load_3D_points=False, eval_mode="interval",
-                                               eval_interval=8)
-    dm.tile_size = 16
-    dm.pixel_budget = 5 * 256
+    use_scene(cfg, scene, pixel_budget=5 * 256, cache_on_device=False)
     m = cfg.pipeline.model
     m.random_init = True
     m.num_random = 150

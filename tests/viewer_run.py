@@ -8,13 +8,12 @@ import warnings
 from pathlib import Path
 
 import torch
-from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 
 from method_configs.virgi import virgi_trainer_config
 from virgi_ns.field import ColorFieldConfig
 from virgi_ns.pipeline import train_step, training_state
 
-from virgi_scene import Scene
+from virgi_scene import Scene, use_scene
 
 warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
 
@@ -22,13 +21,7 @@ warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
 def tiny_config(scene: Scene, steps: int, output_dir: Path | None = None):
     cfg = virgi_trainer_config("virgi", geometry_steps=0, colour_steps=steps)
     cfg.max_num_iterations = steps
-    dm = cfg.pipeline.datamanager
-    dm.data = scene.root
-    dm.dataparser = NerfstudioDataParserConfig(data=scene.root, load_3D_points=False, eval_mode="interval",
-                                               eval_interval=8)
-    dm.tile_size = 16
-    dm.pixel_budget = 5 * 256 * 2
-    dm.cache_images = "gpu"  # keeps tensors on the manager's device (the CPU here)
+    use_scene(cfg, scene, pixel_budget=5 * 256 * 2)
     m = cfg.pipeline.model
     m.geometry_from = scene.ply.resolve()
     m.background_color = "black"

@@ -116,3 +116,21 @@ def make_scene(root: Path, n_per_sphere: int = 120, views: int = 16, width: int 
     ply = root / "scene.ply"
     save_ply(g, ply)
     return Scene(g, albedo, glossy, cams, images, root, ply)
+
+
+def use_scene(cfg, scene: Scene, pixel_budget: int, cache_on_device: bool = True):
+    """Point a virgi trainer config's datamanager at ``scene``: nerfstudio's parser (every 8th view
+    held out), 16-px tiles, ``pixel_budget`` pixels per colour step; ``cache_on_device`` caches the
+    images as "gpu", which keeps them on the manager's device (the CPU here). Returns the datamanager
+    config."""
+    from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+    dm = cfg.pipeline.datamanager
+    dm.data = scene.root
+    dm.dataparser = NerfstudioDataParserConfig(data=scene.root, load_3D_points=False, eval_mode="interval",
+                                               eval_interval=8)
+    dm.tile_size = 16
+    dm.pixel_budget = pixel_budget
+    if cache_on_device:
+        dm.cache_images = "gpu"
+    return dm
