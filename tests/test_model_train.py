@@ -7,7 +7,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from nerfstudio.engine.callbacks import TrainingCallbackLocation
 
 from method_configs.virgi import virgi_trainer_config
 from virgi_ns.field import ColorFieldConfig
@@ -202,22 +201,12 @@ def test_cpu_geometry_stage_then_freeze(scene):
     means0 = model.means.detach().clone()
     assert not model.geometry_frozen and model.means.requires_grad
     for step in range(3):
-        for cb in cbs:
-            cb.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
-        optimizers.zero_grad_all()
-        _, loss_dict, _ = pipeline.get_train_loss_dict(step)
-        sum(loss_dict.values()).backward()
-        optimizers.optimizer_step_all()
+        train_step(pipeline, optimizers, cbs, step)
     moved = model.means.detach().clone()
     assert (moved - means0).abs().max() > 0  # geometry trained
     for step in range(3, 5):
-        for cb in cbs:
-            cb.run_callback_at_location(step, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
-        optimizers.zero_grad_all()
-        _, loss_dict, _ = pipeline.get_train_loss_dict(step)
+        loss_dict, _ = train_step(pipeline, optimizers, cbs, step)
         assert "rgb_l1" in loss_dict and torch.isfinite(loss_dict["rgb_l1"])
-        sum(loss_dict.values()).backward()
-        optimizers.optimizer_step_all()
     assert model.geometry_frozen and not model.means.requires_grad
     torch.testing.assert_close(model.means.detach(), moved)  # frozen: colour steps leave geometry alone
     # the hash grid's box was fitted to the frozen means
