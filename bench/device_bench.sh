@@ -4,7 +4,8 @@
 # STAGE picks the work: "train" (builds, then bench/train.py), "rest" (export, edit, demo geometry),
 # or any single one of export|edit|demo. Runs go under /tmp/runs (kept while the machine is warm);
 # tables, JSON, pictures and logs are packed into $OUT. Environment knobs: STEPS, COLOUR_STEPS,
-# DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE, EDIT_SCENES ("beercan fern cup"), EDIT_TIMEOUT.
+# DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE, EDIT_SCENES ("beercan fern cup"), EDIT_TIMEOUT,
+# EDIT_ARGS (more bench/edit.py flags, e.g. --compare), TRAIN_ARGS (more bench/train.py flags).
 set -o pipefail
 export TORCH_EXTENSIONS_DIR=/tmp/torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
 export PYTHONPATH=/tmp/site:$PWD NERFSTUDIO_METHOD_CONFIGS="virgi=method_configs.virgi:virgi_method"
@@ -42,7 +43,7 @@ stage() { case " $STAGE " in *" $1 "*) return 0;; esac; [ "$STAGE" = rest ] && [
 
 if stage train; then
   el "train bench: $STEPS + $COLOUR_STEPS steps"
-  python3 bench/train.py --data $PWD/.data --out $RUNS/train --steps $STEPS --colour-steps $COLOUR_STEPS \
+  python3 bench/train.py --data $PWD/.data --out $RUNS/train --steps $STEPS --colour-steps $COLOUR_STEPS ${TRAIN_ARGS:-} \
     > $OUT/train.log 2>&1; el "train rc=$?"
   tail -n 30 $OUT/train.log
   (cd $RUNS/train && tar czf $OUT/train_results.tgz results.json *.png) 2>/dev/null
@@ -51,7 +52,7 @@ CFG=$RUNS/train/runs/beercan-virgi/virgi/run/config.yml
 if stage edit; then
   el "edit bench"
   timeout ${EDIT_TIMEOUT:-380} python3 bench/edit.py --data $PWD/.data --scenes ${EDIT_SCENES:-beercan} --train-out $RUNS/train --train-missing --geometry-steps $STEPS \
-    --colour-steps $COLOUR_STEPS --repeats ${EDIT_REPEATS:-5} --out $RUNS/edit > $OUT/edit.log 2>&1; el "edit rc=$?"
+    --colour-steps $COLOUR_STEPS --repeats ${EDIT_REPEATS:-5} --out $RUNS/edit ${EDIT_ARGS:-} > $OUT/edit.log 2>&1; el "edit rc=$?"
   tail -n 30 $OUT/edit.log
   (cd $RUNS/edit && tar czf $OUT/edit_results.tgz *.json *.png) 2>/dev/null
 fi

@@ -54,6 +54,10 @@ class Args:
     skip_trained_virgi: bool = False
     """Only the imported-geometry virgi rows (saves one geometry training)."""
     fps_repeats: int = 3
+    repeats: int = 1
+    """Train every method this many times (seeds 42, 43, ...; the imported-geometry rows use that
+    repeat's splatfacto run) and print the mean, spread and paired differences: single runs of
+    either method vary by ~0.4 dB on beercan."""
 
 
 def dataparser_for(scene: str, root: Path):
@@ -196,7 +200,7 @@ def save_picture(path: Path, gt: torch.Tensor, out: Dict[str, torch.Tensor]) -> 
         Image.fromarray((img.numpy() * 255 + 0.5).astype(np.uint8)).save(tmp, format="PNG")
 
 
-def run_scene(args: Args, scene: str) -> List[Dict[str, object]]:
+def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]:
     from nerfstudio.configs.method_configs import method_configs
 
     from method_configs.virgi import virgi_trainer_config
@@ -205,8 +209,8 @@ def run_scene(args: Args, scene: str) -> List[Dict[str, object]]:
     out = args.out
 
     def record(name: str, pipeline, seconds: float, parts: Dict[str, float]) -> None:
-        res = evaluate(pipeline, args.fps_repeats, out / f"{scene}_{name.replace(' ', '_')}.png")
-        row = {"scene": scene, "method": name, "train_s": seconds, **res, "train_breakdown": parts}
+        res = evaluate(pipeline, args.fps_repeats, out / f"{scene}_{name.replace(' ', '_')}{'' if seed == 42 else f'_seed{seed}'}.png")
+        row = {"scene": scene, "method": name, "seed": seed, "train_s": seconds, **res, "train_breakdown": parts}
         console.log(row)
         rows.append(row)
 
@@ -214,11 +218,12 @@ def run_scene(args: Args, scene: str) -> List[Dict[str, object]]:
     cfg = copy.deepcopy(method_configs["splatfacto"])
     cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
     cfg.max_num_iterations = args.steps
+    cfg.machine.seed = seed
     for group in cfg.optimizers.values():  # same schedule length as virgi's geometry stage
         sch = group.get("scheduler")
         if sch is not None and hasattr(sch, "max_steps"):
             sch.max_steps = args.steps
-    quiet(cfg, out, f"{scene}-splatfacto")
+    quiet(cfg, out, f"{scene}-splatfacto{'' if seed == 42 else f'-seed{seed}'}")
     trainer, secs, ckpt_dir, parts = train(cfg)
     record("splatfacto", trainer.pipeline, secs, parts)
     ckpt = sorted(ckpt_dir.glob("*.ckpt"))[-1]
@@ -229,14 +234,15 @@ def run_scene(args: Args, scene: str) -> List[Dict[str, object]]:
     if not args.skip_trained_virgi:
         cfg = virgi_trainer_config("virgi", geometry_steps=args.steps, colour_steps=args.colour_steps)
         cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
-        quiet(cfg, out, f"{scene}-virgi")
+        cfg.machine.seed = seed
+        quiet(cfg, out, f"{scene}-virgi{'' if seed == 42 else f'-seed{seed}'}")
         trainer, secs, _, parts = train(cfg)
         record("virgi", trainer.pipeline, secs, parts)
         del trainer
         torch.cuda.empty_cache()
 
     variants = [("virgi (imported geometry)", True, "multiview")]
-    if args.ablation:
+    if args.ablation and seed == 42:
         variants += [("imported, decoupled, single-view", True, "singleview"),
                      ("imported, single MLP, multi-view", False, "multiview"),
                      ("imported, single MLP, single-view", False, "singleview")]
@@ -245,7 +251,8 @@ def run_scene(args: Args, scene: str) -> List[Dict[str, object]]:
                                    colour_steps=args.colour_steps)
         cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
         cfg.pipeline.model.geometry_from = ckpt
-        quiet(cfg, out, f"{scene}-{name.replace(' ', '_').replace(',', '')}")
+        cfg.machine.seed = seed
+        quiet(cfg, out, f"{scene}-{name.replace(' ', '_').replace(',', '')}{'' if seed == 42 else f'-seed{seed}'}")
         trainer, secs, _, parts = train(cfg)
         record(name, trainer.pipeline, secs, parts)
         del trainer
@@ -291,11 +298,55 @@ def main(args: Args) -> None:
     device = torch.cuda.get_device_name(0)
     rows: List[Dict[str, object]] = []
     for scene in args.scenes:
-        rows += run_scene(args, scene)
+        for r in range(max(1, args.repeats)):
+            rows += run_scene(args, scene, 42 + r)
         with atomic_path(args.out / "results.json") as tmp:
             tmp.write_text(json.dumps({"device": device, "steps": args.steps, "colour_steps": args.colour_steps,
                                        "rows": rows}, indent=2))
     print_table(rows, device)
+    if args.repeats > 1:
+        summary = repeat_summary(rows)
+        print_summary(summary, device)
+        with atomic_path(args.out / "results.json") as tmp:
+            tmp.write_text(json.dumps({"device": device, "steps": args.steps, "colour_steps": args.colour_steps,
+                                       "rows": rows, "summary": summary}, indent=2))
+
+
+def repeat_summary(rows: List[Dict[str, object]]) -> List[Dict[str, object]]:
+    """Per (scene, method): mean and sample standard deviation of PSNR, SSIM and train time over the
+    seeds, and the mean and range of the PSNR difference to splatfacto's run of the same seed."""
+    out = []
+    keys = sorted({(str(r["scene"]), str(r["method"])) for r in rows}, key=lambda k: (k[0], k[1] != "splatfacto", k[1]))
+    for scene, method in keys:
+        mine = [r for r in rows if r["scene"] == scene and r["method"] == method]
+        ref = {r["seed"]: r for r in rows if r["scene"] == scene and r["method"] == "splatfacto"}
+        row: Dict[str, object] = {"scene": scene, "method": method, "runs": len(mine)}
+        for k in ("psnr", "ssim", "train_s"):
+            v = np.array([float(r[k]) for r in mine])
+            row[k] = float(v.mean())
+            row[f"{k}_std"] = float(v.std(ddof=1)) if len(v) > 1 else float("nan")
+        d = np.array([float(r["psnr"]) - float(ref[r["seed"]]["psnr"]) for r in mine if r["seed"] in ref])
+        if method != "splatfacto" and len(d):  # imported rows: same geometry, colour stage alone
+            row["psnr_vs_splatfacto"] = float(d.mean())
+            row["psnr_vs_splatfacto_min"], row["psnr_vs_splatfacto_max"] = float(d.min()), float(d.max())
+            if "imported" not in method:
+                t = np.array([float(r["train_s"]) / float(ref[r["seed"]]["train_s"]) for r in mine if r["seed"] in ref])
+                row["train_time_vs_splatfacto"] = float(t.mean())
+        out.append(row)
+    return out
+
+
+def print_summary(summary: List[Dict[str, object]], device: str) -> None:
+    t = Table(title=f"mean over seeds on {device} (+- sample std; differences paired by seed)")
+    for c in ("scene", "method", "runs", "PSNR", "SSIM", "train s", "PSNR - splatfacto (min..max)", "time / splatfacto"):
+        t.add_column(c)
+    for r in summary:
+        d = (f"{r['psnr_vs_splatfacto']:+.2f} ({r['psnr_vs_splatfacto_min']:+.2f}..{r['psnr_vs_splatfacto_max']:+.2f})"
+             if "psnr_vs_splatfacto" in r else "")
+        t.add_row(str(r["scene"]), str(r["method"]), str(r["runs"]), f"{r['psnr']:.2f} +- {r['psnr_std']:.2f}",
+                  f"{r['ssim']:.3f} +- {r['ssim_std']:.3f}", f"{r['train_s']:.1f} +- {r['train_s_std']:.1f}", d,
+                  f"{r['train_time_vs_splatfacto']:.2f}x" if "train_time_vs_splatfacto" in r else "")
+    console.print(t)
 
 
 def entrypoint() -> None:

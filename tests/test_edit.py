@@ -362,6 +362,35 @@ def test_unchanged_pixels_keep_the_render_when_the_original_is_known(world):
         EditEngine(S.scene, cam, edited, original=photo[:10])
 
 
+def test_changed_pixels_target_the_render_plus_the_change(world):
+    """With a photo as the original, the changed pixels are fitted to the current render plus the
+    user's change (``changed_target="change"``), not to the photo's own pixels: a photo brighter
+    than the render (reconstruction error) then does not brighten the recoloured object in the
+    other views, where fitting the edited photo (``"edited"``) carries the error along."""
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    render = world["before"][EDIT_VIEW]["rgb"]
+    photo = (render + 0.12).clamp(0, 1)
+    edited, mask = recolor(photo, BLUE_TO_RED)
+    changed = (edited - photo).abs().amax(-1) > EditConfig().unchanged_tol
+    expected = torch.where(changed[..., None], (render + edited - photo).clamp(0, 1), render)
+    miss = {}
+    for target in ("change", "edited"):
+        eng = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=60, pixel_batches=1, changed_target=target),
+                         original=photo)
+        assert eng.mode.endswith("render + change)" if target == "change" else "edited image)")
+        tgt = eng.batches[0].target.reshape(render.shape)
+        torch.testing.assert_close(tgt, expected if target == "change" else torch.where(changed[..., None], edited, render),
+                                   atol=2e-5, rtol=0)
+        stack = _stack(world, eng.fit()[0])
+        b = world["before"][HELD_OUT[0]]["rgb"]
+        truth, m = recolor(b, BLUE_TO_RED)
+        miss[target] = float((_render(world, HELD_OUT[0], stack)["rgb"] - truth).abs()[m].mean())
+    assert miss["change"] < 0.6 * miss["edited"], miss
+    with pytest.raises(ValueError, match="changed_target"):
+        EditEngine(S.scene, cam, edited, cfg=EditConfig(changed_target="photo"), original=photo)  # type: ignore[arg-type]
+
+
 def test_a_small_edit_is_not_outvoted_by_the_unchanged_pixels(world):
     """A user recolours a 7x7 patch of the blue object (under 1% of the view). With the original
     known, the changed pixels carry half the loss (``changed_share``): the whole object turns red in

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 
 import pytest
 import torch
@@ -76,3 +77,37 @@ def test_bad_bench_arguments(pipeline, tmp_path):
         run_recolor(Recolor(tmp_path / "x.yml", edit_view=999), pipeline, _quiet())
     with pytest.raises(InputError, match="edit-source"):
         run_recolor(Recolor(tmp_path / "x.yml", edit_source="paint"), pipeline, _quiet())
+
+
+def test_edit_bench_compares_variants_on_the_same_run(pipeline, tmp_path, monkeypatch):
+    """``bench/edit.py --compare``: the engine defaults' row, then one row per fit variant and per
+    earlier rule, all measured on the one loaded run (CPU, tiny scene)."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("bench_edit", Path(__file__).resolve().parents[1] / "bench" / "edit.py")
+    bench_edit = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "bench_edit", bench_edit)  # dataclasses look their module up
+    spec.loader.exec_module(bench_edit)
+    import virgi_ns.cli.edit as cli_edit
+
+    loads = []
+    monkeypatch.setattr(cli_edit, "load_run", lambda cfg: loads.append(cfg) or (None, pipeline))
+    monkeypatch.setitem(bench_edit.RULES, "tiny", BROAD)
+    earlier = RuleArgs(h0=0.0, h1=360.0, shift=60.0, s_min=0.3, v_min=0.05)
+    monkeypatch.setitem(bench_edit.EARLIER_RULES, "tiny", earlier)
+    cfg = tmp_path / "config.yml"
+    cfg.write_text("unused")
+    args = bench_edit.Args(runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1, pictures=0, sweep=False,
+                           million=False, compare=True)
+    rows = bench_edit.bench_scene(args, "tiny")
+    assert loads == [cfg]
+    assert [r["variant"] for r in rows] == ["engine defaults", *bench_edit.VARIANTS, "earlier rule"]
+    assert rows[-1]["rule"] == earlier.rule().to_dict() and rows[0]["rule"] == BROAD.rule().to_dict()
+    for r in rows:
+        assert r["timing_cold"]["steps"] == 20
+        for k in ("propagation_psnr", "miss_psnr", "leak_psnr", "recolour_psnr"):
+            assert math.isfinite(r[k]), (r["variant"], k)
+    # the variants are different fits: their figures differ from the defaults'
+    assert len({round(r["propagation_psnr"], 4) for r in rows}) == len(rows)
+    bench_edit.print_table(rows, "cpu")

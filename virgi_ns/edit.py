@@ -14,8 +14,9 @@ only a copy of the diffuse head and a segmentation head::
     loss  = L1(A C' + T bg, I_target)          (Adam; optionally on a subset of pixels per step)
 
 ``I_target`` is the edited image. When the unedited image is known too (``original``: the
-training photo the user recoloured), only the pixels the user changed keep the edited colour;
-every other pixel's target is the scene's current render there. Otherwise the edit would also
+training photo the user recoloured), only the pixels the user changed are edited, and their target
+is the current render plus the change (edited - original; ``changed_target``); every other
+pixel's target is the scene's current render there. Otherwise the edit would also
 "repair" the model's reconstruction error all over the view (the photo is not the render), and
 that repair would leak into every view. An edited *render* needs no original: most of its pixels
 equal the current render, which identifies the changed ones. The changed pixels carry half the
@@ -35,7 +36,7 @@ import copy
 import time
 import warnings
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, Literal, Optional
 
 import torch
 from jaxtyping import Float
@@ -237,6 +238,11 @@ class EditConfig:
     """With an ``original`` image: the share of the loss carried by the changed pixels (the rest by
     the unchanged ones), whatever their numbers; a small edit (2% of the view) would otherwise be
     outvoted by the pixels asking for no change."""
+    changed_target: Literal["change", "edited"] = "change"
+    """What the changed pixels are fitted to when the unedited image is a photo (``original``):
+    ``change``: the current render plus the change the user made (edited - original, clamped to
+    [0, 1]), so the photo's detail the model never reproduced is not fitted as part of the edit;
+    ``edited``: the edited image itself. The same thing for an edited render (original = render)."""
     whole_image: bool = False
     """Fit every pixel to the edited image (no original, no edited-render detection)."""
     render_match_min: float = 0.5
@@ -290,6 +296,8 @@ class EditEngine:
                              f"{W}x{H}")
         if original is not None and tuple(original.shape) != tuple(edited.shape):
             raise InputError(f"the original image is {tuple(original.shape)}, the edited one {tuple(edited.shape)}")
+        if self.cfg.changed_target not in ("change", "edited"):
+            raise ValueError(f"EditConfig.changed_target must be 'change' or 'edited', got {self.cfg.changed_target!r}")
         self.camera = camera
         self.source = source or EditSource("", camera.Ks[0], camera.viewmats[0], W, H, "")
         self.changed_fraction = 1.0
@@ -345,8 +353,11 @@ class EditEngine:
             if changed is not None:  # untouched pixels: the current render is their target
                 if not bool(changed.any()):
                     raise InputError(f"the edited image does not differ from the {ref}: nothing to edit")
-                self.mode = "changed pixels (original given)" if ref == "original" else \
-                    "changed pixels (an edited render)"
+                self.mode = ("changed pixels (original given" +
+                             (", render + change)" if cfg.changed_target == "change" else ", edited image)")
+                             if ref == "original" else "changed pixels (an edited render)")
+                if ref == "original" and cfg.changed_target == "change":
+                    edited = (current + (edited - original)).clamp(0.0, 1.0)
                 edited = torch.where(changed, edited, current)
                 self.changed_fraction = float(changed.float().mean())
         self.batches = _pixel_batches(contrib, edited.reshape(-1, 3), bg, max(1, cfg.pixel_batches), cfg.seed,

@@ -44,7 +44,9 @@ class RuleArgs:
     h0: float = 190.0
     h1: float = 250.0
     shift: float = 150.0
-    s_min: float = 0.35
+    s_min: float = 0.1
+    """0.1 takes beercan's can whole (its pale blue back too) and nothing of the grey-white floor;
+    with 0.35 the rule split the can's print into shifted and unshifted patches."""
     v_min: float = 0.15
     sat_scale: float = 1.0
 
@@ -183,13 +185,14 @@ class Bench:
         return self.edit_photo if source == "photo" else None
 
     def fit(self, edited: torch.Tensor, steps: Optional[int], pixel_batches: Optional[int], repeats: int,
-            original: Optional[torch.Tensor] = None, whole_image: bool = False):
+            original: Optional[torch.Tensor] = None, whole_image: bool = False, **config):
         """(edit, {setup_s, steps_s, total_s} medians) after one untimed warm-up fit; ``None`` for
         ``steps`` or ``pixel_batches`` takes the engine's default. ``original``: the unedited image
-        (the engine then fits only the changed pixels to ``edited``); ``whole_image``: fit every pixel."""
+        (the engine then fits only the changed pixels); ``whole_image``: fit every pixel to
+        ``edited``; ``config``: other :class:`~virgi_ns.edit.EditConfig` fields."""
         from virgi_ns.edit import EditConfig, EditEngine
 
-        cfg = EditConfig()
+        cfg = EditConfig(**config)
         if steps is not None:
             cfg.steps = int(steps)
         if pixel_batches is not None:

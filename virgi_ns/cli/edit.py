@@ -19,7 +19,7 @@ import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Optional, Union
+from typing import Annotated, Literal, Optional, Union
 
 import numpy as np
 import torch
@@ -57,6 +57,9 @@ class Apply:
     the edit left unchanged keep the scene's current colours instead of being fitted to the image."""
     whole_image: bool = False
     """Fit every pixel of the edited image, also those equal to the original."""
+    changed_target: Literal["change", "edited"] = "change"
+    """With an original photo: fit the changed pixels to the render plus your change (``change``)
+    or to the edited image's own pixels (``edited``)."""
 
 
 @dataclass
@@ -311,6 +314,7 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
     if args.steps is not None:
         cfg.steps = args.steps
     cfg.whole_image = args.whole_image
+    cfg.changed_target = args.changed_target
     with torch.no_grad():
         engine = EditEngine(scene, cams, torch.from_numpy(image), stack.to(model.device), cfg, source,
                             original=None if original is None else torch.from_numpy(original))
