@@ -99,13 +99,20 @@ def test_edit_bench_compares_variants_on_the_same_run(pipeline, tmp_path, monkey
     cfg = tmp_path / "config.yml"
     cfg.write_text("unused")
     args = bench_edit.Args(runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1, pictures=0, sweep=False,
-                           million=False, compare=True)
+                           million=False, compare=True, variants=["pixel_batches=2", "steps=10,lr=0.05"])
+    assert bench_edit.parse_variant("steps=20,pixel_batches=2") == {"steps": 20, "pixel_batches": 2}
+    for bad in ("steps", "colour=3", "steps=many"):
+        with pytest.raises(InputError, match="--variants"):
+            bench_edit.parse_variant(bad)
     rows = bench_edit.bench_scene(args, "tiny")
     assert loads == [cfg]
-    assert [r["variant"] for r in rows] == ["engine defaults", *bench_edit.VARIANTS, "earlier rule"]
-    assert rows[-1]["rule"] == earlier.rule().to_dict() and rows[0]["rule"] == BROAD.rule().to_dict()
+    assert [r["variant"] for r in rows] == ["engine defaults", *bench_edit.VARIANTS, "earlier rule",
+                                            "pixel_batches=2", "steps=10,lr=0.05"]
+    assert "targets" in rows[0] and rows[0]["perfect_edit_recolour_psnr"] > 0
+    assert rows[3]["rule"] == earlier.rule().to_dict() and rows[0]["rule"] == BROAD.rule().to_dict()
+    assert [r["timing_cold"]["steps"] for r in rows] == [20, 20, 20, 20, 20, 10]
+    assert rows[4]["timing_cold"]["pixel_batches"] == 2
     for r in rows:
-        assert r["timing_cold"]["steps"] == 20
         for k in ("propagation_psnr", "miss_psnr", "leak_psnr", "recolour_psnr"):
             assert math.isfinite(r[k]), (r["variant"], k)
     # the variants are different fits: their figures differ from the defaults'

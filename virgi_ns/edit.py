@@ -238,7 +238,7 @@ class EditConfig:
     """With an ``original`` image: the share of the loss carried by the changed pixels (the rest by
     the unchanged ones), whatever their numbers; a small edit (2% of the view) would otherwise be
     outvoted by the pixels asking for no change."""
-    changed_target: Literal["change", "edited"] = "change"
+    changed_target: Literal["change", "edited"] = "edited"
     """What the changed pixels are fitted to when the unedited image is a photo (``original``):
     ``change``: the current render plus the change the user made (edited - original, clamped to
     [0, 1]), so the photo's detail the model never reproduced is not fitted as part of the edit;

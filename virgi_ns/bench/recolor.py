@@ -227,6 +227,9 @@ class Bench:
             rows.append({
                 "recolour_psnr": m["psnr"], "recolour_ssim": m["ssim"], "recolour_lpips": m["lpips"],
                 "unedited_psnr": psnr(base, photo),
+                # the recolour PSNR a perfect edit would get (the rule on the render vs on the photo):
+                # the rule's thresholds can amplify the reconstruction error beyond unedited_psnr
+                "perfect_edit_recolour_psnr": psnr(truth_render, truth_photo),
                 "propagation_psnr": psnr(after, truth_render),
                 "miss_psnr": psnr(after, truth_render, mask),
                 "leak_psnr": psnr(after, truth_render, ~mask),

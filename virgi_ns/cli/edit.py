@@ -57,7 +57,7 @@ class Apply:
     the edit left unchanged keep the scene's current colours instead of being fitted to the image."""
     whole_image: bool = False
     """Fit every pixel of the edited image, also those equal to the original."""
-    changed_target: Literal["change", "edited"] = "change"
+    changed_target: Literal["change", "edited"] = "edited"
     """With an original photo: fit the changed pixels to the render plus your change (``change``)
     or to the edited image's own pixels (``edited``)."""
 
