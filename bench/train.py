@@ -300,9 +300,9 @@ def main(args: Args) -> None:
     for scene in args.scenes:
         for r in range(max(1, args.repeats)):
             rows += run_scene(args, scene, 42 + r)
-        with atomic_path(args.out / "results.json") as tmp:
-            tmp.write_text(json.dumps({"device": device, "steps": args.steps, "colour_steps": args.colour_steps,
-                                       "rows": rows}, indent=2))
+            with atomic_path(args.out / "results.json") as tmp:  # after every run: a cut-off call keeps them
+                tmp.write_text(json.dumps({"device": device, "steps": args.steps, "colour_steps": args.colour_steps,
+                                           "rows": rows}, indent=2))
     print_table(rows, device)
     if args.repeats > 1:
         summary = repeat_summary(rows)
