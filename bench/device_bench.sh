@@ -5,7 +5,7 @@
 # or any single one of export|edit|demo. Runs go under /tmp/runs (kept while the machine is warm);
 # tables, JSON, pictures and logs are packed into $OUT. Environment knobs: STEPS, COLOUR_STEPS,
 # DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE, EDIT_SCENES ("beercan fern cup"), EDIT_TIMEOUT,
-# EDIT_ARGS (more bench/edit.py flags, e.g. --compare), TRAIN_ARGS (more bench/train.py flags).
+# EDIT_ARGS (more bench/edit.py flags, e.g. --compare), TRAIN_ARGS (more bench/train.py flags), TRAIN_TIMEOUT.
 set -o pipefail
 export TORCH_EXTENSIONS_DIR=/tmp/torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
 export PYTHONPATH=/tmp/site:$PWD NERFSTUDIO_METHOD_CONFIGS="virgi=method_configs.virgi:virgi_method"
@@ -43,7 +43,7 @@ stage() { case " $STAGE " in *" $1 "*) return 0;; esac; [ "$STAGE" = rest ] && [
 
 if stage train; then
   el "train bench: $STEPS + $COLOUR_STEPS steps"
-  python3 bench/train.py --data $PWD/.data --out $RUNS/train --steps $STEPS --colour-steps $COLOUR_STEPS ${TRAIN_ARGS:-} \
+  timeout ${TRAIN_TIMEOUT:-3600} python3 bench/train.py --data $PWD/.data --out $RUNS/train --steps $STEPS --colour-steps $COLOUR_STEPS ${TRAIN_ARGS:-} \
     > $OUT/train.log 2>&1; el "train rc=$?"
   tail -n 30 $OUT/train.log
   (cd $RUNS/train && tar czf $OUT/train_results.tgz results.json *.png) 2>/dev/null
