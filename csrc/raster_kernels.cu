@@ -41,14 +41,21 @@ __device__ __forceinline__ void tile_rect(float mx, float my, float radius, int 
 
 // One thread per Gaussian; loops over the requested views so the Gaussian's rotation is
 // computed once. Only visible (view, Gaussian) pairs -- those touching a requested grid tile --
-// are kept: each is appended at a block-reserved slot of the compact arrays (one global atomic
-// per block and view; warps in order inside the block), as fid = v*N+g, count = requested tiles
-// touched, rec0 = (mean2d.x, mean2d.y, depth, opacity), rec1 = (p, r, s, radius) where the
-// Gaussian's exponent at offset (dx, dy) is sigma = 0.5 (p (dx - r dy)^2 + s dy^2), and
-// pos = the slot itself (the values of the sort below, so that no separate arange is needed).
-// Slots at or beyond cap are not written (the caller retries with the exact size);
-// counters[kCtrVisible] counts the visible pairs, counters[kCtrIsect] their tile intersections.
-// The block order of the compact arrays is arbitrary: the caller sorts them by fid.
+// are kept, as fid = v*N+g, count = requested tiles touched, rec0 = (mean2d.x, mean2d.y, depth,
+// opacity), rec1 = (p, r, s, radius) where the Gaussian's exponent at offset (dx, dy) is
+// sigma = 0.5 (p (dx - r dy)^2 + s dy^2), and pos = the slot itself (the values of the sort
+// below, so that no separate arange is needed). Slots at or beyond cap are not written (the
+// caller retries with the exact size); counters[kCtrVisible] counts the visible pairs,
+// counters[kCtrIsect] their tile intersections.
+//
+// The append needs no block barrier per view: each warp stages its visible pairs in its own
+// region of shared memory (kWarpStage records, four views of a full warp), counted by a
+// warp-uniform register. When the block ends, one block scan of the warps' counts and one global
+// atomic reserve the block's slots, and each warp copies its records out (coalesced). A warp
+// whose region would overflow (more than four views' worth, as with whole images) first copies
+// it out on its own, at slots reserved by one global atomic for the warp. The order of the
+// compact arrays is therefore arbitrary (it was already arbitrary between blocks): the caller
+// sorts them by fid, which is unique, so the sorted arrays are the same whatever the order.
 //
 // The 2D covariance is formed as the reference does, stable in float32 for very anisotropic
 // Gaussians: A = J W R diag(s) (2x3), cov2d = A A^T + eps2d I, and its determinant by
@@ -63,14 +70,36 @@ __global__ void __launch_bounds__(kThreads)
                            int* __restrict__ fids, int* __restrict__ pos,
                            unsigned long long* __restrict__ counters) {
   constexpr int kWarps = kThreads / 32;
+  constexpr int kWarpStage = 4 * 32;
+  // 40 KB of staging per block: the registers (~80 per thread) already hold an SM to three
+  // blocks, which leaves most of its 228 KB of shared memory / L1 as cache
+  __shared__ float4 s_r0[kWarps * kWarpStage];
+  __shared__ float4 s_r1[kWarps * kWarpStage];
+  __shared__ int s_count[kWarps * kWarpStage];
+  __shared__ int s_fid[kWarps * kWarpStage];
   __shared__ int s_warp_n[kWarps];
   __shared__ int s_warp_off[kWarps];
+  __shared__ unsigned long long s_warp_isect[kWarps];
   __shared__ unsigned long long s_base;
-  __shared__ unsigned long long s_isect;
   const int g = blockIdx.x * blockDim.x + threadIdx.x;
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
   const bool live = g < N;
-  if (threadIdx.x == 0) s_isect = 0;
+  const int stage0 = warp * kWarpStage;  // this warp's staging region
+  int staged = 0;                        // records in it (the same in every lane)
+
+  // Copies the warp's n staged records to the compact arrays from slot base (whole warp).
+  auto copy_out = [&](int n, int64_t base) {
+    for (int i = lane; i < n; i += 32) {
+      const int64_t at = base + i;
+      if (at < cap) {
+        rec0[at] = s_r0[stage0 + i];
+        rec1[at] = s_r1[stage0 + i];
+        counts[at] = s_count[stage0 + i];
+        fids[at] = s_fid[stage0 + i];
+        pos[at] = static_cast<int>(at);
+      }
+    }
+  };
 
   float px = 0.f, py = 0.f, pz = 0.f, opac = 0.f;
   float R[3][3] = {{0.f, 0.f, 0.f}, {0.f, 0.f, 0.f}, {0.f, 0.f, 0.f}};
@@ -170,40 +199,52 @@ __global__ void __launch_bounds__(kThreads)
         }
       }
     }
-    // Block-wide append of this view's visible pairs.
+    // Stage this view's visible pairs in the warp's region (no block barrier).
     const unsigned ballot = __ballot_sync(0xffffffffu, count > 0);
-    if (lane == 0) s_warp_n[warp] = __popc(ballot);
-    __syncthreads();
-    if (threadIdx.x == 0) {
-      int total = 0;
-#pragma unroll
-      for (int w = 0; w < kWarps; ++w) {
-        s_warp_off[w] = total;
-        total += s_warp_n[w];
-      }
-      s_base = total > 0 ? atomicAdd(counters + kCtrVisible, static_cast<unsigned long long>(total))
-                         : 0ull;
+    const int n_new = __popc(ballot);
+    if (staged + n_new > kWarpStage) {  // (warp-uniform) full: the warp copies its region out
+      __syncwarp();                     // the lanes' staged records are visible to the warp
+      unsigned long long base = 0;
+      if (lane == 0) base = atomicAdd(counters + kCtrVisible, static_cast<unsigned long long>(staged));
+      copy_out(staged, static_cast<int64_t>(__shfl_sync(0xffffffffu, base, 0)));
+      __syncwarp();  // the region is read before it is written again
+      staged = 0;
     }
-    __syncthreads();
     if (count > 0) {
-      const int64_t at = static_cast<int64_t>(s_base) + s_warp_off[warp] +
-                         __popc(ballot & ((1u << lane) - 1u));
-      if (at < cap) {
-        rec0[at] = r0;
-        rec1[at] = r1;
-        counts[at] = count;
-        fids[at] = v * N + g;
-        pos[at] = static_cast<int>(at);
-      }
+      const int i = stage0 + staged + __popc(ballot & ((1u << lane) - 1u));
+      s_r0[i] = r0;
+      s_r1[i] = r1;
+      s_count[i] = count;
+      s_fid[i] = v * N + g;
       isect += count;
     }
+    staged += n_new;
   }
-  // Intersections: warp sums, one shared atomic per warp, one global atomic per block.
+  // End of the block: one scan of the warps' staged counts and one global atomic for the block's
+  // slots (and one for its intersections, summed per warp by shuffles); then each warp copies
+  // its region out.
 #pragma unroll
   for (int off = 16; off > 0; off >>= 1) isect += __shfl_down_sync(0xffffffffu, isect, off);
-  if (lane == 0 && isect > 0) atomicAdd(&s_isect, isect);
+  if (lane == 0) {
+    s_warp_n[warp] = staged;
+    s_warp_isect[warp] = isect;
+  }
+  __syncthreads();  // (also makes every warp's staged records visible)
+  if (threadIdx.x == 0) {
+    int total = 0;
+    unsigned long long total_isect = 0;
+#pragma unroll
+    for (int w = 0; w < kWarps; ++w) {
+      s_warp_off[w] = total;
+      total += s_warp_n[w];
+      total_isect += s_warp_isect[w];
+    }
+    s_base = total > 0 ? atomicAdd(counters + kCtrVisible, static_cast<unsigned long long>(total))
+                       : 0ull;
+    if (total_isect > 0) atomicAdd(counters + kCtrIsect, total_isect);
+  }
   __syncthreads();
-  if (threadIdx.x == 0 && s_isect > 0) atomicAdd(counters + kCtrIsect, s_isect);
+  copy_out(staged, static_cast<int64_t>(s_base) + s_warp_off[warp]);
 }
 
 // The compact arrays in fid order: out[i] = in[perm[i]] (fids are already sorted); the pair
