@@ -536,13 +536,15 @@ torch::Tensor composite_backward(torch::Tensor grad_images, torch::Tensor pixel,
   const c10::cuda::CUDAGuard guard(grad_images.device());
   const int64_t M = weight.size(0);
   const int D = static_cast<int>(grad_images.size(1));
-  auto grad_colors = torch::zeros({num_pairs, D}, grad_images.options());
+  // 3 channels accumulate in rows of 4 (one vector atomic per entry), then drop the padding
+  const int64_t row = D == 3 ? 4 : D;
+  auto grad_colors = torch::zeros({num_pairs, row}, grad_images.options());
   VIRGI_CUDA_CHECK(launch_composite_backward(M, D, grad_images.data_ptr<float>(),
                                              pixel.data_ptr<int>(), pair.data_ptr<int>(),
                                              weight.data_ptr<float>(),
                                              grad_colors.data_ptr<float>(),
                                              c10::cuda::getCurrentCUDAStream()));
-  return grad_colors;
+  return row == D ? grad_colors : grad_colors.narrow(1, 0, D).contiguous();
 }
 
 // d colors [U, D] from d images [P, D], per tile from the rasterizer's tile lists.

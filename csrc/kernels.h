@@ -100,7 +100,8 @@ cudaError_t launch_composite_forward(int64_t P, int D, const float* colors, cons
                                      const float* weight, const int64_t* offsets,
                                      const float* trans, const float* background, float* out,
                                      cudaStream_t stream);
-// grad_colors[U, D] (pre-zeroed) += weight * grad_images[pixel] for every entry.
+// grad_colors (pre-zeroed) += weight * grad_images[pixel] for every entry; its rows hold 4 floats
+// for D = 3 and 4 (the caller pads 3 channels: one 16-byte vector atomic per entry), D otherwise.
 cudaError_t launch_composite_backward(int64_t M, int D, const float* grad, const int* pixel,
                                       const int* pair, const float* weight, float* grad_colors,
                                       cudaStream_t stream);
