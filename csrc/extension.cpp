@@ -147,6 +147,18 @@ Plan make_plan(const torch::Tensor& widths, const torch::Tensor& heights,
   return plan;
 }
 
+// counters[first, first + n) on the host: one copy into pinned memory and one wait for the
+// stream (a host<->device synchronisation: the caller needs these sizes to allocate).
+std::vector<int64_t> read_counters(const torch::Tensor& counters, int first, int n,
+                                   cudaStream_t stream) {
+  auto host = torch::empty({n}, torch::TensorOptions().dtype(torch::kInt64).pinned_memory(true));
+  VIRGI_CUDA_CHECK(cudaMemcpyAsync(host.data_ptr<int64_t>(), counters.data_ptr<int64_t>() + first,
+                                   n * sizeof(int64_t), cudaMemcpyDeviceToHost, stream));
+  VIRGI_CUDA_CHECK(cudaStreamSynchronize(stream));
+  const int64_t* h = host.data_ptr<int64_t>();
+  return std::vector<int64_t>(h, h + n);
+}
+
 void check_input(const torch::Tensor& t, const char* name, int64_t cols) {
   TORCH_CHECK(t.is_cuda(), name, " must be on a CUDA device");
   TORCH_CHECK(t.scalar_type() == torch::kFloat32, name, " must be float32");
@@ -214,40 +226,50 @@ std::vector<torch::Tensor> rasterize_contributions(
   const int* d_slots = dbuf + plan.slots_at;
   const int* d_sat = dbuf + plan.sat_at;
 
+  // The per-pixel outputs, the slot ranges, the pixel offsets and the counters are initialised
+  // by one kernel (instead of a fill launch each).
   auto transmittance = torch::empty({P}, f32);
   auto valid = torch::empty({P}, f32.dtype(torch::kBool));
-  VIRGI_CUDA_CHECK(launch_init_pixels(P, iw, ih, d_items, d_views, transmittance.data_ptr<float>(),
-                     valid.data_ptr<bool>(), stream));
+  auto px_count = torch::empty({P}, i32);
+  auto ranges = torch::empty({2 * static_cast<int64_t>(std::max(plan.num_slots, 1))}, i32);
+  auto offsets = torch::empty({deferred ? 0 : P + 1}, i64);
+  auto counters = torch::empty({kNumCounters}, i64);
+  auto* d_counters = reinterpret_cast<unsigned long long*>(counters.data_ptr<int64_t>());
+  VIRGI_CUDA_CHECK(launch_init_request(P, iw, ih, d_items, d_views, transmittance.data_ptr<float>(),
+                                       valid.data_ptr<bool>(), px_count.data_ptr<int>(),
+                                       ranges.numel(), ranges.data_ptr<int>(), d_counters,
+                                       deferred ? nullptr : offsets.data_ptr<int64_t>(), stream));
 
   // Project every Gaussian once per requested view; keep the visible pairs (those touching a
   // requested grid tile) in compact arrays. Their number is known only after the projection:
   // the arrays get a capacity from the request's share of grid tiles and a learned ratio, and
   // the projection reruns with the exact size when they overflow.
-  auto totals = torch::zeros({2}, i64);
-  auto* d_totals = reinterpret_cast<unsigned long long*>(totals.data_ptr<int64_t>());
   const int64_t total_tiles = plan.total_tiles;
   const double share = total_tiles > 0 ? static_cast<double>(plan.num_slots) / total_tiles : 1.0;
   int64_t cap = capacity >= 0 ? capacity
                               : static_cast<int64_t>(std::min(1.0, share * g_visible_per_share.load()) *
                                                      static_cast<double>(VN)) + 4096;
   cap = std::max<int64_t>(std::min(cap, VN), 1);
-  torch::Tensor c_rec0, c_rec1, c_counts, c_fids;
+  torch::Tensor c_rec0, c_rec1, c_counts, c_fids, c_pos;
   int64_t Uc = 0, n_isect = 0;
   for (int attempt = 0; attempt < 2; ++attempt) {
     c_rec0 = torch::empty({cap, 4}, f32);
     c_rec1 = torch::empty({cap, 4}, f32);
     c_counts = torch::empty({cap}, i32);
     c_fids = torch::empty({cap}, i32);
-    if (attempt > 0) totals.zero_();
+    c_pos = torch::empty({cap}, i32);
+    if (attempt > 0) counters.narrow(0, kCtrVisible, 2).zero_();
     VIRGI_CUDA_CHECK(launch_project_compact(
         N, Vr, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(),
         opacities.data_ptr<float>(), Ks.data_ptr<float>(), viewmats.data_ptr<float>(), d_views,
         d_sat, cap, reinterpret_cast<float4*>(c_rec0.data_ptr<float>()),
         reinterpret_cast<float4*>(c_rec1.data_ptr<float>()), c_counts.data_ptr<int>(),
-        c_fids.data_ptr<int>(), d_totals, stream));
-    auto t = totals.cpu();
-    Uc = t[0].item<int64_t>();
-    n_isect = t[1].item<int64_t>();
+        c_fids.data_ptr<int>(), c_pos.data_ptr<int>(), d_counters, stream));
+    // synchronisation 1 of 2 (must stay): the compact arrays, the sorts (cub takes host sizes)
+    // and the tile keys are sized by these two counts
+    const auto t = read_counters(counters, kCtrVisible, 2, stream);
+    Uc = t[0];
+    n_isect = t[1];
     if (Uc <= cap) break;
     cap = Uc;
   }
@@ -265,31 +287,31 @@ std::vector<torch::Tensor> rasterize_contributions(
   auto cnts = torch::empty({Uc}, i32);
   auto rec0 = torch::empty({Uc, 4}, f32);
   auto rec1 = torch::empty({Uc, 4}, f32);
+  auto mark = torch::empty({std::max<int64_t>(Uc, 1)}, f32.dtype(torch::kUInt8));  // zeroed by the gather
   if (Uc > 0) {
-    auto perm_in = torch::arange(Uc, i32);
     auto perm = torch::empty({Uc}, i32);
     int fid_bits = 1;
     while ((int64_t{1} << fid_bits) < VN) ++fid_bits;
     size_t bytes = 0;
     VIRGI_CUDA_CHECK(sort_ints(nullptr, bytes, Uc, fid_bits, c_fids.data_ptr<int>(),
-                               fids.data_ptr<int>(), perm_in.data_ptr<int>(), perm.data_ptr<int>(),
+                               fids.data_ptr<int>(), c_pos.data_ptr<int>(), perm.data_ptr<int>(),
                                stream));
     auto scratch = torch::empty({static_cast<int64_t>(bytes) + 1}, f32.dtype(torch::kUInt8));
     VIRGI_CUDA_CHECK(sort_ints(scratch.data_ptr(), bytes, Uc, fid_bits, c_fids.data_ptr<int>(),
-                               fids.data_ptr<int>(), perm_in.data_ptr<int>(), perm.data_ptr<int>(),
+                               fids.data_ptr<int>(), c_pos.data_ptr<int>(), perm.data_ptr<int>(),
                                stream));
     VIRGI_CUDA_CHECK(launch_gather_compact(
         Uc, perm.data_ptr<int>(), reinterpret_cast<const float4*>(c_rec0.data_ptr<float>()),
         reinterpret_cast<const float4*>(c_rec1.data_ptr<float>()), c_counts.data_ptr<int>(),
         reinterpret_cast<float4*>(rec0.data_ptr<float>()),
-        reinterpret_cast<float4*>(rec1.data_ptr<float>()), cnts.data_ptr<int>(), stream));
+        reinterpret_cast<float4*>(rec1.data_ptr<float>()), cnts.data_ptr<int>(),
+        mark.data_ptr<uint8_t>(), stream));
   }
-  c_rec0 = c_rec1 = c_counts = c_fids = torch::Tensor();
+  c_rec0 = c_rec1 = c_counts = c_fids = c_pos = torch::Tensor();
   const float4* r0 = reinterpret_cast<const float4*>(rec0.data_ptr<float>());
   const float4* r1 = reinterpret_cast<const float4*>(rec1.data_ptr<float>());
 
   // Bin into requested tiles, sort by (slot, depth); ties keep the (view, Gaussian) order.
-  auto ranges = torch::zeros({2 * static_cast<int64_t>(std::max(plan.num_slots, 1))}, i32);
   auto sorted_vals = torch::empty({n_isect}, i32);
   if (n_isect > 0) {
     auto cum = torch::cumsum(cnts, 0, torch::kInt64);
@@ -317,8 +339,6 @@ std::vector<torch::Tensor> rasterize_contributions(
   // Small batches: one pass writes counts, transmittance and the entries into a padded
   // [P, pcap] layout (pcap learned from earlier calls); a pixel with more entries than pcap
   // sends the request down the two-pass path (count, then fill at exact offsets).
-  auto px_count = torch::zeros({P}, i32);
-  auto mark = torch::zeros({std::max<int64_t>(Uc, 1)}, f32.dtype(torch::kUInt8));
   int pcap = 2 * ((static_cast<int>(g_entries_cap.load()) + 1) / 2);
   const bool single = !deferred && (single_pass >= 0 ? single_pass > 0
                                                      : P * pcap * 8 <= kSinglePassBytes && P * pcap < (int64_t{1} << 31));
@@ -330,7 +350,8 @@ std::vector<torch::Tensor> rasterize_contributions(
                                    ranges.data_ptr<int>(), sorted_vals.data_ptr<int>(), r0, r1,
                                    px_count.data_ptr<int>(), transmittance.data_ptr<float>(),
                                    nullptr, reinterpret_cast<int2*>(padded.data_ptr<int>()),
-                                   mark.data_ptr<uint8_t>(), pcap, stream));
+                                   mark.data_ptr<uint8_t>(), pcap, stream, nullptr, nullptr,
+                                   d_counters + kCtrMaxCount));
   } else {
     // deferred lists keep, per unit, the list elements that matter to its pixels (when every
     // slot has one unit, as for whole images: the kept elements then fit the slot's range)
@@ -343,7 +364,8 @@ std::vector<torch::Tensor> rasterize_contributions(
                                    transmittance.data_ptr<float>(), nullptr, nullptr,
                                    deferred ? mark.data_ptr<uint8_t>() : nullptr, 0, stream,
                                    keep ? keep_list.data_ptr<int>() : nullptr,
-                                   keep ? keep_end.data_ptr<int>() : nullptr));
+                                   keep ? keep_end.data_ptr<int>() : nullptr,
+                                   deferred ? nullptr : d_counters + kCtrMaxCount));
   }
   auto meta = torch::tensor({plan.units_at, plan.items_at, plan.views_at,
                              static_cast<int64_t>(plan.num_units), item_w, item_h},
@@ -373,23 +395,26 @@ std::vector<torch::Tensor> rasterize_contributions(
             pair_view, pair_gaussian, pair_depth, dev, meta, ranges, list_pair,
             px_count, sorted_vals, rec0, rec1, rank, keep_list, keep_end};
   }
-  auto offsets = torch::zeros({P + 1}, i64);
   int64_t M = 0, max_count = 0;
   // After one pass the marks are complete unless a pixel overflowed the padded layout: the pair
   // ranks then come back with the entry count in one synchronisation instead of two.
   torch::Tensor rank;
   int64_t U_single = -1;
   if (P > 0) {
-    offsets.narrow(0, 1, P).copy_(torch::cumsum(px_count, 0, torch::kInt64));
-    std::vector<torch::Tensor> parts = {offsets[P], px_count.max().to(torch::kInt64)};
-    if (single && Uc > 0) {
-      rank = torch::cumsum(mark.narrow(0, 0, Uc), 0, torch::kInt32);
-      parts.push_back(rank[-1].to(torch::kInt64));
-    }
-    auto t = torch::stack(parts).cpu();
-    M = t[0].item<int64_t>();
-    max_count = t[1].item<int64_t>();
-    if (parts.size() == 3) U_single = t[2].item<int64_t>();
+    // offsets[0] = 0 (init kernel); the scan writes the rest in place
+    auto tail = offsets.narrow(0, 1, P);
+    torch::cumsum_out(tail, px_count, 0, torch::kInt64);
+    const bool ranked = single && Uc > 0;
+    if (ranked) rank = torch::cumsum(mark.narrow(0, 0, Uc), 0, torch::kInt32);
+    VIRGI_CUDA_CHECK(launch_collect_sizes(offsets.data_ptr<int64_t>() + P,
+                                          ranked ? rank.data_ptr<int>() + (Uc - 1) : nullptr,
+                                          d_counters, stream));
+    // synchronisation 2 of 2 (must stay): M and U size the returned lists, and the largest
+    // count decides whether the padded layout held every entry
+    const auto t = read_counters(counters, kCtrMaxCount, 3, stream);
+    max_count = t[0];
+    M = t[1];
+    if (ranked) U_single = t[2];
   }
   if (single_pass < 0 && P > 0 && P * 64 * 8 <= kSinglePassBytes) {  // small requests only
     g_entries_cap = std::min(std::max(1.25 * static_cast<double>(max_count), 0.95 * g_entries_cap.load()),
@@ -511,13 +536,15 @@ torch::Tensor composite_backward(torch::Tensor grad_images, torch::Tensor pixel,
   const c10::cuda::CUDAGuard guard(grad_images.device());
   const int64_t M = weight.size(0);
   const int D = static_cast<int>(grad_images.size(1));
-  auto grad_colors = torch::zeros({num_pairs, D}, grad_images.options());
+  // 3 channels accumulate in rows of 4 (one vector atomic per entry), then drop the padding
+  const int64_t row = D == 3 ? 4 : D;
+  auto grad_colors = torch::zeros({num_pairs, row}, grad_images.options());
   VIRGI_CUDA_CHECK(launch_composite_backward(M, D, grad_images.data_ptr<float>(),
                                              pixel.data_ptr<int>(), pair.data_ptr<int>(),
                                              weight.data_ptr<float>(),
                                              grad_colors.data_ptr<float>(),
                                              c10::cuda::getCurrentCUDAStream()));
-  return grad_colors;
+  return row == D ? grad_colors : grad_colors.narrow(1, 0, D).contiguous();
 }
 
 // d colors [U, D] from d images [P, D], per tile from the rasterizer's tile lists.

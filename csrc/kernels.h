@@ -25,19 +25,40 @@ constexpr int kItemInts = 4;  // view row, x0, y0, pad
 constexpr int kUnitInts = 4;  // item, slot, gx, gy
 constexpr int kTile = 16;     // grid tile size (pixels), as gsplat's default
 
-// totals[0] += visible pairs, totals[1] += their tile intersections (pre-zeroed); records at
-// compact slots >= cap are dropped (the caller retries with cap >= totals[0]).
+// The request's counters: one small int64 device array, zeroed by launch_init_request, filled
+// by the kernels and read back to the host in one copy where the host needs sizes.
+enum Counter : int {
+  kCtrVisible = 0,   // visible (view, Gaussian) pairs (projection)
+  kCtrIsect = 1,     // their tile intersections (projection)
+  kCtrMaxCount = 2,  // the largest entry count of a pixel (count / single raster pass)
+  kCtrEntries = 3,   // entries M and contributing pairs U (launch_collect_sizes)
+  kCtrPairs = 4,
+  kNumCounters = 8,
+};
+
+// Start of a request: transmittance = 1, valid = inside its image and px_count = 0 for each of
+// the P pixels; also zeroes zero_ints[0, n_zero) (the slot ranges), counters[0, kNumCounters)
+// and offsets[0] (when not null), so that no separate fills are launched.
+cudaError_t launch_init_request(int64_t P, int item_w, int item_h, const int* items,
+                                const int* views, float* trans, bool* valid, int* px_count,
+                                int64_t n_zero, int* zero_ints, unsigned long long* counters,
+                                int64_t* offsets, cudaStream_t stream);
+// counters[kCtrVisible] += visible pairs, counters[kCtrIsect] += their tile intersections
+// (pre-zeroed); records at compact slots >= cap are dropped (the caller retries with
+// cap >= counters[kCtrVisible]). pos[c] = c for every written slot c (the identity permutation
+// that the sort by fid carries along).
 cudaError_t launch_project_compact(int N, int Vr, const float* means, const float* quats,
                                    const float* scales, const float* opacities, const float* Ks,
                                    const float* viewmats, const int* views, const int* sat,
                                    int64_t cap, float4* rec0, float4* rec1, int* counts, int* fids,
-                                   unsigned long long* totals, cudaStream_t stream);
+                                   int* pos, unsigned long long* counters, cudaStream_t stream);
 // With temp == nullptr, writes the scratch size needed to temp_bytes and sorts nothing.
 cudaError_t sort_ints(void* temp, size_t& temp_bytes, int64_t n, int end_bit, const int* keys_in,
                       int* keys_out, const int* vals_in, int* vals_out, cudaStream_t stream);
+// out[i] = in[perm[i]] for the records and counts; also zeroes mark[0, n) (the pair marks).
 cudaError_t launch_gather_compact(int64_t n, const int* perm, const float4* rec0_in,
                                   const float4* rec1_in, const int* counts_in, float4* rec0,
-                                  float4* rec1, int* counts, cudaStream_t stream);
+                                  float4* rec1, int* counts, uint8_t* mark, cudaStream_t stream);
 cudaError_t launch_bin(int64_t n, int N, const int* fids, const int* counts,
                        const int64_t* cum_counts, const float4* rec0, const float4* rec1,
                        const int* views, const int* tile_slot, uint64_t* keys, int* vals,
@@ -47,18 +68,23 @@ cudaError_t sort_pairs(void* temp, size_t& temp_bytes, int64_t n, int end_bit,
                        const uint64_t* keys_in, uint64_t* keys_out, const int* vals_in,
                        int* vals_out, cudaStream_t stream);
 cudaError_t launch_ranges(int64_t n, const uint64_t* keys, int* ranges, cudaStream_t stream);
-cudaError_t launch_init_pixels(int64_t P, int item_w, int item_h, const int* items,
-                               const int* views, float* trans, bool* valid, cudaStream_t stream);
 // Raster modes: count entries per pixel (+ final T; kCountMark also marks contributing pairs);
 // fill them at the pixel offsets (marking unless mark is null); or both in one pass into a
-// padded [P, pcap] layout (entries past pcap are counted, not written).
+// padded [P, pcap] layout (entries past pcap are counted, not written). kCount and kSingle
+// raise *max_count (when not null) to the largest count of a pixel.
 constexpr int kCount = 0, kFill = 1, kSingle = 2, kCountMark = 3;
 cudaError_t launch_raster(int mode, int num_units, const int* units, const int* items,
                           const int* views, int item_w, int item_h, const int* ranges,
                           const int* sorted_vals, const float4* rec0, const float4* rec1,
                           int* px_count, float* px_trans, const int64_t* px_offsets,
                           int2* out_entry, uint8_t* mark, int pcap, cudaStream_t stream,
-                          int* keep_list = nullptr, int* keep_end = nullptr);
+                          int* keep_list = nullptr, int* keep_end = nullptr,
+                          unsigned long long* max_count = nullptr);
+// counters[kCtrEntries] = *entries (the last pixel offset), counters[kCtrPairs] = *pairs (the
+// last inclusive pair rank; 0 when pairs is null): one launch, so that the sizes the host needs
+// come back in one copy.
+cudaError_t launch_collect_sizes(const int64_t* entries, const int* pairs,
+                                 unsigned long long* counters, cudaStream_t stream);
 cudaError_t launch_split_padded(int64_t P, int pcap, const int64_t* offsets, const int2* padded,
                                 const int* rank_incl, int* pixel, int* pair, float* weight,
                                 cudaStream_t stream);
@@ -74,7 +100,8 @@ cudaError_t launch_composite_forward(int64_t P, int D, const float* colors, cons
                                      const float* weight, const int64_t* offsets,
                                      const float* trans, const float* background, float* out,
                                      cudaStream_t stream);
-// grad_colors[U, D] (pre-zeroed) += weight * grad_images[pixel] for every entry.
+// grad_colors (pre-zeroed) += weight * grad_images[pixel] for every entry; its rows hold 4 floats
+// for D = 3 and 4 (the caller pads 3 channels: one 16-byte vector atomic per entry), D otherwise.
 cudaError_t launch_composite_backward(int64_t M, int D, const float* grad, const int* pixel,
                                       const int* pair, const float* weight, float* grad_colors,
                                       cudaStream_t stream);

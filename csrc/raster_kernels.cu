@@ -13,6 +13,8 @@
 #include <cub/cub.cuh>
 #include <cuda_runtime.h>
 
+#include <algorithm>
+
 #include "kernels.h"
 #include "unit_pixel.cuh"
 
@@ -39,13 +41,21 @@ __device__ __forceinline__ void tile_rect(float mx, float my, float radius, int 
 
 // One thread per Gaussian; loops over the requested views so the Gaussian's rotation is
 // computed once. Only visible (view, Gaussian) pairs -- those touching a requested grid tile --
-// are kept: each is appended at a block-reserved slot of the compact arrays (one global atomic
-// per block and view; warps in order inside the block), as fid = v*N+g, count = requested tiles
-// touched, rec0 = (mean2d.x, mean2d.y, depth, opacity), rec1 = (p, r, s, radius) where the
-// Gaussian's exponent at offset (dx, dy) is sigma = 0.5 (p (dx - r dy)^2 + s dy^2). Slots at or
-// beyond cap are not written (the caller retries with the exact size); totals[0] counts the
-// visible pairs, totals[1] their tile intersections. The block order of the compact arrays is
-// arbitrary: the caller sorts them by fid.
+// are kept, as fid = v*N+g, count = requested tiles touched, rec0 = (mean2d.x, mean2d.y, depth,
+// opacity), rec1 = (p, r, s, radius) where the Gaussian's exponent at offset (dx, dy) is
+// sigma = 0.5 (p (dx - r dy)^2 + s dy^2), and pos = the slot itself (the values of the sort
+// below, so that no separate arange is needed). Slots at or beyond cap are not written (the
+// caller retries with the exact size); counters[kCtrVisible] counts the visible pairs,
+// counters[kCtrIsect] their tile intersections.
+//
+// The append needs no block barrier per view: each warp stages its visible pairs in its own
+// region of shared memory (kWarpStage records, four views of a full warp), counted by a
+// warp-uniform register. When the block ends, one block scan of the warps' counts and one global
+// atomic reserve the block's slots, and each warp copies its records out (coalesced). A warp
+// whose region would overflow (more than four views' worth, as with whole images) first copies
+// it out on its own, at slots reserved by one global atomic for the warp. The order of the
+// compact arrays is therefore arbitrary (it was already arbitrary between blocks): the caller
+// sorts them by fid, which is unique, so the sorted arrays are the same whatever the order.
 //
 // The 2D covariance is formed as the reference does, stable in float32 for very anisotropic
 // Gaussians: A = J W R diag(s) (2x3), cov2d = A A^T + eps2d I, and its determinant by
@@ -57,16 +67,39 @@ __global__ void __launch_bounds__(kThreads)
                            const float* __restrict__ viewmats, const int* __restrict__ views,
                            const int* __restrict__ sat, int64_t cap, float4* __restrict__ rec0,
                            float4* __restrict__ rec1, int* __restrict__ counts,
-                           int* __restrict__ fids, unsigned long long* __restrict__ totals) {
+                           int* __restrict__ fids, int* __restrict__ pos,
+                           unsigned long long* __restrict__ counters) {
   constexpr int kWarps = kThreads / 32;
+  constexpr int kWarpStage = 4 * 32;
+  // 40 KB of staging per block: the registers (~80 per thread) already hold an SM to three
+  // blocks, which leaves most of its 228 KB of shared memory / L1 as cache
+  __shared__ float4 s_r0[kWarps * kWarpStage];
+  __shared__ float4 s_r1[kWarps * kWarpStage];
+  __shared__ int s_count[kWarps * kWarpStage];
+  __shared__ int s_fid[kWarps * kWarpStage];
   __shared__ int s_warp_n[kWarps];
   __shared__ int s_warp_off[kWarps];
+  __shared__ unsigned long long s_warp_isect[kWarps];
   __shared__ unsigned long long s_base;
-  __shared__ unsigned long long s_isect;
   const int g = blockIdx.x * blockDim.x + threadIdx.x;
   const int lane = threadIdx.x & 31, warp = threadIdx.x >> 5;
   const bool live = g < N;
-  if (threadIdx.x == 0) s_isect = 0;
+  const int stage0 = warp * kWarpStage;  // this warp's staging region
+  int staged = 0;                        // records in it (the same in every lane)
+
+  // Copies the warp's n staged records to the compact arrays from slot base (whole warp).
+  auto copy_out = [&](int n, int64_t base) {
+    for (int i = lane; i < n; i += 32) {
+      const int64_t at = base + i;
+      if (at < cap) {
+        rec0[at] = s_r0[stage0 + i];
+        rec1[at] = s_r1[stage0 + i];
+        counts[at] = s_count[stage0 + i];
+        fids[at] = s_fid[stage0 + i];
+        pos[at] = static_cast<int>(at);
+      }
+    }
+  };
 
   float px = 0.f, py = 0.f, pz = 0.f, opac = 0.f;
   float R[3][3] = {{0.f, 0.f, 0.f}, {0.f, 0.f, 0.f}, {0.f, 0.f, 0.f}};
@@ -166,52 +199,69 @@ __global__ void __launch_bounds__(kThreads)
         }
       }
     }
-    // Block-wide append of this view's visible pairs.
+    // Stage this view's visible pairs in the warp's region (no block barrier).
     const unsigned ballot = __ballot_sync(0xffffffffu, count > 0);
-    if (lane == 0) s_warp_n[warp] = __popc(ballot);
-    __syncthreads();
-    if (threadIdx.x == 0) {
-      int total = 0;
-#pragma unroll
-      for (int w = 0; w < kWarps; ++w) {
-        s_warp_off[w] = total;
-        total += s_warp_n[w];
-      }
-      s_base = total > 0 ? atomicAdd(totals, static_cast<unsigned long long>(total)) : 0ull;
+    const int n_new = __popc(ballot);
+    if (staged + n_new > kWarpStage) {  // (warp-uniform) full: the warp copies its region out
+      __syncwarp();                     // the lanes' staged records are visible to the warp
+      unsigned long long base = 0;
+      if (lane == 0) base = atomicAdd(counters + kCtrVisible, static_cast<unsigned long long>(staged));
+      copy_out(staged, static_cast<int64_t>(__shfl_sync(0xffffffffu, base, 0)));
+      __syncwarp();  // the region is read before it is written again
+      staged = 0;
     }
-    __syncthreads();
     if (count > 0) {
-      const int64_t at = static_cast<int64_t>(s_base) + s_warp_off[warp] +
-                         __popc(ballot & ((1u << lane) - 1u));
-      if (at < cap) {
-        rec0[at] = r0;
-        rec1[at] = r1;
-        counts[at] = count;
-        fids[at] = v * N + g;
-      }
+      const int i = stage0 + staged + __popc(ballot & ((1u << lane) - 1u));
+      s_r0[i] = r0;
+      s_r1[i] = r1;
+      s_count[i] = count;
+      s_fid[i] = v * N + g;
       isect += count;
     }
+    staged += n_new;
   }
-  // Intersections: warp sums, one shared atomic per warp, one global atomic per block.
+  // End of the block: one scan of the warps' staged counts and one global atomic for the block's
+  // slots (and one for its intersections, summed per warp by shuffles); then each warp copies
+  // its region out.
 #pragma unroll
   for (int off = 16; off > 0; off >>= 1) isect += __shfl_down_sync(0xffffffffu, isect, off);
-  if (lane == 0 && isect > 0) atomicAdd(&s_isect, isect);
+  if (lane == 0) {
+    s_warp_n[warp] = staged;
+    s_warp_isect[warp] = isect;
+  }
+  __syncthreads();  // (also makes every warp's staged records visible)
+  if (threadIdx.x == 0) {
+    int total = 0;
+    unsigned long long total_isect = 0;
+#pragma unroll
+    for (int w = 0; w < kWarps; ++w) {
+      s_warp_off[w] = total;
+      total += s_warp_n[w];
+      total_isect += s_warp_isect[w];
+    }
+    s_base = total > 0 ? atomicAdd(counters + kCtrVisible, static_cast<unsigned long long>(total))
+                       : 0ull;
+    if (total_isect > 0) atomicAdd(counters + kCtrIsect, total_isect);
+  }
   __syncthreads();
-  if (threadIdx.x == 0 && s_isect > 0) atomicAdd(totals + 1, s_isect);
+  copy_out(staged, static_cast<int64_t>(s_base) + s_warp_off[warp]);
 }
 
-// The compact arrays in fid order: out[i] = in[perm[i]] (fids are already sorted).
+// The compact arrays in fid order: out[i] = in[perm[i]] (fids are already sorted); the pair
+// marks of the raster pass start at 0 here (one launch fewer than a separate fill).
 __global__ void gather_compact_kernel(int64_t n, const int* __restrict__ perm,
                                       const float4* __restrict__ rec0_in,
                                       const float4* __restrict__ rec1_in,
                                       const int* __restrict__ counts_in, float4* __restrict__ rec0,
-                                      float4* __restrict__ rec1, int* __restrict__ counts) {
+                                      float4* __restrict__ rec1, int* __restrict__ counts,
+                                      uint8_t* __restrict__ mark) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
   const int j = perm[i];
   rec0[i] = rec0_in[j];
   rec1[i] = rec1_in[j];
   counts[i] = counts_in[j];
+  mark[i] = 0;
 }
 
 // Writes (slot << 32 | depth bits, c) for every requested tile that visible pair c touches
@@ -257,12 +307,20 @@ __global__ void ranges_kernel(int64_t n, const uint64_t* __restrict__ keys, int*
     ranges[2 * slot + 1] = static_cast<int>(i + 1);
 }
 
-// transmittance = 1 everywhere, valid = the output pixel lies inside its view's image.
-__global__ void init_pixels_kernel(int64_t P, int item_w, int item_h, const int* __restrict__ items,
-                                   const int* __restrict__ views, float* __restrict__ trans,
-                                   bool* __restrict__ valid) {
+// transmittance = 1 everywhere, valid = the output pixel lies inside its view's image, no
+// entries counted yet; and the request's small buffers zeroed (see launch_init_request).
+__global__ void init_request_kernel(int64_t P, int item_w, int item_h, const int* __restrict__ items,
+                                    const int* __restrict__ views, float* __restrict__ trans,
+                                    bool* __restrict__ valid, int* __restrict__ px_count,
+                                    int64_t n_zero, int* __restrict__ zero_ints,
+                                    unsigned long long* __restrict__ counters,
+                                    int64_t* __restrict__ offsets) {
   const int64_t p = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (p < n_zero) zero_ints[p] = 0;
+  if (p < kNumCounters) counters[p] = 0ull;
+  if (p == 0 && offsets != nullptr) offsets[0] = 0;
   if (p >= P) return;
+  px_count[p] = 0;
   const int64_t per_item = static_cast<int64_t>(item_w) * item_h;
   const int item = static_cast<int>(p / per_item);
   const int rem = static_cast<int>(p - item * per_item);
@@ -280,7 +338,8 @@ __global__ void init_pixels_kernel(int64_t P, int item_w, int item_h, const int*
 // (after a count) writes the entries at the pixel's offset, marking when mark is not null;
 // kSingle does both in one pass for small batches: entries go to a padded layout (slot
 // p * pcap + k, the first pcap of each pixel) while the count and transmittance are written as
-// in kCount.
+// in kCount. kCount and kSingle also raise *max_count (when not null) to the block's largest
+// pixel count: one atomic per warp, so the host reads it with the request's other sizes.
 template <int MODE>
 __global__ void __launch_bounds__(kTile* kTile)
     raster_kernel(const int* __restrict__ units, const int* __restrict__ items,
@@ -290,7 +349,7 @@ __global__ void __launch_bounds__(kTile* kTile)
                   int* __restrict__ px_count, float* __restrict__ px_trans,
                   const int64_t* __restrict__ px_offsets, int2* __restrict__ out_entry,
                   uint8_t* __restrict__ mark, int pcap, int* __restrict__ keep_list,
-                  int* __restrict__ keep_end) {
+                  int* __restrict__ keep_end, unsigned long long* __restrict__ max_count) {
   constexpr bool FILL = MODE == kFill || MODE == kSingle;
   constexpr bool MARK = MODE != kCount;
   constexpr bool KEEP = MODE == kCountMark;
@@ -417,6 +476,21 @@ __global__ void __launch_bounds__(kTile* kTile)
     px_count[p] = k;
     px_trans[p] = T;
   }
+  if ((MODE == kCount || MODE == kSingle) && max_count != nullptr) {
+    // (every thread gets here: the shuffles see the whole warp)
+    int m = inside ? k : 0;
+#pragma unroll
+    for (int off = 16; off > 0; off >>= 1) m = max(m, __shfl_xor_sync(0xffffffffu, m, off));
+    if ((tid & 31) == 0 && m > 0) atomicMax(max_count, static_cast<unsigned long long>(m));
+  }
+}
+
+// The sizes the host reads after the raster pass, gathered next to the other counters.
+__global__ void collect_sizes_kernel(const int64_t* __restrict__ entries,
+                                     const int* __restrict__ pairs,
+                                     unsigned long long* __restrict__ counters) {
+  counters[kCtrEntries] = static_cast<unsigned long long>(*entries);
+  counters[kCtrPairs] = pairs ? static_cast<unsigned long long>(*pairs) : 0ull;
 }
 
 // For every visible pair c marked as contributing, write the pair's view, Gaussian and depth
@@ -671,11 +745,11 @@ cudaError_t launch_project_compact(int N, int Vr, const float* means, const floa
                                    const float* scales, const float* opacities, const float* Ks,
                                    const float* viewmats, const int* views, const int* sat,
                                    int64_t cap, float4* rec0, float4* rec1, int* counts, int* fids,
-                                   unsigned long long* totals, cudaStream_t stream) {
+                                   int* pos, unsigned long long* counters, cudaStream_t stream) {
   if (N == 0 || Vr == 0) return cudaSuccess;
   project_compact_kernel<<<blocks_for(N), kThreads, 0, stream>>>(
       N, Vr, means, quats, scales, opacities, Ks, viewmats, views, sat, cap, rec0, rec1, counts,
-      fids, totals);
+      fids, pos, counters);
   return cudaGetLastError();
 }
 
@@ -687,10 +761,10 @@ cudaError_t sort_ints(void* temp, size_t& temp_bytes, int64_t n, int end_bit, co
 
 cudaError_t launch_gather_compact(int64_t n, const int* perm, const float4* rec0_in,
                                   const float4* rec1_in, const int* counts_in, float4* rec0,
-                                  float4* rec1, int* counts, cudaStream_t stream) {
+                                  float4* rec1, int* counts, uint8_t* mark, cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
   gather_compact_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, perm, rec0_in, rec1_in,
-                                                                counts_in, rec0, rec1, counts);
+                                                                counts_in, rec0, rec1, counts, mark);
   return cudaGetLastError();
 }
 
@@ -718,11 +792,20 @@ cudaError_t launch_ranges(int64_t n, const uint64_t* keys, int* ranges, cudaStre
   return cudaGetLastError();
 }
 
-cudaError_t launch_init_pixels(int64_t P, int item_w, int item_h, const int* items,
-                               const int* views, float* trans, bool* valid, cudaStream_t stream) {
-  if (P == 0) return cudaSuccess;
-  init_pixels_kernel<<<blocks_for(P), kThreads, 0, stream>>>(P, item_w, item_h, items, views,
-                                                              trans, valid);
+cudaError_t launch_init_request(int64_t P, int item_w, int item_h, const int* items,
+                                const int* views, float* trans, bool* valid, int* px_count,
+                                int64_t n_zero, int* zero_ints, unsigned long long* counters,
+                                int64_t* offsets, cudaStream_t stream) {
+  // (launched even for P == 0: the counters must start at 0)
+  const int64_t n = std::max(std::max(P, n_zero), static_cast<int64_t>(kNumCounters));
+  init_request_kernel<<<blocks_for(n), kThreads, 0, stream>>>(
+      P, item_w, item_h, items, views, trans, valid, px_count, n_zero, zero_ints, counters, offsets);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_collect_sizes(const int64_t* entries, const int* pairs,
+                                 unsigned long long* counters, cudaStream_t stream) {
+  collect_sizes_kernel<<<1, 1, 0, stream>>>(entries, pairs, counters);
   return cudaGetLastError();
 }
 
@@ -731,12 +814,12 @@ cudaError_t launch_raster(int mode, int num_units, const int* units, const int* 
                           const int* sorted_vals, const float4* rec0, const float4* rec1,
                           int* px_count, float* px_trans, const int64_t* px_offsets,
                           int2* out_entry, uint8_t* mark, int pcap, cudaStream_t stream,
-                          int* keep_list, int* keep_end) {
+                          int* keep_list, int* keep_end, unsigned long long* max_count) {
   if (num_units == 0) return cudaSuccess;
 #define VIRGI_RASTER(MM)                                                                        \
   raster_kernel<MM><<<num_units, kTile * kTile, 0, stream>>>(                                   \
       units, items, views, item_w, item_h, ranges, sorted_vals, rec0, rec1, px_count, px_trans, \
-      px_offsets, out_entry, mark, pcap, keep_list, keep_end)
+      px_offsets, out_entry, mark, pcap, keep_list, keep_end, max_count)
   switch (mode) {
     case kCount: VIRGI_RASTER(kCount); break;
     case kFill: VIRGI_RASTER(kFill); break;
