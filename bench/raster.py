@@ -213,7 +213,7 @@ def run_scene(sc: Scene, args: Args, tiles, req: Request, gsplat, rows: list[Row
         def step():
             colors.grad = None
             c = cuda.rasterize(*geo, sc.cameras, request)
-            cols = colors[c.pair_gaussian]
+            cols = c.gather(colors)
             img = (composite if fused else composite_plain)(cols, c, None)
             img.sum().backward()
             return c, img

@@ -54,6 +54,10 @@ class Args:
     skip_trained_virgi: bool = False
     """Only the imported-geometry virgi rows (saves one geometry training)."""
     fps_repeats: int = 3
+    colour_variants: List[str] = field(default_factory=list)
+    """More imported-geometry rows (on the first seed's splatfacto geometry), each a comma-separated
+    list of config settings: 'colour_steps=3000' or dotted TrainerConfig paths such as
+    'optimizers.field_grid.optimizer.lr=0.02,pipeline.datamanager.pixel_budget=327680'."""
     repeats: int = 1
     """Train every method this many times (seeds 42, 43, ...; the imported-geometry rows use that
     repeat's splatfacto run) and print the mean, spread and paired differences: single runs of
@@ -200,6 +204,50 @@ def save_picture(path: Path, gt: torch.Tensor, out: Dict[str, torch.Tensor]) -> 
         Image.fromarray((img.numpy() * 255 + 0.5).astype(np.uint8)).save(tmp, format="PNG")
 
 
+def apply_settings(cfg, text: str) -> None:
+    """Set 'a.b.c=value,...' on a TrainerConfig (dict keys and attributes alike), typed as the
+    value already there; refuses unknown paths."""
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        path, sep, value = part.partition("=")
+        if not sep:
+            raise InputError(f"--colour-variants: '{part}' is not PATH=VALUE")
+        *parents, leaf = path.strip().split(".")
+        node = cfg
+        for name in parents:
+            node = node[name] if isinstance(node, dict) else getattr(node, name, None)
+            if node is None:
+                raise InputError(f"--colour-variants: no '{path}' in the trainer config")
+        old = node.get(leaf) if isinstance(node, dict) else getattr(node, leaf, None)
+        if old is None and not (isinstance(node, dict) and leaf in node) and not hasattr(node, leaf):
+            raise InputError(f"--colour-variants: no '{path}' in the trainer config")
+        try:
+            new = type(old)(value.strip()) if old is not None and not isinstance(old, bool) else \
+                (value.strip().lower() in ("1", "true", "yes") if isinstance(old, bool) else value.strip())
+        except ValueError:
+            raise InputError(f"--colour-variants: {path} takes a {type(old).__name__}, got '{value}'") from None
+        if isinstance(node, dict):
+            node[leaf] = new
+        else:
+            setattr(node, leaf, new)
+
+
+def colour_variant_config(args: Args, scene: str, text: str):
+    """virgi on imported geometry with the settings of one --colour-variants entry."""
+    from method_configs.virgi import virgi_trainer_config
+
+    steps = args.colour_steps
+    rest = []
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        if part.startswith("colour_steps="):
+            steps = int(part.split("=", 1)[1])
+        else:
+            rest.append(part)
+    cfg = virgi_trainer_config("virgi", geometry_steps=0, colour_steps=steps)
+    cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
+    apply_settings(cfg, ",".join(rest))
+    return cfg
+
+
 def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]:
     from nerfstudio.configs.method_configs import method_configs
 
@@ -246,13 +294,19 @@ def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]
         variants += [("imported, decoupled, single-view", True, "singleview"),
                      ("imported, single MLP, multi-view", False, "multiview"),
                      ("imported, single MLP, single-view", False, "singleview")]
+    configs = []
     for name, decoupled, mode in variants:
         cfg = virgi_trainer_config("virgi", decoupled=decoupled, batch_mode=mode, geometry_steps=0,
                                    colour_steps=args.colour_steps)
         cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
+        configs.append((name, cfg))
+    if seed == 42:
+        configs += [(f"imported, {v}", colour_variant_config(args, scene, v)) for v in args.colour_variants]
+    for name, cfg in configs:
         cfg.pipeline.model.geometry_from = ckpt
         cfg.machine.seed = seed
-        quiet(cfg, out, f"{scene}-{name.replace(' ', '_').replace(',', '')}{'' if seed == 42 else f'-seed{seed}'}")
+        safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
+        quiet(cfg, out, f"{scene}-{safe}{'' if seed == 42 else f'-seed{seed}'}")
         trainer, secs, _, parts = train(cfg)
         record(name, trainer.pipeline, secs, parts)
         del trainer
@@ -284,6 +338,9 @@ def print_table(rows: List[Dict[str, object]], device: str) -> None:
 def main(args: Args) -> None:
     if not torch.cuda.is_available():
         raise InputError("bench/train.py needs a CUDA GPU (splatfacto trains with gsplat)")
+    for scene in args.scenes:  # refuse a bad --colour-variants before any training
+        for v in args.colour_variants:
+            colour_variant_config(args, scene, v)
     warnings.filterwarnings("ignore", category=FutureWarning)
     offline_splatfacto_lpips()
     # both methods' CUDA extensions are built and loaded before any timing (one-time per machine)

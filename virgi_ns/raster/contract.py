@@ -173,8 +173,9 @@ class Contributions:
         return self.pair_gaussian[self.pair]
 
     def gather(self, per_gaussian: Tensor) -> Tensor:
-        """Per-Gaussian values [N, ...] -> per-pair values [U, ...]."""
-        return per_gaussian[self.pair_gaussian]
+        """Per-Gaussian values [N, ...] -> per-pair values [U, ...]. ``index_select``: its gradient
+        is an ``index_add_`` (atomics), where advanced indexing's sorts the indices first."""
+        return per_gaussian.index_select(0, self.pair_gaussian.to(per_gaussian.device))
 
     def accumulation(self) -> Tensor:
         """[T,h,w] opacity (1 - final transmittance)."""
