@@ -99,7 +99,8 @@ class Args:
     """Time the engine on a synthetic 1M-Gaussian scene at 1280x720."""
     variants: List[str] = field(default_factory=list)
     """More rows on the same runs, each a comma-separated list of EditConfig fields, e.g.
-    'steps=200,seg_init_bias=-2' (one timed fit each, no pictures)."""
+    'steps=200,seg_init_bias=-2', and/or another rule, 'rule=h0/h1/shift/s_min/v_min' (one timed
+    fit each, no pictures)."""
     compare: bool = False
     """Also measure, on the same trained runs: the earlier sessions' rules and the fit variants
     of VARIANTS (one timed fit each, no pictures)."""
@@ -114,6 +115,13 @@ def parse_variant(text: str) -> dict:
     for part in filter(None, (p.strip() for p in text.split(","))):
         key, sep, value = part.partition("=")
         key = key.strip().replace("-", "_")
+        if key == "rule" and sep:  # another rule: h0/h1/shift/s_min/v_min
+            try:
+                h0, h1, shift, s_min, v_min = (float(x) for x in value.split("/"))
+            except ValueError:
+                raise InputError(f"--variants: rule takes h0/h1/shift/s_min/v_min, got '{value}'") from None
+            out["rule"] = RuleArgs(h0=h0, h1=h1, shift=shift, s_min=s_min, v_min=v_min).rule()
+            continue
         if not sep or not hasattr(defaults, key):
             raise InputError(f"--variants: '{part}' is not FIELD=VALUE of an EditConfig field")
         kind = type(getattr(defaults, key))
@@ -183,7 +191,9 @@ def bench_scene(args: Args, scene: str) -> List[dict]:
         variants = [(name, rule, dict(cfg)) for name, cfg in VARIANTS.items()]
         if scene in EARLIER_RULES:
             variants.append(("earlier rule", EARLIER_RULES[scene].rule(), {}))
-    variants += [(v, rule, parse_variant(v)) for v in args.variants]
+    for v in args.variants:
+        v_cfg = parse_variant(v)
+        variants.append((v, v_cfg.pop("rule", rule), v_cfg))
     for name, v_rule, v_cfg in variants:
         v_edited = b.edited_image(v_rule, "photo")
         v_cfg = {"whole_image": args.whole_photo, **v_cfg}

@@ -99,15 +99,17 @@ def test_edit_bench_compares_variants_on_the_same_run(pipeline, tmp_path, monkey
     cfg = tmp_path / "config.yml"
     cfg.write_text("unused")
     args = bench_edit.Args(runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1, pictures=0, sweep=False,
-                           million=False, compare=True, variants=["pixel_batches=2", "steps=10,lr=0.05"])
+                           million=False, compare=True, variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05"])
     assert bench_edit.parse_variant("steps=20,pixel_batches=2") == {"steps": 20, "pixel_batches": 2}
-    for bad in ("steps", "colour=3", "steps=many"):
+    assert bench_edit.parse_variant("rule=10/20/30/0.1/0.2")["rule"] == RuleArgs(10, 20, 30, 0.1, 0.2).rule()
+    for bad in ("steps", "colour=3", "steps=many", "rule=1/2/3"):
         with pytest.raises(InputError, match="--variants"):
             bench_edit.parse_variant(bad)
     rows = bench_edit.bench_scene(args, "tiny")
     assert loads == [cfg]
     assert [r["variant"] for r in rows] == ["engine defaults", *bench_edit.VARIANTS, "earlier rule",
-                                            "pixel_batches=2", "steps=10,lr=0.05"]
+                                            "pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05"]
+    assert rows[5]["rule"]["s_min"] == 0.2 and rows[4]["rule"] == rows[0]["rule"]
     assert "targets" in rows[0] and rows[0]["perfect_edit_recolour_psnr"] > 0
     assert rows[3]["rule"] == earlier.rule().to_dict() and rows[0]["rule"] == BROAD.rule().to_dict()
     assert [r["timing_cold"]["steps"] for r in rows] == [20, 20, 20, 20, 20, 10]
