@@ -5,7 +5,7 @@
 # or any single one of export|edit|demo. Runs go under /tmp/runs (kept while the machine is warm);
 # tables, JSON, pictures and logs are packed into $OUT. Environment knobs: STEPS, COLOUR_STEPS,
 # DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE, EDIT_SCENES ("beercan fern cup"), EDIT_TIMEOUT,
-# EDIT_ARGS (more bench/edit.py flags, e.g. --compare), TRAIN_ARGS (more bench/train.py flags), TRAIN_TIMEOUT.
+# EDIT_REPEATS, EDIT_ARGS (more bench/edit.py flags, e.g. --compare), TRAIN_ARGS (more bench/train.py flags), TRAIN_TIMEOUT.
 set -o pipefail
 export TORCH_EXTENSIONS_DIR=/tmp/torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
 export PYTHONPATH=/tmp/site:$PWD NERFSTUDIO_METHOD_CONFIGS="virgi=method_configs.virgi:virgi_method"

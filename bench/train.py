@@ -33,6 +33,7 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from virgi_ns.bench.settings import split_settings, typed_like
 from virgi_ns.errors import InputError, atomic_path, cli_entry
 from virgi_ns.metrics import offline_splatfacto_lpips
 
@@ -50,7 +51,7 @@ class Args:
     colour_steps: int = 10000
     """virgi colour-stage steps."""
     ablation: bool = False
-    """Also train decoupled x multi-view variants on the imported geometry."""
+    """Also train decoupled x multi-view variants on the imported geometry (first seed only)."""
     skip_trained_virgi: bool = False
     """Only the imported-geometry virgi rows (saves one geometry training)."""
     fps_repeats: int = 3
@@ -207,24 +208,18 @@ def save_picture(path: Path, gt: torch.Tensor, out: Dict[str, torch.Tensor]) -> 
 def apply_settings(cfg, text: str) -> None:
     """Set 'a.b.c=value,...' on a TrainerConfig (dict keys and attributes alike), typed as the
     value already there; refuses unknown paths."""
-    for part in filter(None, (p.strip() for p in text.split(","))):
-        path, sep, value = part.partition("=")
-        if not sep:
-            raise InputError(f"--colour-variants: '{part}' is not PATH=VALUE")
-        *parents, leaf = path.strip().split(".")
+    flag = "--colour-variants"
+    for path, value in split_settings(text, flag):
+        *parents, leaf = path.split(".")
         node = cfg
         for name in parents:
-            node = node[name] if isinstance(node, dict) else getattr(node, name, None)
+            node = node.get(name) if isinstance(node, dict) else getattr(node, name, None)
             if node is None:
-                raise InputError(f"--colour-variants: no '{path}' in the trainer config")
-        old = node.get(leaf) if isinstance(node, dict) else getattr(node, leaf, None)
-        if old is None and not (isinstance(node, dict) and leaf in node) and not hasattr(node, leaf):
-            raise InputError(f"--colour-variants: no '{path}' in the trainer config")
-        try:
-            new = type(old)(value.strip()) if old is not None and not isinstance(old, bool) else \
-                (value.strip().lower() in ("1", "true", "yes") if isinstance(old, bool) else value.strip())
-        except ValueError:
-            raise InputError(f"--colour-variants: {path} takes a {type(old).__name__}, got '{value}'") from None
+                raise InputError(f"{flag}: no '{path}' in the trainer config")
+        if not (leaf in node if isinstance(node, dict) else hasattr(node, leaf)):
+            raise InputError(f"{flag}: no '{path}' in the trainer config")
+        old = node[leaf] if isinstance(node, dict) else getattr(node, leaf)
+        new = typed_like(old, value, path, flag)
         if isinstance(node, dict):
             node[leaf] = new
         else:
@@ -232,20 +227,29 @@ def apply_settings(cfg, text: str) -> None:
 
 
 def colour_variant_config(args: Args, scene: str, text: str):
-    """virgi on imported geometry with the settings of one --colour-variants entry."""
+    """virgi on imported geometry with the settings of one --colour-variants entry ('colour_steps'
+    sets the colour stage's length, every other key is a dotted TrainerConfig path)."""
     from method_configs.virgi import virgi_trainer_config
 
-    steps = args.colour_steps
-    rest = []
-    for part in filter(None, (p.strip() for p in text.split(","))):
-        if part.startswith("colour_steps="):
-            steps = int(part.split("=", 1)[1])
+    steps, rest = args.colour_steps, []
+    for key, value in split_settings(text, "--colour-variants"):
+        if key == "colour_steps":
+            steps = typed_like(args.colour_steps, value, key, "--colour-variants")
         else:
-            rest.append(part)
+            rest.append(f"{key}={value}")
     cfg = virgi_trainer_config("virgi", geometry_steps=0, colour_steps=steps)
     cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
     apply_settings(cfg, ",".join(rest))
     return cfg
+
+
+def _seed_suffix(seed: int, sep: str = "-") -> str:
+    """Run and picture names: nothing for the first seed (42), '-seed43' etc. after it."""
+    return "" if seed == 42 else f"{sep}seed{seed}"
+
+
+def _safe(name: str) -> str:
+    return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
 
 
 def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]:
@@ -257,7 +261,7 @@ def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]
     out = args.out
 
     def record(name: str, pipeline, seconds: float, parts: Dict[str, float]) -> None:
-        res = evaluate(pipeline, args.fps_repeats, out / f"{scene}_{name.replace(' ', '_')}{'' if seed == 42 else f'_seed{seed}'}.png")
+        res = evaluate(pipeline, args.fps_repeats, out / f"{scene}_{_safe(name)}{_seed_suffix(seed, '_')}.png")
         row = {"scene": scene, "method": name, "seed": seed, "train_s": seconds, **res, "train_breakdown": parts}
         console.log(row)
         rows.append(row)
@@ -271,7 +275,7 @@ def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]
         sch = group.get("scheduler")
         if sch is not None and hasattr(sch, "max_steps"):
             sch.max_steps = args.steps
-    quiet(cfg, out, f"{scene}-splatfacto{'' if seed == 42 else f'-seed{seed}'}")
+    quiet(cfg, out, f"{scene}-splatfacto{_seed_suffix(seed)}")
     trainer, secs, ckpt_dir, parts = train(cfg)
     record("splatfacto", trainer.pipeline, secs, parts)
     ckpt = sorted(ckpt_dir.glob("*.ckpt"))[-1]
@@ -283,7 +287,7 @@ def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]
         cfg = virgi_trainer_config("virgi", geometry_steps=args.steps, colour_steps=args.colour_steps)
         cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
         cfg.machine.seed = seed
-        quiet(cfg, out, f"{scene}-virgi{'' if seed == 42 else f'-seed{seed}'}")
+        quiet(cfg, out, f"{scene}-virgi{_seed_suffix(seed)}")
         trainer, secs, _, parts = train(cfg)
         record("virgi", trainer.pipeline, secs, parts)
         del trainer
@@ -305,8 +309,7 @@ def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]
     for name, cfg in configs:
         cfg.pipeline.model.geometry_from = ckpt
         cfg.machine.seed = seed
-        safe = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
-        quiet(cfg, out, f"{scene}-{safe}{'' if seed == 42 else f'-seed{seed}'}")
+        quiet(cfg, out, f"{scene}-{_safe(name)}{_seed_suffix(seed)}")
         trainer, secs, _, parts = train(cfg)
         record(name, trainer.pipeline, secs, parts)
         del trainer

@@ -33,7 +33,7 @@ enum Counter : int {
   kCtrMaxCount = 2,  // the largest entry count of a pixel (count / single raster pass)
   kCtrEntries = 3,   // entries M and contributing pairs U (launch_collect_sizes)
   kCtrPairs = 4,
-  kNumCounters = 8,
+  kNumCounters = 8,  // slots 5-7 spare
 };
 
 // Start of a request: transmittance = 1, valid = inside its image and px_count = 0 for each of

@@ -54,7 +54,8 @@ def test_recolor_bench_writes_results_and_pictures(pipeline, tmp_path):
     assert (tmp_path / "r" / "results_view0.png").is_file() and (tmp_path / "r" / "results_edit.png").is_file()
     m = res["mean"]
     assert 0 < m["mask_fraction"] < 1
-    for k in ("recolour_psnr", "unedited_psnr", "propagation_psnr", "miss_psnr", "leak_psnr"):
+    for k in ("recolour_psnr", "unedited_psnr", "propagation_psnr", "miss_psnr", "leak_psnr",
+              "per_gaussian_rule_propagation_psnr", "perfect_edit_recolour_psnr"):
         assert math.isfinite(m[k]), k
     assert res["timing"]["setup_s"] > 0 and res["timing"]["steps_s"] > 0
     assert "propagation" in summary({**res, "mean": {**m, "recolour_lpips": math.nan}})
@@ -102,7 +103,7 @@ def test_edit_bench_compares_variants_on_the_same_run(pipeline, tmp_path, monkey
                            million=False, compare=True, variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05"])
     assert bench_edit.parse_variant("steps=20,pixel_batches=2") == {"steps": 20, "pixel_batches": 2}
     assert bench_edit.parse_variant("rule=10/20/30/0.1/0.2")["rule"] == RuleArgs(10, 20, 30, 0.1, 0.2).rule()
-    for bad in ("steps", "colour=3", "steps=many", "rule=1/2/3"):
+    for bad in ("steps", "colour=3", "steps=many", "rule=1/2/3", "changed_target=chnage", "whole_image=ture"):
         with pytest.raises(InputError, match="--variants"):
             bench_edit.parse_variant(bad)
     rows = bench_edit.bench_scene(args, "tiny")
@@ -120,3 +121,16 @@ def test_edit_bench_compares_variants_on_the_same_run(pipeline, tmp_path, monkey
     # the variants are different fits: their figures differ from the defaults'
     assert len({round(r["propagation_psnr"], 4) for r in rows}) == len(rows)
     bench_edit.print_table(rows, "cpu")
+
+
+def test_benchmark_settings_are_split_and_typed_strictly():
+    from virgi_ns.bench.settings import split_settings, typed_like
+
+    assert split_settings("a=1, b.c = x,", "--f") == [("a", "1"), ("b.c", "x")]
+    assert typed_like(3, "7", "a", "--f") == 7 and typed_like(0.5, "2e-2", "a", "--f") == 0.02
+    assert typed_like(False, "Yes", "a", "--f") is True and typed_like(True, "0", "a", "--f") is False
+    for bad in (lambda: split_settings("a", "--f"), lambda: split_settings("=3", "--f"),
+                lambda: typed_like(False, "ture", "a", "--f"), lambda: typed_like(3, "3k", "a", "--f"),
+                lambda: typed_like(None, "5", "a", "--f")):
+        with pytest.raises(InputError, match="--f"):
+            bad()

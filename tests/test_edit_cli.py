@@ -198,12 +198,18 @@ def test_original_image_limits_the_fit_to_changed_pixels(saved, tmp_path):
     Image.fromarray((rgb.numpy() * 255 + 0.5).astype(np.uint8)).save(orig)
     _, mask = recolor(rgb, RULE)
     try:
-        run(_apply(saved, original=orig), _quiet(), pl)
+        first = run(_apply(saved, original=orig), _quiet(), pl)
         run(_apply(saved, whole_image=True), _quiet(), pl)
+        assert "edited image)" in first, first
         st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
         fr = [e.edit.info["changed_fraction"] for e in st.entries]
         assert abs(fr[0] - float(mask.float().mean())) < 0.03 and fr[0] < 0.9, fr
         assert fr[1] == 1.0
+        run(Reset(saved["config"]), _quiet(), pl)  # the next edit starts from the unedited render again
+        msg = run(_apply(saved, original=orig, changed_target="change"), _quiet(), pl)
+        assert "render + change)" in msg, msg
+        st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
+        assert st.entries[0].edit.info["fit"].endswith("render + change)")
         small = tmp_path / "small.png"
         Image.fromarray(np.zeros((4, 5, 3), np.uint8)).save(small)
         _refused(saved, _apply(saved, original=small), "--original is 5x4.*--resize")

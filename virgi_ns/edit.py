@@ -14,9 +14,9 @@ only a copy of the diffuse head and a segmentation head::
     loss  = L1(A C' + T bg, I_target)          (Adam; optionally on a subset of pixels per step)
 
 ``I_target`` is the edited image. When the unedited image is known too (``original``: the
-training photo the user recoloured), only the pixels the user changed are edited, and their target
-is the current render plus the change (edited - original; ``changed_target``); every other
-pixel's target is the scene's current render there. Otherwise the edit would also
+training photo the user recoloured), only the pixels the user changed are fitted to the edited
+image (or, with ``changed_target="change"``, to the current render plus the change, edited -
+original); every other pixel's target is the scene's current render there. Otherwise the edit would also
 "repair" the model's reconstruction error all over the view (the photo is not the render), and
 that repair would leak into every view. An edited *render* needs no original: most of its pixels
 equal the current render, which identifies the changed ones. The changed pixels carry half the
@@ -217,7 +217,7 @@ class EditConfig:
     steps: int = 100
     """Adam steps. ``virgi-bench accuracy-time`` on beercan (H200, bench/RESULTS.md, photo edit with
     the original known): propagation and miss PSNR level off from 50-100 steps (45.7 / 34.0 dB at
-    100) and fall slowly beyond 200; 100 steps take 0.19 s."""
+    100) and fall slowly beyond 100-150; 100 steps take 0.19 s."""
     lr: float = 2e-2
     """Learning rate of both heads."""
     seg_width: int = 64
@@ -242,13 +242,28 @@ class EditConfig:
     """What the changed pixels are fitted to when the unedited image is a photo (``original``):
     ``change``: the current render plus the change the user made (edited - original, clamped to
     [0, 1]), so the photo's detail the model never reproduced is not fitted as part of the edit;
-    ``edited``: the edited image itself. The same thing for an edited render (original = render)."""
+    ``edited``: the edited image itself (the default: "change" measured 2.3-2.5 dB worse on the
+    miss figure on beercan and fern, bench/RESULTS.md). The same thing for an edited render
+    (original = render); no effect with ``whole_image``."""
     whole_image: bool = False
     """Fit every pixel to the edited image (no original, no edited-render detection)."""
     render_match_min: float = 0.5
     """Without an ``original``: when at least this share of the edited image's pixels equal the
     current render (within ``unchanged_tol``), the image is an edited render and only the other
     pixels are fitted to it (as with an original); otherwise every pixel is."""
+
+    def __post_init__(self) -> None:
+        self.check()
+
+    def check(self) -> None:
+        """Refuse values no edit can run with (also called by the engine: fields may be set later)."""
+        if self.changed_target not in ("change", "edited"):
+            raise ValueError(f"EditConfig.changed_target must be 'change' or 'edited', got {self.changed_target!r}")
+        if self.steps < 0 or self.pixel_batches < 1:
+            raise ValueError(f"EditConfig: steps must be >= 0 and pixel_batches >= 1 "
+                             f"(got {self.steps}, {self.pixel_batches})")
+        if not 0.0 < self.changed_share < 1.0:
+            raise ValueError(f"EditConfig.changed_share must be in (0, 1), got {self.changed_share}")
 
 
 @dataclass
@@ -296,8 +311,7 @@ class EditEngine:
                              f"{W}x{H}")
         if original is not None and tuple(original.shape) != tuple(edited.shape):
             raise InputError(f"the original image is {tuple(original.shape)}, the edited one {tuple(edited.shape)}")
-        if self.cfg.changed_target not in ("change", "edited"):
-            raise ValueError(f"EditConfig.changed_target must be 'change' or 'edited', got {self.cfg.changed_target!r}")
+        self.cfg.check()
         self.camera = camera
         self.source = source or EditSource("", camera.Ks[0], camera.viewmats[0], W, H, "")
         self.changed_fraction = 1.0
@@ -431,12 +445,15 @@ class EditEngine:
 # ------------------------------------------------------------------------ rendering
 @torch.no_grad()
 def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional[EditStack] = None,
-                seg_index: Optional[int] = None, contrib: Optional[Contributions] = None) -> dict[str, Tensor]:
+                seg_index: Optional[int] = None, contrib: Optional[Contributions] = None,
+                colour_map: Optional[Callable[[Tensor], Tensor]] = None) -> dict[str, Tensor]:
     """Render view ``view`` of ``cameras`` with the full (ungated) colour model through ``stack``:
     ``rgb`` [H,W,3] (``sigmoid(c_d'' + k c_s)``), ``diffuse`` (``sigmoid(c_d'')``), ``specular``
     (rgb - diffuse) and ``segmentation`` [H,W,1] (alpha of edit ``seg_index``, or the combined
     share of all enabled edits; zeros with no stack). ``contrib``: the view's contributions when
-    the caller has them already (:meth:`FrozenScene.contributions` of the one-view camera)."""
+    the caller has them already (:meth:`FrozenScene.contributions` of the one-view camera).
+    ``colour_map``: applied to each Gaussian's final colour [U,3] before ``rgb`` is composited
+    (e.g. a recolour rule per Gaussian instead of per pixel)."""
     cams = cameras.index(view).to(scene.device, torch.float32)
     if contrib is None:
         contrib = scene.contributions(cams, Request.whole_images(cams))
@@ -455,7 +472,8 @@ def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional
         if len(stack):
             seg = stack.segmentation(f, h2.float(), seg_index).float()
     bg = scene.background.to(scene.device, torch.float32)
-    rgb = composite(torch.sigmoid(c_d + k * c_s), contrib, bg)[0]
+    colours = torch.sigmoid(c_d + k * c_s)
+    rgb = composite(colours if colour_map is None else colour_map(colours), contrib, bg)[0]
     diff = composite(torch.sigmoid(c_d), contrib, bg)[0]
     return {"rgb": rgb, "diffuse": diff, "specular": rgb - diff, "segmentation": composite(seg, contrib)[0]}
 

@@ -58,8 +58,9 @@ class Apply:
     whole_image: bool = False
     """Fit every pixel of the edited image, also those equal to the original."""
     changed_target: Literal["change", "edited"] = "edited"
-    """With an original photo: fit the changed pixels to the render plus your change (``change``)
-    or to the edited image's own pixels (``edited``)."""
+    """With an original photo: fit the changed pixels to the edited image's own pixels (``edited``,
+    the default) or to the render plus your change (``change``: helps when the photo is uniformly
+    brighter or darker than the render). No effect with --whole-image or for an edited render."""
 
 
 @dataclass
