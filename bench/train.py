@@ -357,19 +357,21 @@ def main(args: Args) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     device = torch.cuda.get_device_name(0)
     rows: List[Dict[str, object]] = []
+
+    def write(**more) -> None:
+        with atomic_path(args.out / "results.json") as tmp:
+            tmp.write_text(json.dumps({"device": device, "steps": args.steps, "colour_steps": args.colour_steps,
+                                       "rows": rows, **more}, indent=2))
+
     for scene in args.scenes:
         for r in range(max(1, args.repeats)):
             rows += run_scene(args, scene, 42 + r)
-            with atomic_path(args.out / "results.json") as tmp:  # after every run: a cut-off call keeps them
-                tmp.write_text(json.dumps({"device": device, "steps": args.steps, "colour_steps": args.colour_steps,
-                                           "rows": rows}, indent=2))
+            write()  # after every run: a cut-off call keeps them
     print_table(rows, device)
     if args.repeats > 1:
         summary = repeat_summary(rows)
         print_summary(summary, device)
-        with atomic_path(args.out / "results.json") as tmp:
-            tmp.write_text(json.dumps({"device": device, "steps": args.steps, "colour_steps": args.colour_steps,
-                                       "rows": rows, "summary": summary}, indent=2))
+        write(summary=summary)
 
 
 def repeat_summary(rows: List[Dict[str, object]]) -> List[Dict[str, object]]:
@@ -386,10 +388,10 @@ def repeat_summary(rows: List[Dict[str, object]]) -> List[Dict[str, object]]:
             row[k] = float(v.mean())
             row[f"{k}_std"] = float(v.std(ddof=1)) if len(v) > 1 else float("nan")
         d = np.array([float(r["psnr"]) - float(ref[r["seed"]]["psnr"]) for r in mine if r["seed"] in ref])
-        if method != "splatfacto" and len(d):  # imported rows: same geometry, colour stage alone
+        if method != "splatfacto" and len(d):
             row["psnr_vs_splatfacto"] = float(d.mean())
             row["psnr_vs_splatfacto_min"], row["psnr_vs_splatfacto_max"] = float(d.min()), float(d.max())
-            if "imported" not in method:
+            if "imported" not in method:  # imported rows train the colour stage alone: no time ratio
                 t = np.array([float(r["train_s"]) / float(ref[r["seed"]]["train_s"]) for r in mine if r["seed"] in ref])
                 row["train_time_vs_splatfacto"] = float(t.mean())
         out.append(row)

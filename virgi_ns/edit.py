@@ -374,7 +374,7 @@ class EditEngine:
                     edited = (current + (edited - original)).clamp(0.0, 1.0)
                 edited = torch.where(changed, edited, current)
                 self.changed_fraction = float(changed.float().mean())
-        self.batches = _pixel_batches(contrib, edited.reshape(-1, 3), bg, max(1, cfg.pixel_batches), cfg.seed,
+        self.batches = _pixel_batches(contrib, edited.reshape(-1, 3), bg, cfg.pixel_batches, cfg.seed,
                                       None if changed is None else changed.reshape(-1), cfg.changed_share)
         # trainable copies
         head = fld.diffuse_head
@@ -428,9 +428,9 @@ class EditEngine:
 
     def edit(self, timing: Optional[EditTiming] = None) -> Edit:
         """The current heads as an :class:`Edit` (copies)."""
-        info = new_edit_info(k=self.k, changed_fraction=self.changed_fraction, fit=self.mode, **({"steps": timing.steps, "setup_s": timing.setup_s,
-                                            "steps_s": timing.steps_s, "loss": timing.final_loss}
-                                           if timing is not None else {}))
+        times = ({"steps": timing.steps, "setup_s": timing.setup_s, "steps_s": timing.steps_s,
+                  "loss": timing.final_loss} if timing is not None else {})
+        info = new_edit_info(k=self.k, changed_fraction=self.changed_fraction, fit=self.mode, **times)
         return Edit(self.weight.detach().clone(), self.bias.detach().clone(), copy.deepcopy(self.seg).eval(),
                     self.source, self.fingerprint, info)
 
