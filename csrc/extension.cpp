@@ -281,59 +281,67 @@ std::vector<torch::Tensor> rasterize_contributions(
   }
   TORCH_CHECK(n_isect < std::numeric_limits<int>::max(), "too many tile intersections");
 
-  // The compact arrays in (view, Gaussian) order: ties in depth keep that order in the tile
+  // The compact arrays in (view, Gaussian) order: ties in depth keep that order in the depth
   // sort below, and the contributing pairs come out ascending in v*N+g.
   auto fids = torch::empty({Uc}, i32);
   auto cnts = torch::empty({Uc}, i32);
   auto rec0 = torch::empty({Uc, 4}, f32);
   auto rec1 = torch::empty({Uc, 4}, f32);
   auto mark = torch::empty({std::max<int64_t>(Uc, 1)}, f32.dtype(torch::kUInt8));  // zeroed by the gather
+  // a stable radix sort of (int key, int value) pairs on key bits [0, end_bit)
+  auto sort_by = [&](int64_t n, int end_bit, const torch::Tensor& k_in, torch::Tensor& k_out,
+                     const torch::Tensor& v_in, torch::Tensor& v_out) {
+    size_t bytes = 0;
+    VIRGI_CUDA_CHECK(sort_ints(nullptr, bytes, n, end_bit, k_in.data_ptr<int>(), k_out.data_ptr<int>(),
+                               v_in.data_ptr<int>(), v_out.data_ptr<int>(), stream));
+    auto scratch = torch::empty({static_cast<int64_t>(bytes) + 1}, f32.dtype(torch::kUInt8));
+    VIRGI_CUDA_CHECK(sort_ints(scratch.data_ptr(), bytes, n, end_bit, k_in.data_ptr<int>(),
+                               k_out.data_ptr<int>(), v_in.data_ptr<int>(), v_out.data_ptr<int>(), stream));
+  };
+  // by_depth: the fid-ordered pairs listed by depth, ties in fid order
+  auto by_depth = torch::empty({Uc}, i32);
+  torch::Tensor bin_rec;
   if (Uc > 0) {
     auto perm = torch::empty({Uc}, i32);
     int fid_bits = 1;
     while ((int64_t{1} << fid_bits) < VN) ++fid_bits;
-    size_t bytes = 0;
-    VIRGI_CUDA_CHECK(sort_ints(nullptr, bytes, Uc, fid_bits, c_fids.data_ptr<int>(),
-                               fids.data_ptr<int>(), c_pos.data_ptr<int>(), perm.data_ptr<int>(),
-                               stream));
-    auto scratch = torch::empty({static_cast<int64_t>(bytes) + 1}, f32.dtype(torch::kUInt8));
-    VIRGI_CUDA_CHECK(sort_ints(scratch.data_ptr(), bytes, Uc, fid_bits, c_fids.data_ptr<int>(),
-                               fids.data_ptr<int>(), c_pos.data_ptr<int>(), perm.data_ptr<int>(),
-                               stream));
+    sort_by(Uc, fid_bits, c_fids, fids, c_pos, perm);
+    auto depth_key = torch::empty({Uc}, i32);
+    auto iota = torch::empty({Uc}, i32);
+    bin_rec = torch::empty({Uc, 4}, f32);
     VIRGI_CUDA_CHECK(launch_gather_compact(
-        Uc, perm.data_ptr<int>(), reinterpret_cast<const float4*>(c_rec0.data_ptr<float>()),
+        Uc, N, perm.data_ptr<int>(), reinterpret_cast<const float4*>(c_rec0.data_ptr<float>()),
         reinterpret_cast<const float4*>(c_rec1.data_ptr<float>()), c_counts.data_ptr<int>(),
-        reinterpret_cast<float4*>(rec0.data_ptr<float>()),
+        fids.data_ptr<int>(), reinterpret_cast<float4*>(rec0.data_ptr<float>()),
         reinterpret_cast<float4*>(rec1.data_ptr<float>()), cnts.data_ptr<int>(),
-        mark.data_ptr<uint8_t>(), stream));
+        mark.data_ptr<uint8_t>(), depth_key.data_ptr<int>(), iota.data_ptr<int>(),
+        reinterpret_cast<float4*>(bin_rec.data_ptr<float>()), stream));
+    // depth bits are non-negative ints (depth >= the near plane > 0): 31 key bits
+    auto depth_sorted = torch::empty_like(depth_key);
+    sort_by(Uc, 31, depth_key, depth_sorted, iota, by_depth);
   }
   c_rec0 = c_rec1 = c_counts = c_fids = c_pos = torch::Tensor();
   const float4* r0 = reinterpret_cast<const float4*>(rec0.data_ptr<float>());
   const float4* r1 = reinterpret_cast<const float4*>(rec1.data_ptr<float>());
 
-  // Bin into requested tiles, sort by (slot, depth); ties keep the (view, Gaussian) order.
+  // Bin into requested tiles in depth order, then a stable sort by slot: each slot's list comes
+  // out by depth, ties in (view, Gaussian) order. (Two short sorts: the depth sort runs over the
+  // visible pairs, fewer than their tile intersections, and the slot sort needs a few bits.)
   auto sorted_vals = torch::empty({n_isect}, i32);
   if (n_isect > 0) {
-    auto cum = torch::cumsum(cnts, 0, torch::kInt64);
-    auto keys = torch::empty({n_isect}, i64);
+    auto counts_by_depth = cnts.index_select(0, by_depth);
+    auto cum = torch::cumsum(counts_by_depth, 0, torch::kInt64);
+    auto keys = torch::empty({n_isect}, i32);
     auto vals = torch::empty({n_isect}, i32);
-    VIRGI_CUDA_CHECK(launch_bin(Uc, N, fids.data_ptr<int>(), cnts.data_ptr<int>(),
-                                cum.data_ptr<int64_t>(), r0, r1, d_views, d_slots,
-                                reinterpret_cast<uint64_t*>(keys.data_ptr<int64_t>()),
-                                vals.data_ptr<int>(), stream));
-    auto keys_sorted = torch::empty_like(keys);
+    VIRGI_CUDA_CHECK(launch_bin(Uc, by_depth.data_ptr<int>(), counts_by_depth.data_ptr<int>(),
+                                cum.data_ptr<int64_t>(),
+                                reinterpret_cast<const float4*>(bin_rec.data_ptr<float>()), d_views,
+                                d_slots, keys.data_ptr<int>(), vals.data_ptr<int>(), stream));
+    auto slots_sorted = torch::empty_like(keys);
     int slot_bits = 1;
     while ((int64_t{1} << slot_bits) < plan.num_slots) ++slot_bits;
-    auto* k_in = reinterpret_cast<uint64_t*>(keys.data_ptr<int64_t>());
-    auto* k_out = reinterpret_cast<uint64_t*>(keys_sorted.data_ptr<int64_t>());
-    size_t bytes = 0;
-    VIRGI_CUDA_CHECK(sort_pairs(nullptr, bytes, n_isect, 32 + slot_bits, k_in, k_out,
-                                vals.data_ptr<int>(), sorted_vals.data_ptr<int>(), stream));
-    auto scratch = torch::empty({static_cast<int64_t>(bytes) + 1}, f32.dtype(torch::kUInt8));
-    VIRGI_CUDA_CHECK(sort_pairs(scratch.data_ptr(), bytes, n_isect, 32 + slot_bits, k_in, k_out,
-                                vals.data_ptr<int>(), sorted_vals.data_ptr<int>(), stream));
-    VIRGI_CUDA_CHECK(launch_ranges(n_isect, reinterpret_cast<const uint64_t*>(keys_sorted.data_ptr<int64_t>()),
-                  ranges.data_ptr<int>(), stream));
+    sort_by(n_isect, slot_bits, keys, slots_sorted, vals, sorted_vals);
+    VIRGI_CUDA_CHECK(launch_ranges(n_isect, slots_sorted.data_ptr<int>(), ranges.data_ptr<int>(), stream));
   }
 
   // Small batches: one pass writes counts, transmittance and the entries into a padded

@@ -52,22 +52,23 @@ cudaError_t launch_project_compact(int N, int Vr, const float* means, const floa
                                    const float* viewmats, const int* views, const int* sat,
                                    int64_t cap, float4* rec0, float4* rec1, int* counts, int* fids,
                                    int* pos, unsigned long long* counters, cudaStream_t stream);
-// With temp == nullptr, writes the scratch size needed to temp_bytes and sorts nothing.
+// A stable radix sort on key bits [0, end_bit). With temp == nullptr, writes the scratch size
+// needed to temp_bytes and sorts nothing.
 cudaError_t sort_ints(void* temp, size_t& temp_bytes, int64_t n, int end_bit, const int* keys_in,
                       int* keys_out, const int* vals_in, int* vals_out, cudaStream_t stream);
-// out[i] = in[perm[i]] for the records and counts; also zeroes mark[0, n) (the pair marks).
-cudaError_t launch_gather_compact(int64_t n, const int* perm, const float4* rec0_in,
-                                  const float4* rec1_in, const int* counts_in, float4* rec0,
-                                  float4* rec1, int* counts, uint8_t* mark, cudaStream_t stream);
-cudaError_t launch_bin(int64_t n, int N, const int* fids, const int* counts,
-                       const int64_t* cum_counts, const float4* rec0, const float4* rec1,
-                       const int* views, const int* tile_slot, uint64_t* keys, int* vals,
-                       cudaStream_t stream);
-// With temp == nullptr, writes the scratch size needed to temp_bytes and sorts nothing.
-cudaError_t sort_pairs(void* temp, size_t& temp_bytes, int64_t n, int end_bit,
-                       const uint64_t* keys_in, uint64_t* keys_out, const int* vals_in,
-                       int* vals_out, cudaStream_t stream);
-cudaError_t launch_ranges(int64_t n, const uint64_t* keys, int* ranges, cudaStream_t stream);
+// out[i] = in[perm[i]] for the records and counts; also zeroes mark[0, n) (the pair marks) and
+// writes the depth sort's input (depth_key[i] = the bits of pair i's depth, iota[i] = i) and
+// bin_rec[i] = (mean x, mean y, radius, view fids[i] / N as int bits), what binning reads.
+cudaError_t launch_gather_compact(int64_t n, int N, const int* perm, const float4* rec0_in,
+                                  const float4* rec1_in, const int* counts_in, const int* fids,
+                                  float4* rec0, float4* rec1, int* counts, uint8_t* mark,
+                                  int* depth_key, int* iota, float4* bin_rec, cudaStream_t stream);
+// (slot, pair) for every requested tile of the pairs order[0, n), laid out one pair after another
+// (counts and their inclusive scan cum_counts are in that order).
+cudaError_t launch_bin(int64_t n, const int* order, const int* counts, const int64_t* cum_counts,
+                       const float4* bin_rec, const int* views, const int* tile_slot, int* keys,
+                       int* vals, cudaStream_t stream);
+cudaError_t launch_ranges(int64_t n, const int* slots, int* ranges, cudaStream_t stream);
 // Raster modes: count entries per pixel (+ final T; kCountMark also marks contributing pairs);
 // fill them at the pixel offsets (marking unless mark is null); or both in one pass into a
 // padded [P, pcap] layout (entries past pcap are counted, not written). kCount and kSingle

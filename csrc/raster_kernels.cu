@@ -60,7 +60,7 @@ __device__ __forceinline__ void tile_rect(float mx, float my, float radius, int 
 // The 2D covariance is formed as the reference does, stable in float32 for very anisotropic
 // Gaussians: A = J W R diag(s) (2x3), cov2d = A A^T + eps2d I, and its determinant by
 // Cauchy-Binet (sum of squared 2x2 minors of A + eps2d (a0 + c0) + eps2d^2) instead of a c - b^2.
-__global__ void __launch_bounds__(kThreads)
+__global__ void __launch_bounds__(kThreads, 4)
     project_compact_kernel(int N, int Vr, const float* __restrict__ means,
                            const float* __restrict__ quats, const float* __restrict__ scales,
                            const float* __restrict__ opacities, const float* __restrict__ Ks,
@@ -248,63 +248,71 @@ __global__ void __launch_bounds__(kThreads)
 }
 
 // The compact arrays in fid order: out[i] = in[perm[i]] (fids are already sorted); the pair
-// marks of the raster pass start at 0 here (one launch fewer than a separate fill).
-__global__ void gather_compact_kernel(int64_t n, const int* __restrict__ perm,
+// marks of the raster pass start at 0 here (one launch fewer than a separate fill). Also the
+// depth sort's input (the depth's bits: depths are >= kNear > 0, so as ints they are
+// non-negative and ordered like the floats; and the identity that the sort carries along) and
+// what binning reads of a pair in one 16-byte record: (mean x, mean y, radius, view bits).
+__global__ void gather_compact_kernel(int64_t n, int N, const int* __restrict__ perm,
                                       const float4* __restrict__ rec0_in,
                                       const float4* __restrict__ rec1_in,
-                                      const int* __restrict__ counts_in, float4* __restrict__ rec0,
-                                      float4* __restrict__ rec1, int* __restrict__ counts,
-                                      uint8_t* __restrict__ mark) {
+                                      const int* __restrict__ counts_in, const int* __restrict__ fids,
+                                      float4* __restrict__ rec0, float4* __restrict__ rec1,
+                                      int* __restrict__ counts, uint8_t* __restrict__ mark,
+                                      int* __restrict__ depth_key, int* __restrict__ iota,
+                                      float4* __restrict__ bin_rec) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
   const int j = perm[i];
-  rec0[i] = rec0_in[j];
-  rec1[i] = rec1_in[j];
+  const float4 r0 = rec0_in[j];
+  const float4 r1 = rec1_in[j];
+  rec0[i] = r0;
+  rec1[i] = r1;
   counts[i] = counts_in[j];
   mark[i] = 0;
+  depth_key[i] = __float_as_int(r0.z);
+  iota[i] = static_cast<int>(i);
+  bin_rec[i] = make_float4(r0.x, r0.y, r1.w, __int_as_float(fids[i] / N));
 }
 
-// Writes (slot << 32 | depth bits, c) for every requested tile that visible pair c touches
-// (c indexes the fid-ordered compact arrays, so ties keep the (view, Gaussian) order).
-__global__ void bin_kernel(int64_t n, int N, const int* __restrict__ fids,
-                           const int* __restrict__ counts, const int64_t* __restrict__ cum_counts,
-                           const float4* __restrict__ rec0, const float4* __restrict__ rec1,
+// Writes (slot, c) for every requested tile that visible pair c = order[i] touches, from
+// cum_counts[i] - counts[i] on (counts and cum_counts in that order). order lists the fid-ordered
+// pairs by depth (a stable sort, so equal depths keep the (view, Gaussian) order), and threads
+// write their runs one after another; a stable sort by slot then leaves each slot's list in
+// depth order.
+__global__ void bin_kernel(int64_t n, const int* __restrict__ order, const int* __restrict__ counts,
+                           const int64_t* __restrict__ cum_counts, const float4* __restrict__ bin_rec,
                            const int* __restrict__ views, const int* __restrict__ tile_slot,
-                           uint64_t* __restrict__ keys, int* __restrict__ vals) {
-  const int64_t idx = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
-  if (idx >= n) return;
-  const int count = counts[idx];
-  const int v = fids[idx] / N;
-  const int* vt = views + v * kViewInts;
+                           int* __restrict__ keys, int* __restrict__ vals) {
+  const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= n) return;
+  const int idx = order[i];
+  const float4 br = bin_rec[idx];
+  const int* vt = views + __float_as_int(br.w) * kViewInts;
   const int gw = vt[3], gh = vt[4];
   const int* ts = tile_slot + vt[5];
-  const float4 r0 = rec0[idx];
-  const float4 r1 = rec1[idx];
   int x0, x1, y0, y1;
-  tile_rect(r0.x, r0.y, r1.w, gw, gh, x0, x1, y0, y1);
-  const uint64_t depth_bits = static_cast<uint64_t>(__float_as_uint(r0.z));
-  int64_t out = cum_counts[idx] - count;
-  const int64_t end = cum_counts[idx];
+  tile_rect(br.x, br.y, br.z, gw, gh, x0, x1, y0, y1);
+  const int64_t end = cum_counts[i];
+  int64_t out = end - counts[i];
   for (int y = y0; y < y1 && out < end; ++y) {
     for (int x = x0; x < x1; ++x) {
       const int slot = ts[y * gw + x];
       if (slot >= 0) {
-        keys[out] = (static_cast<uint64_t>(slot) << 32) | depth_bits;
-        vals[out] = static_cast<int>(idx);
+        keys[out] = slot;
+        vals[out] = idx;
         ++out;
       }
     }
   }
 }
 
-// ranges[2 s], ranges[2 s + 1]: start and end of slot s in the sorted keys (pre-zeroed).
-__global__ void ranges_kernel(int64_t n, const uint64_t* __restrict__ keys, int* __restrict__ ranges) {
+// ranges[2 s], ranges[2 s + 1]: start and end of slot s in the sorted slots (pre-zeroed).
+__global__ void ranges_kernel(int64_t n, const int* __restrict__ slots, int* __restrict__ ranges) {
   const int64_t i = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;
-  const uint32_t slot = static_cast<uint32_t>(keys[i] >> 32);
-  if (i == 0 || static_cast<uint32_t>(keys[i - 1] >> 32) != slot) ranges[2 * slot] = static_cast<int>(i);
-  if (i == n - 1 || static_cast<uint32_t>(keys[i + 1] >> 32) != slot)
-    ranges[2 * slot + 1] = static_cast<int>(i + 1);
+  const int slot = slots[i];
+  if (i == 0 || slots[i - 1] != slot) ranges[2 * slot] = static_cast<int>(i);
+  if (i == n - 1 || slots[i + 1] != slot) ranges[2 * slot + 1] = static_cast<int>(i + 1);
 }
 
 // transmittance = 1 everywhere, valid = the output pixel lies inside its view's image, no
@@ -759,36 +767,29 @@ cudaError_t sort_ints(void* temp, size_t& temp_bytes, int64_t n, int end_bit, co
                                          n, 0, end_bit, stream);
 }
 
-cudaError_t launch_gather_compact(int64_t n, const int* perm, const float4* rec0_in,
-                                  const float4* rec1_in, const int* counts_in, float4* rec0,
-                                  float4* rec1, int* counts, uint8_t* mark, cudaStream_t stream) {
+cudaError_t launch_gather_compact(int64_t n, int N, const int* perm, const float4* rec0_in,
+                                  const float4* rec1_in, const int* counts_in, const int* fids,
+                                  float4* rec0, float4* rec1, int* counts, uint8_t* mark,
+                                  int* depth_key, int* iota, float4* bin_rec, cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
-  gather_compact_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, perm, rec0_in, rec1_in,
-                                                                counts_in, rec0, rec1, counts, mark);
+  gather_compact_kernel<<<blocks_for(n), kThreads, 0, stream>>>(
+      n, N, perm, rec0_in, rec1_in, counts_in, fids, rec0, rec1, counts, mark, depth_key, iota,
+      bin_rec);
   return cudaGetLastError();
 }
 
-cudaError_t launch_bin(int64_t n, int N, const int* fids, const int* counts,
-                       const int64_t* cum_counts, const float4* rec0, const float4* rec1,
-                       const int* views, const int* tile_slot, uint64_t* keys, int* vals,
-                       cudaStream_t stream) {
+cudaError_t launch_bin(int64_t n, const int* order, const int* counts, const int64_t* cum_counts,
+                       const float4* bin_rec, const int* views, const int* tile_slot, int* keys,
+                       int* vals, cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
-  bin_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, N, fids, counts, cum_counts, rec0, rec1,
-                                                     views, tile_slot, keys, vals);
+  bin_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, order, counts, cum_counts, bin_rec, views,
+                                                     tile_slot, keys, vals);
   return cudaGetLastError();
 }
 
-cudaError_t sort_pairs(void* temp, size_t& temp_bytes, int64_t n, int end_bit,
-                       const uint64_t* keys_in, uint64_t* keys_out, const int* vals_in,
-                       int* vals_out, cudaStream_t stream) {
-  // Radix sort is stable: equal keys keep their (view, Gaussian) input order.
-  return cub::DeviceRadixSort::SortPairs(temp, temp_bytes, keys_in, keys_out, vals_in, vals_out,
-                                         n, 0, end_bit, stream);
-}
-
-cudaError_t launch_ranges(int64_t n, const uint64_t* keys, int* ranges, cudaStream_t stream) {
+cudaError_t launch_ranges(int64_t n, const int* slots, int* ranges, cudaStream_t stream) {
   if (n == 0) return cudaSuccess;
-  ranges_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, keys, ranges);
+  ranges_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, slots, ranges);
   return cudaGetLastError();
 }
 
