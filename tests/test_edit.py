@@ -111,11 +111,20 @@ def test_colour_map_recolours_each_gaussian_before_compositing(world):
 
 
 def test_fresh_edit_changes_nothing(world):
-    """Before any step the edit's c_d' is the base head, so the preview is the unedited render."""
+    """Without the colour-map start, before any step the edit's c_d' is the base head, so the
+    preview is the unedited render; with it (the default), alpha ~ sigmoid(-4) keeps the preview
+    within a few hundredths of the render, moved towards the edit."""
     S = world["S"]
-    eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), world["edited"])
+    before = world["before"][EDIT_VIEW]["rgb"]
+    eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), world["edited"], cfg=EditConfig(map_init=False))
+    torch.testing.assert_close(eng.preview()["rgb"], before, atol=1e-6, rtol=0)
+    eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), world["edited"], cfg=EditConfig(map_init_min_share=0.0))
+    assert eng.colour_map is not None
     prev = eng.preview()
-    torch.testing.assert_close(prev["rgb"], world["before"][EDIT_VIEW]["rgb"], atol=1e-6, rtol=0)
+    assert float((prev["rgb"] - before).abs().max()) < 0.05
+    changed = (world["edited"] - before).abs().amax(-1) > 0.05
+    assert float((prev["rgb"] - world["edited"]).abs()[changed].mean()) < float(
+        (before - world["edited"]).abs()[changed].mean())
     # alpha starts near sigmoid(-4) on the object
     inside = world["cover"][EDIT_VIEW].sum(-1) > 0.99
     a = prev["alpha"][inside]
@@ -452,3 +461,57 @@ def test_a_small_edit_is_not_outvoted_by_the_unchanged_pixels(world):
     b = world["before"][HELD_OUT[0]]["rgb"]
     truth, m = recolor(b, BLUE_TO_RED)
     assert float((_render(world, HELD_OUT[0], stack)["rgb"] - truth).abs()[m].mean()) < 0.1
+
+
+def test_logit_colour_map_recovers_affine_maps():
+    """The least-squares map in logit space: a channel permutation (a hue shift of 120 degrees) and
+    a random affine map are found again; pixels of one colour leave the map at the identity."""
+    from virgi_ns.edit import logit_colour_map
+
+    g = torch.Generator().manual_seed(0)
+    src = 0.05 + 0.9 * torch.rand(5000, 3, generator=g)
+    shifted, mask = recolor(src, RecolorRule(h0=0, h1=360, shift=120, s_min=0.0, v_min=0.0))
+    assert bool(mask.all())
+    assert torch.allclose(shifted, src[:, [2, 0, 1]], atol=1e-5)  # +120 degrees = (r, g, b) -> (b, r, g)
+    B = logit_colour_map(src, shifted, ridge=0.0, ridge_floor=0.0)
+    P = torch.tensor([[0.0, 0, 1], [1, 0, 0], [0, 1, 0]])
+    assert torch.allclose(B[:, :3], P, atol=1e-4) and B[:, 3].abs().max() < 1e-4
+    A = torch.tensor([[0.8, 0.3, -0.1], [0.0, 1.2, 0.2], [-0.3, 0.1, 0.9]])
+    t = torch.tensor([0.2, -0.4, 0.1])
+    tgt = torch.sigmoid(torch.logit(src) @ A.T + t)
+    inside = ((tgt > 0.02) & (tgt < 0.98)).all(-1)  # the fit clamps colours outside [0.02, 0.98]
+    B = logit_colour_map(src[inside], tgt[inside], ridge=0.0, ridge_floor=0.0, max_pixels=1 << 20)
+    assert torch.allclose(B[:, :3], A, atol=1e-3) and torch.allclose(B[:, 3], t, atol=1e-3)
+    # one colour (plus a little noise): M stays near the identity, t carries the change
+    one = torch.tensor([0.2, 0.3, 0.7]) + 0.01 * torch.randn(200, 3, generator=g)
+    red = torch.tensor([0.7, 0.3, 0.2]) + 0.01 * torch.randn(200, 3, generator=g)
+    B = logit_colour_map(one, red)
+    assert torch.allclose(B[:, :3], torch.eye(3), atol=0.3), B
+    mapped = torch.sigmoid(torch.logit(one) @ B[:, :3].T + B[:, 3])
+    assert float((mapped - red).abs().mean()) < 0.02
+
+
+def test_colour_map_start_fits_a_channel_swap_sooner(world):
+    """A hue shift of 120 degrees is a channel permutation, exactly a logit-space map: the edit that
+    starts from the fitted map has a lower loss after a few steps than one starting from the
+    unedited layer, and both land the recolour. The map is used only for edits that change at least
+    ``map_init_min_share`` of the view."""
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    render = world["before"][EDIT_VIEW]["rgb"]
+    rule = RecolorRule(h0=190, h1=260, shift=120, s_min=0.3, v_min=0.1)
+    edited, mask = recolor(render, rule)
+    share = float(((edited - render).abs().amax(-1) > 3 / 255).float().mean())
+    assert 0.02 < share < 0.5
+    assert EditEngine(S.scene, cam, edited, cfg=EditConfig(map_init_min_share=share + 0.01),
+                      original=render).colour_map is None
+    loss = {}
+    for init in (True, False):
+        cfg = EditConfig(steps=15, map_init=init, map_init_min_share=share - 0.01)
+        eng = EditEngine(S.scene, cam, edited, cfg=cfg, original=render)
+        assert (eng.colour_map is not None) == init
+        _, timing = eng.fit()
+        loss[init] = timing.final_loss
+        out = eng.preview()["rgb"]
+        assert float((out - edited).abs()[mask].mean()) < float((render - edited).abs()[mask].mean())
+    assert loss[True] < 0.8 * loss[False], loss

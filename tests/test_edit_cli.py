@@ -210,6 +210,11 @@ def test_original_image_limits_the_fit_to_changed_pixels(saved, tmp_path):
         assert "render + change)" in msg, msg
         st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
         assert st.entries[0].edit.info["fit"].endswith("render + change)")
+        assert st.entries[0].edit.info["start"] in ("colour map", "unedited layer")
+        run(Reset(saved["config"]), _quiet(), pl)
+        run(_apply(saved, original=orig, map_init=False), _quiet(), pl)
+        st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
+        assert st.entries[0].edit.info["start"] == "unedited layer"
         small = tmp_path / "small.png"
         Image.fromarray(np.zeros((4, 5, 3), np.uint8)).save(small)
         _refused(saved, _apply(saved, original=small), "--original is 5x4.*--resize")

@@ -61,6 +61,10 @@ class Apply:
     """With an original photo: fit the changed pixels to the edited image's own pixels (``edited``,
     the default) or to the render plus your change (``change``: helps when the photo is uniformly
     brighter or darker than the render). No effect with --whole-image or for an edited render."""
+    map_init: bool = True
+    """For an edit that changes at least a fifth of the view, start from the colour map (in logit
+    space) that best takes the render to your changed pixels; --no-map-init starts from the
+    unedited layer (an edit of a small patch never uses the map: it would recolour the patch only)."""
 
 
 @dataclass
@@ -316,6 +320,7 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
         cfg.steps = args.steps
     cfg.whole_image = args.whole_image
     cfg.changed_target = args.changed_target
+    cfg.map_init = args.map_init
     with torch.no_grad():
         engine = EditEngine(scene, cams, torch.from_numpy(image), stack.to(model.device), cfg, source,
                             original=None if original is None else torch.from_numpy(original))
