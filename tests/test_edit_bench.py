@@ -100,7 +100,8 @@ def test_edit_bench_compares_variants_on_the_same_run(pipeline, tmp_path, monkey
     cfg = tmp_path / "config.yml"
     cfg.write_text("unused")
     args = bench_edit.Args(runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1, pictures=0, sweep=False,
-                           million=False, compare=True, variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05"])
+                           million=False, compare=True, variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05",
+                                     "other:steps=5", "tiny:rule=0/360/90/0.1/0.05"])
     assert bench_edit.parse_variant("steps=20,pixel_batches=2") == {"steps": 20, "pixel_batches": 2}
     assert bench_edit.parse_variant("rule=10/20/30/0.1/0.2")["rule"] == RuleArgs(10, 20, 30, 0.1, 0.2).rule()
     for bad in ("steps", "colour=3", "steps=many", "rule=1/2/3", "changed_target=chnage", "whole_image=ture"):
@@ -108,12 +109,17 @@ def test_edit_bench_compares_variants_on_the_same_run(pipeline, tmp_path, monkey
             bench_edit.parse_variant(bad)
     rows = bench_edit.bench_scene(args, "tiny")
     assert loads == [cfg]
+    assert bench_edit.variant_scene("fern:rule=1/2/3/0.1/0.1") == ("fern", "rule=1/2/3/0.1/0.1")
+    assert bench_edit.variant_scene("steps=3") == (None, "steps=3")
+    # 'other:' entries belong to another scene; 'tiny:' ones to this one, named without the prefix
     assert [r["variant"] for r in rows] == ["engine defaults", *bench_edit.VARIANTS, "earlier rule",
-                                            "pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05"]
+                                            "pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05",
+                                            "rule=0/360/90/0.1/0.05"]
+    assert rows[-1]["rule"]["shift"] == 90.0
     assert rows[5]["rule"]["s_min"] == 0.2 and rows[4]["rule"] == rows[0]["rule"]
     assert "targets" in rows[0] and rows[0]["perfect_edit_recolour_psnr"] > 0
     assert rows[3]["rule"] == earlier.rule().to_dict() and rows[0]["rule"] == BROAD.rule().to_dict()
-    assert [r["timing_cold"]["steps"] for r in rows] == [20, 20, 20, 20, 20, 10]
+    assert [r["timing_cold"]["steps"] for r in rows] == [20, 20, 20, 20, 20, 10, 20]
     assert rows[4]["timing_cold"]["pixel_batches"] == 2
     for r in rows:
         for k in ("propagation_psnr", "miss_psnr", "leak_psnr", "recolour_psnr"):
