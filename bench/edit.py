@@ -122,8 +122,19 @@ def variant_scene(text: str) -> tuple:
     """'fern:rule=...' -> ('fern', 'rule=...'); an entry without a scene prefix -> (None, text)."""
     head, sep, rest = text.partition(":")
     if sep and "=" not in head and "," not in head:
+        if not rest.strip():
+            raise InputError(f"--variants: '{text}' names a scene but no settings")
         return head.strip(), rest
     return None, text
+
+
+def check_variant(text: str, scenes: List[str]) -> None:
+    """Refuse a --variants entry before any training: bad settings, or a scene prefix that names
+    no scene of this run (it would be skipped without a word)."""
+    only, rest = variant_scene(text)
+    if only is not None and only not in scenes:
+        raise InputError(f"--variants: '{text}' names '{only}', which is not among --scenes ({', '.join(scenes)})")
+    parse_variant(rest)
 
 
 def parse_variant(text: str) -> dict:
@@ -309,17 +320,26 @@ def print_table(rows: List[dict], device: str) -> None:
                                                                 for k, v in r["targets"].items()))
 
 
+def _commit() -> Optional[str]:
+    """The checkout's git commit (None outside a git checkout): which code made the figures."""
+    import subprocess
+
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10,
+                             cwd=Path(__file__).resolve().parent)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return out.stdout.strip() or None
+
+
 def main(args: Args) -> None:
     if not torch.cuda.is_available():
         raise InputError("bench/edit.py times the engine on a GPU; none is available")
     for v in args.variants:  # refuse a bad --variants before any training
-        only, text = variant_scene(v)
-        if only is not None and only not in RULES:
-            raise InputError(f"--variants: '{v}' names no scene with a rule ({', '.join(RULES)})")
-        parse_variant(text)
+        check_variant(v, args.scenes)
     device = torch.cuda.get_device_name(0)
     rows = [r for s in args.scenes for r in bench_scene(args, s)]
-    result: dict = {"device": device, "scenes": rows}
+    result: dict = {"device": device, "commit": _commit(), "scenes": rows}
     if rows:
         print_table(rows, device)
     if args.million:

@@ -7,7 +7,9 @@
 //                  tile rectangle holds no requested grid tile (summed-area table lookup); the
 //                  visible (view, Gaussian) pairs are appended to compact arrays, which are then
 //                  sorted by v*N+g, so no later pass scans views x N
-//   bin + sort  -> (slot, depth) keys for requested tiles only, stable radix sort
+//   sort + bin  -> the visible pairs sorted by depth (stable, ties in v*N+g order); their requested
+//                  tiles written in that order, then a stable radix sort by slot: each slot's
+//                  list by depth
 //   rasterize   -> per pixel, walk the tile's list twice: count, then fill contribution lists
 //                  grouped by pixel in compositing order
 #pragma once

@@ -112,8 +112,9 @@ def test_colour_map_recolours_each_gaussian_before_compositing(world):
 
 def test_fresh_edit_changes_nothing(world):
     """Without the colour-map start, before any step the edit's c_d' is the base head, so the
-    preview is the unedited render; with it (the default), alpha ~ sigmoid(-4) keeps the preview
-    within a few hundredths of the render, moved towards the edit."""
+    preview is the unedited render; with it (forced here: this edit is below the default's share),
+    alpha ~ sigmoid(-4) keeps the preview within a few hundredths of the render, moved towards the
+    edit."""
     S = world["S"]
     before = world["before"][EDIT_VIEW]["rgb"]
     eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), world["edited"], cfg=EditConfig(map_init=False))

@@ -111,6 +111,12 @@ def test_edit_bench_compares_variants_on_the_same_run(pipeline, tmp_path, monkey
     assert loads == [cfg]
     assert bench_edit.variant_scene("fern:rule=1/2/3/0.1/0.1") == ("fern", "rule=1/2/3/0.1/0.1")
     assert bench_edit.variant_scene("steps=3") == (None, "steps=3")
+    bench_edit.check_variant("tiny:steps=3", ["tiny"])
+    for bad in ("fern:steps=3", "tiny:", "tiny:steps=x"):
+        with pytest.raises(InputError, match="--variants"):
+            bench_edit.check_variant(bad, ["tiny"])
+    assert rows[0]["timing_cold"]["start"] in ("colour map", "unedited layer")
+    assert 0 < rows[0]["timing_cold"]["changed_fraction"] <= 1
     # 'other:' entries belong to another scene; 'tiny:' ones to this one, named without the prefix
     assert [r["variant"] for r in rows] == ["engine defaults", *bench_edit.VARIANTS, "earlier rule",
                                             "pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05",

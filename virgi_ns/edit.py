@@ -256,7 +256,9 @@ class EditConfig:
     map_init: bool = True
     """For a large edit (``map_init_min_share``), start the copied last layer from the affine colour
     map, in logit space, that best takes the current render to the target on the changed pixels
-    (least squares, a 3x4 matrix): the layer then starts at ``M c_d + t`` instead of ``c_d``. A hue
+    (least squares, a 3x4 matrix): the layer then starts at ``M c_d + t`` instead of ``c_d`` (``c_d`` of
+    the base layer: with earlier edits in the stack the map is fitted on their render but applied
+    to the base layer, an approximate start). A hue
     shift of 120 or 240 degrees, or any channel mix, is such a map exactly; other edits start close
     to it. No effect when the changed pixels are unknown (``whole_image``, or an edited image that
     matches neither the original nor the render)."""
@@ -264,7 +266,7 @@ class EditConfig:
     """The share of the view's pixels an edit must change for ``map_init``. Measured on one set
     of runs (bench/RESULTS.md, session 5): the cup's edit (73% of the view, many colours) gained
     2.7 dB of propagation PSNR from the map, the fern's (31%) neither gained nor lost, and the
-    beer can's (5%) lost 0.6: when the map already gives the edit its colour, the segmentation
+    beer can's (4%) lost 0.6: when the map already gives the edit its colour, the segmentation
     head fits the edited view's pixels literally and spreads less over the rest of the object
     (on the CPU test scene a 7x7-pixel patch then recolours only its own spot)."""
     render_match_min: float = 0.5
@@ -430,6 +432,8 @@ class EditEngine:
         if cfg.map_init and changed is not None and self.changed_fraction >= cfg.map_init_min_share:
             m = changed.reshape(-1)
             self.colour_map = logit_colour_map(current.reshape(-1, 3)[m], edited.reshape(-1, 3)[m], cfg.seed)
+            # (fitted on the current render, earlier edits and specular included, but applied to
+            # the base layer: with a stack, c_d' starts at M c_d_base + t; only a starting point)
             weight, bias = self.colour_map[:, :3] @ weight, self.colour_map[:, :3] @ bias + self.colour_map[:, 3]
         self.weight = weight.requires_grad_(True)
         self.bias = bias.requires_grad_(True)
