@@ -63,31 +63,14 @@ class ColorFieldConfig:
         return int(round(self.base_res * self.growth ** max(self.levels - 1, 0)))
 
 
-class _GatherRows(torch.autograd.Function):
-    """``table[index]`` whose backward accumulates with ``index_add_`` (atomic adds on a GPU)
-    instead of advanced indexing's sort-based accumulation, which dominated a colour step."""
-
-    @staticmethod
-    def forward(ctx, table: Tensor, index: Tensor) -> Tensor:  # type: ignore[override]
-        ctx.save_for_backward(index)
-        ctx.rows = table.shape[0]
-        return table[index]
-
-    @staticmethod
-    def backward(ctx, grad: Tensor):  # type: ignore[override]
-        (index,) = ctx.saved_tensors
-        width = grad.shape[-1]
-        g = grad.new_zeros(ctx.rows, width).index_add_(0, index.reshape(-1), grad.reshape(-1, width))
-        return g, None
-
-
 _CORNERS = ((1, 1, 1), (1, 0, 1), (0, 0, 1), (0, 1, 1), (1, 1, 0), (1, 0, 0), (0, 0, 0), (0, 1, 0))
 
 
 class GridEncoding(HashEncoding):
     """nerfstudio's torch :class:`HashEncoding` (same hash, same trilinear arithmetic, same
-    parameter), with the eight corner look-ups done as one gather whose gradient is accumulated by
-    ``index_add_`` (:class:`_GatherRows`)."""
+    parameter), with the eight corner look-ups done as one ``index_select``: its gradient is
+    accumulated by ``index_add_`` (atomic adds on a GPU) instead of advanced indexing's sort-based
+    accumulation, which dominated a colour step."""
 
     def pytorch_fwd(self, in_tensor: Float[Tensor, "*bs input_dim"]) -> Float[Tensor, "*bs output_dim"]:
         assert in_tensor.shape[-1] == 3
@@ -101,7 +84,7 @@ class GridEncoding(HashEncoding):
         # table offset as it does for one corner
         ceil = torch.tensor(_CORNERS, dtype=torch.bool, device=c.device).view(8, 1, 3)
         hashed = self.hash_fn(torch.where(ceil, c[..., None, :, :], f[..., None, :, :]))  # [..., 8, L]
-        feats = _GatherRows.apply(self.hash_table, hashed)  # [..., 8, L, F]
+        feats = self.hash_table.index_select(0, hashed.reshape(-1)).view(*hashed.shape, -1)  # [..., 8, L, F]
         f_0, f_1, f_2, f_3, f_4, f_5, f_6, f_7 = feats.unbind(-3)
         o0, o1, o2 = offset[..., 0:1], offset[..., 1:2], offset[..., 2:3]
         f_03 = f_0 * o0 + f_3 * (1 - o0)
