@@ -301,7 +301,7 @@ def bench_million(repeats: int, steps: Optional[int], n: int = 1_000_000, width:
 def print_table(rows: List[dict], device: str) -> None:
     t = Table(title=f"edit engine on {device}")
     for c in ("scene", "variant", "gaussians", "mask", "recolour PSNR", "unedited", "perfect edit", "SSIM", "LPIPS",
-              "propagation", "miss", "leak", "rule per Gaussian",
+              "propagation", "miss", "leak", "rule per Gaussian", "edit view miss",
               "setup s", "steps s", "total s", "cached total s"):
         t.add_column(c)
     for r in rows:
@@ -311,7 +311,8 @@ def print_table(rows: List[dict], device: str) -> None:
                   f"{r.get('perfect_edit_recolour_psnr', float('nan')):.2f}",
                   f"{r['recolour_ssim']:.4f}", f"{r['recolour_lpips']:.4f}", f"{r['propagation_psnr']:.2f}",
                   f"{r['miss_psnr']:.2f}", f"{r['leak_psnr']:.2f}",
-                  f"{r.get('per_gaussian_rule_propagation_psnr', float('nan')):.2f}", f"{c['setup_s']:.3f}", f"{c['steps_s']:.3f}",
+                  f"{r.get('per_gaussian_rule_propagation_psnr', float('nan')):.2f}",
+                  f"{r.get('edit_view_miss_psnr', float('nan')):.2f}", f"{c['setup_s']:.3f}", f"{c['steps_s']:.3f}",
                   f"{c['total_s']:.3f}", f"{w['total_s']:.3f}")
     console.print(t)
     for r in rows:

@@ -9,7 +9,8 @@ per scene in ``--scenes``.
 
 Columns: PSNR, SSIM, LPIPS (NaN offline) on the held-out views (every 8th frame), train time,
 Gaussians, render FPS (whole eval images); for virgi also the specular gate's kept fraction, the
-gated render's speed-up and the PSNR between gated and full renders. Writes ``results.json`` and,
+gated render's speed-up and the PSNR between gated and full renders; for every row the share of the
+squared error on near-saturated photo pixels (``bright_se_share``, a channel >= 0.95). Writes ``results.json`` and,
 for one held-out view, ``<scene>_<row>.png`` = ground truth | rgb | diffuse | specular
 (|rgb - diffuse|, x2) side by side.
 
@@ -38,6 +39,8 @@ from virgi_ns.errors import InputError, atomic_path, cli_entry
 from virgi_ns.metrics import offline_splatfacto_lpips
 
 console = Console()
+BRIGHT = 0.95
+"""Photo pixels with a channel at or above this count as near-saturated in the error split."""
 
 
 @dataclass
@@ -156,6 +159,7 @@ def evaluate(pipeline, repeats: int, picture: Optional[Path]) -> Dict[str, float
     frames = 0
     is_virgi = isinstance(model, VirgiModel)
     gated_psnr, full_s, gated_s = [], 0.0, 0.0
+    se_sum = se_bright = px = px_bright = 0.0
     for i in range(n):
         gt = dm.cached_eval[i]["image"].to(model.device)  # first: caching undistorts and fixes the cameras
         cam = dm.eval_dataset.cameras[i : i + 1].to(model.device)
@@ -163,6 +167,13 @@ def evaluate(pipeline, repeats: int, picture: Optional[Path]) -> Dict[str, float
         out = model.get_outputs_for_camera(cam)
         for k, v in image_metrics(out["rgb"], gt).items():
             scores[k].append(v)
+        # where the error sits: near-saturated photo pixels (highlights) against the rest
+        se = ((out["rgb"][..., :3].float().clamp(0, 1) - gt) ** 2).sum(-1)
+        bright = gt.amax(-1) >= BRIGHT
+        se_sum += float(se.sum())
+        se_bright += float(se[bright].sum())
+        px += se.numel()
+        px_bright += float(bright.sum())
         for _ in range(repeats):
             torch.cuda.synchronize()
             t = time.perf_counter()
@@ -186,6 +197,8 @@ def evaluate(pipeline, repeats: int, picture: Optional[Path]) -> Dict[str, float
             save_picture(picture, gt, out)
     res = {k: float(np.nanmean(v)) if v else float("nan") for k, v in scores.items()}
     res["fps"] = frames / max(render_s, 1e-9)
+    res["bright_px_share"] = px_bright / max(px, 1.0)
+    res["bright_se_share"] = se_bright / max(se_sum, 1e-12)
     res["gaussians"] = int(model.num_points)
     if is_virgi and gated_psnr:
         res["gate_kept"] = float(model.spec_gate.float().mean())
@@ -320,7 +333,7 @@ def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]
 def print_table(rows: List[Dict[str, object]], device: str) -> None:
     t = Table(title=f"splatfacto vs virgi on {device}")
     cols = ["scene", "method", "psnr", "ssim", "lpips", "train_s", "gaussians", "fps", "gate_kept", "gate_speedup",
-            "gate_psnr_vs_full"]
+            "gate_psnr_vs_full", "bright_se_share"]
     for c in cols:
         t.add_column(c)
     for r in rows:

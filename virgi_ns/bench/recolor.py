@@ -261,6 +261,14 @@ class Bench:
                 seg = out["segmentation"].clamp(0, 1).expand(-1, -1, 3)
                 pics.append(torch.cat([base, after, truth_render, seg], dim=1).cpu())
         mean = {k: _mean([r[k] for r in rows]) for k in rows[0]} if rows else {}
+        # the same figures on the edited view itself: a fit that misses there is short of steps or
+        # capacity; one that fits there but misses on held-out views generalises badly
+        base = render_view(self.scene, self.edit_camera, 0)["rgb"].clamp(0, 1)
+        after = render_view(self.scene, self.edit_camera, 0, stack)["rgb"].clamp(0, 1)
+        truth_render, mask = recolor(base, rule)
+        mean.update({"edit_view_propagation_psnr": psnr(after, truth_render),
+                     "edit_view_miss_psnr": psnr(after, truth_render, mask),
+                     "edit_view_leak_psnr": psnr(after, truth_render, ~mask)})
         return {"mean": mean, "views": rows}, pics
 
 
