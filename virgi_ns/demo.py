@@ -67,9 +67,10 @@ class DemoConfig:
     sparse points)."""
     colour_steps: Optional[int] = None
     """Colour-stage steps; default 5000 on a GPU, 1000 on a CPU."""
-    colour_init: Literal["geometry", "none"] = "geometry"
+    colour_init: Literal["geometry", "geometry_sh", "none"] = "geometry"
     """Warm-start the colour field from the geometry's own colours before the colour steps
-    (the model's ``colour_init``), or start from a random field."""
+    (the model's ``colour_init``), or start from a random field. The bundled geometry stores
+    degree-0 colours only, for which 'geometry_sh' (the model's default) is the same as 'geometry'."""
     colour_init_steps: Optional[int] = None
     """Warm-start steps; default 200 on a CPU, the model's (300) on a GPU."""
     colour_init_batch: Optional[int] = None

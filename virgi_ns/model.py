@@ -6,8 +6,9 @@ Two stages in one nerfstudio run:
    GPU; on a CPU the torch reference rasterizer, degree-0 colours, no densification (tiny scenes
    only). Skipped when ``geometry_from`` imports a splat. Then the Gaussians are frozen: no
    gradients, no strategy callbacks.
-2. **Colour**: first (``colour_init="geometry"``) a warm start fits the colour field to each
-   Gaussian's own degree-0 colour, per Gaussian and without rendering
+2. **Colour**: first (``colour_init="geometry_sh"``) a warm start fits the colour field to each
+   Gaussian's own colours, per Gaussian and without rendering: ``c_d`` to its degree-0 colour,
+   ``c_d + c_s`` to its SH colour seen from training cameras that see it
    (:meth:`VirgiModel.init_colour_field`); then batches of tiles (:mod:`virgi_ns.datamanager`)
    are rasterized once into contribution lists; the colour field runs only for the (view,
    Gaussian) pairs the batch touches: hash features and MLP_diff per Gaussian, MLP_spec per pair
@@ -78,9 +79,12 @@ class VirgiModelConfig(SplatfactoModelConfig):
     is treated as matte."""
     box_quantile: float = 0.01
     """The hash grid's box spans these quantiles of the frozen means (expanded by 10%)."""
-    colour_init: Literal["geometry", "none"] = "geometry"
+    colour_init: Literal["geometry", "geometry_sh", "none"] = "geometry_sh"
     """Start of the colour stage: 'geometry' first fits the colour field to each Gaussian's own
-    degree-0 colour (a warm start, no rendering); 'none' starts from the random field."""
+    degree-0 colour (a warm start, no rendering); 'geometry_sh' also fits ``c_d + c_s`` to the
+    Gaussian's full SH colour seen from training cameras that see it (the diffuse branch still to
+    the degree-0 colour, so the specular branch starts as the geometry's view-dependent residual);
+    'none' starts from the random field."""
     colour_init_steps: int = 300
     """Adam steps of the warm start (the field's own learning rates)."""
     colour_init_batch: int = 16384
@@ -244,7 +248,7 @@ class VirgiModel(SplatfactoModel):
         if self._colour_init_done:
             return None
         self._colour_init_done = True
-        if self.config.colour_init != "geometry" or self.config.colour_init_steps <= 0:
+        if self.config.colour_init == "none" or self.config.colour_init_steps <= 0:
             return None
         with self._timed("warm_start_s"):
             return self.init_colour_field(self.config.colour_init_steps)
@@ -284,6 +288,7 @@ class VirgiModel(SplatfactoModel):
         target = torch.logit(self.geometry_colours().clamp(eps, 1.0 - eps))
         weight = torch.sigmoid(self.opacities.detach().reshape(-1)).clamp_min(1e-4)
         b = min(int(batch or self.config.colour_init_batch), n)
+        views = self._sh_views() if self.config.colour_init == "geometry_sh" and fld.decoupled else None
         grid_lr, mlp_lr = self._field_lrs
         opt = torch.optim.Adam([{"params": fld.grid_parameters(), "lr": grid_lr},
                                 {"params": fld.mlp_parameters(), "lr": mlp_lr}], eps=1e-15)
@@ -293,16 +298,24 @@ class VirgiModel(SplatfactoModel):
                 idx = torch.randint(n, (b,), device=dev) if b < n else torch.arange(n, device=dev)
                 f = fld.encode(means[idx])
                 dirs = torch.nn.functional.normalize(torch.randn(b, 3, device=dev), dim=-1)
+                seen = None
+                if views is not None:  # directions from training cameras, and whether they see it
+                    dirs, full, seen = views(idx)
                 if fld.decoupled:
                     h1, h2 = fld.diffuse_hidden(f)
                     c_d = fld.diffuse(h2)
-                    spec = (fld.specular(f, dirs, h1, h2) ** 2).sum(-1)
+                    c_s = fld.specular(f, dirs, h1, h2)
+                    spec = (c_s**2).sum(-1)
                 else:  # the single MLP sees directions throughout; its colour is c_d alone
                     _, h2 = fld.diffuse_hidden(f, dirs)
                     c_d = fld.diffuse(h2)
                     spec = c_d.new_zeros(b)
                 w = weight[idx]
-                per = (c_d - target[idx]).abs().mean(-1) + spec
+                per = (c_d - target[idx]).abs().mean(-1)
+                if seen is None:
+                    per = per + spec
+                else:  # seen: c_d + c_s to the SH colour; unseen: c_s towards 0
+                    per = per + torch.where(seen, (c_d + c_s - full).abs().mean(-1), spec)
                 loss = (per * w).sum() / w.sum()
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
@@ -310,9 +323,43 @@ class VirgiModel(SplatfactoModel):
         for p in fld.parameters():
             p.grad = None
         after = self._colour_init_error(target)
-        CONSOLE.log(f"virgi: colour field warm-started from the geometry's colours ({steps} steps of {b:,} "
-                    f"Gaussians): mean colour error {before:.3f} -> {after:.3f}")
+        what = "SH colours seen from the training cameras" if views is not None else "degree-0 colours"
+        CONSOLE.log(f"virgi: colour field warm-started from the geometry's {what} ({steps} steps of {b:,} "
+                    f"Gaussians): mean diffuse colour error {before:.3f} -> {after:.3f}")
         return {"error_before": before, "error_after": after}
+
+    def _sh_views(self, eps: float = 0.01):
+        """For the 'geometry_sh' warm start: a function of Gaussian indices [B] that draws one
+        training camera per Gaussian and returns (unit directions camera -> Gaussian [B,3], logit
+        of the Gaussian's SH colour along them [B,3], whether the camera sees the Gaussian [B]:
+        in front of it and projecting inside the image). None without training cameras or without
+        SH coefficients above degree 0 (the degree-0 warm start is then the same thing)."""
+        rest = self.features_rest.detach()
+        if self._train_cameras_fn is None or rest.shape[1] == 0 or not bool((rest != 0).any()):
+            CONSOLE.log("virgi: no training cameras or no SH above degree 0: degree-0 warm start")
+            return None
+        from virgi_ns.sh import sh_colors
+
+        cams = self._train_cameras_fn().to(self.device)
+        vm = cams.viewmats.to(self.means.dtype)
+        Ks = cams.Ks.to(self.means.dtype)
+        wh = torch.stack([cams.widths, cams.heights], -1).to(self.device, self.means.dtype)
+        centres = cams.camera_centers().to(self.means.dtype)
+        sh = torch.cat([self.features_dc.detach()[:, None], rest], dim=1)
+        means = self.means.detach()
+
+        def draw(idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+            v = torch.randint(len(cams), idx.shape, device=idx.device)
+            m = means[idx]
+            pc = (vm[v, :3, :3] @ m[:, :, None])[:, :, 0] + vm[v, :3, 3]
+            z = pc[:, 2]
+            uv = (Ks[v, :2, :2] @ (pc[:, :2] / z.clamp_min(1e-6)[:, None])[:, :, None])[:, :, 0] + Ks[v, :2, 2]
+            seen = (z > 0.01) & (uv >= 0).all(-1) & (uv < wh[v]).all(-1)
+            dirs = torch.nn.functional.normalize(m - centres[v], dim=-1)
+            full = torch.logit(sh_colors(sh[idx], dirs).clamp(eps, 1.0 - eps))
+            return dirs, full, seen
+
+        return draw
 
     @torch.no_grad()
     def _colour_init_error(self, target_logit: Tensor, chunk: int = 65536) -> float:
