@@ -263,12 +263,14 @@ class EditConfig:
     to it. No effect when the changed pixels are unknown (``whole_image``, or an edited image that
     matches neither the original nor the render)."""
     map_init_min_share: float = 0.2
-    """The share of the view's pixels an edit must change for ``map_init``. Measured on one set
-    of runs (bench/RESULTS.md, session 5): the cup's edit (73% of the view, many colours) gained
-    2.7 dB of propagation PSNR from the map, the fern's (31%) neither gained nor lost, and the
-    beer can's (4%) lost 0.6: when the map already gives the edit its colour, the segmentation
-    head fits the edited view's pixels literally and spreads less over the rest of the object
-    (on the CPU test scene a 7x7-pixel patch then recolours only its own spot)."""
+    """The share of the view's pixels an edit must change for ``map_init``. The benchmark's edits
+    change 60% (cup, many colours), 32% (fern) and 8% (beer can) of the edited view. Measured on
+    one set of runs (bench/RESULTS.md, session 5), the cup's edit gained 2.7 dB of propagation PSNR
+    from the map, the fern's neither gained nor lost, and the beer can's lost 0.6: when the map
+    already gives the edit its colour, the segmentation head fits the edited view's pixels
+    literally and spreads less over the rest of the object (on the CPU test scene a 7x7-pixel
+    patch then recolours only its own spot). Session 6 confirmed the gated default on two more run
+    sets (without the map, cup's recolour figure failed on both)."""
     render_match_min: float = 0.5
     """Without an ``original``: when at least this share of the edited image's pixels equal the
     current render (within ``unchanged_tol``), the image is an edited render and only the other
