@@ -6,7 +6,6 @@ cameras, independent of any frame code) and compared with the model's own render
 
 from __future__ import annotations
 
-import json
 import math
 import warnings
 from pathlib import Path
@@ -24,9 +23,7 @@ from virgi_ns.export import BakeConfig, CaptureFrame, bake_pipeline, fibonacci_s
 from virgi_ns.gaussians import SH_C0
 from virgi_ns.nscams import rotmat_to_quat, transform_gaussians
 from virgi_ns.sh import sh_basis
-from virgi_ns.io import save_ply
-from virgi_ns.raster import Cameras
-from virgi_scene import Scene, lobe
+from virgi_scene import Scene, axis_angle, lobe, rotated_copy
 
 warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
 
@@ -58,42 +55,6 @@ def fit_field_to_scene(model, frame: CaptureFrame, sc, steps: int = 150, gain: f
         opt.step()
     for p in fld.parameters():
         p.grad = None
-
-
-def axis_angle(axis, degrees: float) -> torch.Tensor:
-    a = torch.nn.functional.normalize(torch.tensor(axis, dtype=torch.float64), dim=0)
-    Kx = torch.tensor([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]], dtype=torch.float64)
-    t = math.radians(degrees)
-    return torch.eye(3, dtype=torch.float64) + math.sin(t) * Kx + (1 - math.cos(t)) * Kx @ Kx
-
-
-def rotated_copy(sc: Scene, root: Path, R0: torch.Tensor, shift=(0.3, -0.2, 0.5)) -> Scene:
-    """The same capture (same images) expressed in a rotated and shifted world frame, so that the
-    dataparser's transform back to its frame is far from the identity."""
-    root.mkdir(parents=True, exist_ok=True)
-    (root / "images").symlink_to(sc.root / "images")
-    t0 = torch.tensor(shift, dtype=torch.float64)
-    meta = json.loads((sc.root / "transforms.json").read_text())
-    for fr in meta["frames"]:
-        c2w = torch.tensor(fr["transform_matrix"], dtype=torch.float64)
-        c2w[:3, :3] = R0 @ c2w[:3, :3]
-        c2w[:3, 3] = R0 @ c2w[:3, 3] + t0
-        fr["transform_matrix"] = c2w.tolist()
-    (root / "transforms.json").write_text(json.dumps(meta))
-    g = sc.gaussians
-    R0f = R0.float()
-    qR = rotmat_to_quat(R0f)
-    from virgi_ns.nscams import quat_multiply
-
-    g2 = g.replace(means=g.means @ R0f.T + t0.float(),
-                   quats=quat_multiply(qR.expand(len(g), 4), torch.nn.functional.normalize(g.quats, dim=-1)))
-    save_ply(g2, root / "scene.ply")
-    inv = torch.eye(4, dtype=torch.float64)
-    inv[:3, :3] = R0.T
-    inv[:3, 3] = -R0.T @ t0
-    vms = (sc.cameras.viewmats.double() @ inv).float()
-    cams = Cameras(sc.cameras.Ks, vms, sc.cameras.widths, sc.cameras.heights)
-    return Scene(g2, sc.albedo, sc.glossy, cams, sc.images, root, root / "scene.ply")
 
 
 @pytest.fixture(scope="module")

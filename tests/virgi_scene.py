@@ -15,6 +15,7 @@ from PIL import Image
 
 from virgi_ns.gaussians import SH_C0, Gaussians
 from virgi_ns.io import save_ply
+from virgi_ns.nscams import quat_multiply, rotmat_to_quat
 from virgi_ns.raster import Cameras, Request, composite
 from virgi_ns.raster.reference import rasterize
 
@@ -145,3 +146,37 @@ def use_scene(cfg, scene: Scene, pixel_budget: int, cache_on_device: bool = True
     if cache_on_device:
         dm.cache_images = "gpu"
     return dm
+
+
+def axis_angle(axis, degrees: float) -> torch.Tensor:
+    a = torch.nn.functional.normalize(torch.tensor(axis, dtype=torch.float64), dim=0)
+    Kx = torch.tensor([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]], dtype=torch.float64)
+    t = math.radians(degrees)
+    return torch.eye(3, dtype=torch.float64) + math.sin(t) * Kx + (1 - math.cos(t)) * Kx @ Kx
+
+
+def rotated_copy(sc: Scene, root: Path, R0: torch.Tensor, shift=(0.3, -0.2, 0.5)) -> Scene:
+    """The same capture (same images) expressed in a rotated and shifted world frame, so that the
+    dataparser's transform back to its frame is far from the identity."""
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "images").symlink_to(sc.root / "images")
+    t0 = torch.tensor(shift, dtype=torch.float64)
+    meta = json.loads((sc.root / "transforms.json").read_text())
+    for fr in meta["frames"]:
+        c2w = torch.tensor(fr["transform_matrix"], dtype=torch.float64)
+        c2w[:3, :3] = R0 @ c2w[:3, :3]
+        c2w[:3, 3] = R0 @ c2w[:3, 3] + t0
+        fr["transform_matrix"] = c2w.tolist()
+    (root / "transforms.json").write_text(json.dumps(meta))
+    g = sc.gaussians
+    R0f = R0.float()
+    qR = rotmat_to_quat(R0f)
+    g2 = g.replace(means=g.means @ R0f.T + t0.float(),
+                   quats=quat_multiply(qR.expand(len(g), 4), torch.nn.functional.normalize(g.quats, dim=-1)))
+    save_ply(g2, root / "scene.ply")
+    inv = torch.eye(4, dtype=torch.float64)
+    inv[:3, :3] = R0.T
+    inv[:3, 3] = -R0.T @ t0
+    vms = (sc.cameras.viewmats.double() @ inv).float()
+    cams = Cameras(sc.cameras.Ks, vms, sc.cameras.widths, sc.cameras.heights)
+    return Scene(g2, sc.albedo, sc.glossy, cams, sc.images, root, root / "scene.ply")

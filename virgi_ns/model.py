@@ -91,6 +91,18 @@ class VirgiModelConfig(SplatfactoModelConfig):
     """Gaussians per warm-start step (drawn uniformly, weighted by opacity in the loss)."""
 
 
+def camera_sees(points: Tensor, cams: Cameras, views: Tensor, near: float = 0.01) -> Tensor:
+    """[B] bool: camera ``views[i]`` of ``cams`` has ``points[i]`` in front of it (depth > ``near``)
+    and inside its image (pixel-edge coordinates in ``[0, W) x [0, H)``). Occlusion is not checked."""
+    vm = cams.viewmats.to(points)
+    Ks = cams.Ks.to(points)
+    pc = (vm[views, :3, :3] @ points[:, :, None])[:, :, 0] + vm[views, :3, 3]
+    z = pc[:, 2]
+    uv = (Ks[views, :2, :2] @ (pc[:, :2] / z.clamp_min(1e-6)[:, None])[:, :, None])[:, :, 0] + Ks[views, :2, 2]
+    wh = torch.stack([cams.widths, cams.heights], -1).to(points)[views]
+    return (z > near) & (uv >= 0).all(-1) & (uv < wh).all(-1)
+
+
 class VirgiModel(SplatfactoModel):
     """See the module docstring."""
 
@@ -100,6 +112,9 @@ class VirgiModel(SplatfactoModel):
     def populate_modules(self) -> None:
         cfg = self.config
         self.imported = cfg.geometry_from is not None
+        # the rotation taking directions of the imported file's frame into this run's (the SH
+        # coefficients stay in the file's frame; the SH warm start evaluates them there)
+        self._sh_rotation: Optional[Tensor] = None
         params = self._initial_gaussians()
         self.gauss_params = torch.nn.ParameterDict({k: Parameter(v) for k, v in params.items()})
         self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
@@ -204,6 +219,7 @@ class VirgiModel(SplatfactoModel):
             T = meta.get("virgi_capture_transform")
             if T is not None:
                 means, scales, quats = transform_gaussians(means, scales, quats, T, meta.get("virgi_capture_scale", 1.0))
+                self._sh_rotation = torch.as_tensor(T, dtype=torch.float32)[:3, :3].clone()
         sh = g.with_sh_degree(self.config.sh_degree).sh.float()
         CONSOLE.log(f"virgi: imported geometry from {path} ({len(g):,} Gaussians, frame {frame})")
         return {
@@ -250,8 +266,11 @@ class VirgiModel(SplatfactoModel):
         self._colour_init_done = True
         if self.config.colour_init == "none" or self.config.colour_init_steps <= 0:
             return None
+        cams = None
+        if self.config.colour_init == "geometry_sh" and self._train_cameras_fn is not None:
+            cams = self._train_cameras_fn()  # loads the training images, as the first colour step would
         with self._timed("warm_start_s"):
-            return self.init_colour_field(self.config.colour_init_steps)
+            return self.init_colour_field(self.config.colour_init_steps, cams=cams)
 
     @contextmanager
     def _timed(self, name: str):
@@ -273,12 +292,17 @@ class VirgiModel(SplatfactoModel):
             return torch.sigmoid(dc)
         return (SH_C0 * dc + 0.5).clamp(0.0, 1.0)
 
-    def init_colour_field(self, steps: int, batch: Optional[int] = None, eps: float = 0.01) -> Dict[str, float]:
+    def init_colour_field(self, steps: int, batch: Optional[int] = None, eps: float = 0.01,
+                          cams: Optional[Cameras] = None) -> Dict[str, float]:
         """Warm start: fit the field per Gaussian (no rendering) so that ``sigmoid(c_d)`` is the
         Gaussian's :meth:`geometry_colours` (target ``c_d = logit(colour)``, colours clamped to
-        ``(eps, 1 - eps)``) and ``c_s`` is pushed towards 0. L1 in logit space, weighted by opacity,
-        on mini-batches of Gaussians; Adam with the field's own learning rates, the trainer's
-        optimizer state untouched. Returns the opacity-weighted mean colour error before and after."""
+        ``(eps, 1 - eps)``). With ``colour_init="geometry_sh"``, training ``cams`` and SH above
+        degree 0, each sampled Gaussian also gets one training camera drawn at random: where that
+        camera sees it, ``c_d + c_s`` is fitted to the logit of its SH colour along that direction;
+        elsewhere (and in the other modes) ``||c_s||^2`` is pushed towards 0. L1 in logit space,
+        weighted by opacity, on mini-batches of Gaussians; Adam with the field's own learning
+        rates, the trainer's optimizer state untouched. Returns the opacity-weighted mean diffuse
+        colour error before and after (and, with SH, the share of draws the camera saw)."""
         fld = self.field
         n = self.num_points
         if n == 0 or steps <= 0:
@@ -288,7 +312,13 @@ class VirgiModel(SplatfactoModel):
         target = torch.logit(self.geometry_colours().clamp(eps, 1.0 - eps))
         weight = torch.sigmoid(self.opacities.detach().reshape(-1)).clamp_min(1e-4)
         b = min(int(batch or self.config.colour_init_batch), n)
-        views = self._sh_views() if self.config.colour_init == "geometry_sh" and fld.decoupled else None
+        views = None
+        if self.config.colour_init == "geometry_sh":
+            if fld.decoupled:
+                views = self._sh_views(cams, eps)
+            else:
+                CONSOLE.log("virgi: the single-MLP field has no specular branch: degree-0 warm start")
+        seen_draws = seen_total = 0
         grid_lr, mlp_lr = self._field_lrs
         opt = torch.optim.Adam([{"params": fld.grid_parameters(), "lr": grid_lr},
                                 {"params": fld.mlp_parameters(), "lr": mlp_lr}], eps=1e-15)
@@ -301,6 +331,8 @@ class VirgiModel(SplatfactoModel):
                 seen = None
                 if views is not None:  # directions from training cameras, and whether they see it
                     dirs, full, seen = views(idx)
+                    seen_draws += int(seen.sum())
+                    seen_total += seen.numel()
                 if fld.decoupled:
                     h1, h2 = fld.diffuse_hidden(f)
                     c_d = fld.diffuse(h2)
@@ -323,40 +355,44 @@ class VirgiModel(SplatfactoModel):
         for p in fld.parameters():
             p.grad = None
         after = self._colour_init_error(target)
-        what = "SH colours seen from the training cameras" if views is not None else "degree-0 colours"
+        res = {"error_before": before, "error_after": after}
+        what = "degree-0 colours"
+        if views is not None:
+            res["seen_share"] = seen_draws / max(seen_total, 1)
+            what = f"SH colours from the training cameras ({res['seen_share']:.0%} of the draws seen)"
         CONSOLE.log(f"virgi: colour field warm-started from the geometry's {what} ({steps} steps of {b:,} "
                     f"Gaussians): mean diffuse colour error {before:.3f} -> {after:.3f}")
-        return {"error_before": before, "error_after": after}
+        return res
 
-    def _sh_views(self, eps: float = 0.01):
+    def _sh_views(self, cams: Optional[Cameras], eps: float = 0.01):
         """For the 'geometry_sh' warm start: a function of Gaussian indices [B] that draws one
         training camera per Gaussian and returns (unit directions camera -> Gaussian [B,3], logit
-        of the Gaussian's SH colour along them [B,3], whether the camera sees the Gaussian [B]:
-        in front of it and projecting inside the image). None without training cameras or without
-        SH coefficients above degree 0 (the degree-0 warm start is then the same thing)."""
+        of the Gaussian's SH colour along them [B,3], whether the camera sees the Gaussian [B],
+        :func:`camera_sees`). The SH coefficients are evaluated in the frame they were trained in:
+        an imported file's directions are rotated back into the file's frame. None without
+        training cameras or without SH coefficients above degree 0 (the degree-0 warm start is
+        then the same thing)."""
         rest = self.features_rest.detach()
-        if self._train_cameras_fn is None or rest.shape[1] == 0 or not bool((rest != 0).any()):
+        if cams is None or len(cams) == 0 or rest.shape[1] == 0 or not bool((rest != 0).any()):
             CONSOLE.log("virgi: no training cameras or no SH above degree 0: degree-0 warm start")
             return None
         from virgi_ns.sh import sh_colors
 
-        cams = self._train_cameras_fn().to(self.device)
-        vm = cams.viewmats.to(self.means.dtype)
-        Ks = cams.Ks.to(self.means.dtype)
-        wh = torch.stack([cams.widths, cams.heights], -1).to(self.device, self.means.dtype)
-        centres = cams.camera_centers().to(self.means.dtype)
+        dtype = self.means.dtype
+        cams = cams.to(self.device, dtype)
+        centres = cams.camera_centers()
         sh = torch.cat([self.features_dc.detach()[:, None], rest], dim=1)
         means = self.means.detach()
+        # d_run = R d_file, so d_file = R^T d_run: row vectors times R
+        rot = None if self._sh_rotation is None else self._sh_rotation.to(self.device, dtype)
 
         def draw(idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
             v = torch.randint(len(cams), idx.shape, device=idx.device)
             m = means[idx]
-            pc = (vm[v, :3, :3] @ m[:, :, None])[:, :, 0] + vm[v, :3, 3]
-            z = pc[:, 2]
-            uv = (Ks[v, :2, :2] @ (pc[:, :2] / z.clamp_min(1e-6)[:, None])[:, :, None])[:, :, 0] + Ks[v, :2, 2]
-            seen = (z > 0.01) & (uv >= 0).all(-1) & (uv < wh[v]).all(-1)
+            seen = camera_sees(m, cams, v)
             dirs = torch.nn.functional.normalize(m - centres[v], dim=-1)
-            full = torch.logit(sh_colors(sh[idx], dirs).clamp(eps, 1.0 - eps))
+            file_dirs = dirs if rot is None else dirs @ rot
+            full = torch.logit(sh_colors(sh[idx], file_dirs).clamp(eps, 1.0 - eps))
             return dirs, full, seen
 
         return draw

@@ -261,8 +261,9 @@ class Bench:
                 seg = out["segmentation"].clamp(0, 1).expand(-1, -1, 3)
                 pics.append(torch.cat([base, after, truth_render, seg], dim=1).cpu())
         mean = {k: _mean([r[k] for r in rows]) for k in rows[0]} if rows else {}
-        # the same figures on the edited view itself: a fit that misses there is short of steps or
-        # capacity; one that fits there but misses on held-out views generalises badly
+        # the same figures on the edited view itself, against the rule on its render (the edit was fitted
+        # to the rule on the photo): far above the held-out figures, the edit carries badly to other
+        # views; close to them, the fit itself is the limit
         base = render_view(self.scene, self.edit_camera, 0)["rgb"].clamp(0, 1)
         after = render_view(self.scene, self.edit_camera, 0, stack)["rgb"].clamp(0, 1)
         truth_render, mask = recolor(base, rule)
