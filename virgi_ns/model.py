@@ -318,7 +318,7 @@ class VirgiModel(SplatfactoModel):
                 views = self._sh_views(cams, eps)
             else:
                 CONSOLE.log("virgi: the single-MLP field has no specular branch: degree-0 warm start")
-        seen_draws = seen_total = 0
+        seen_draws, seen_total = torch.zeros((), device=dev), 0  # summed on the device: no per-step sync
         grid_lr, mlp_lr = self._field_lrs
         opt = torch.optim.Adam([{"params": fld.grid_parameters(), "lr": grid_lr},
                                 {"params": fld.mlp_parameters(), "lr": mlp_lr}], eps=1e-15)
@@ -331,7 +331,7 @@ class VirgiModel(SplatfactoModel):
                 seen = None
                 if views is not None:  # directions from training cameras, and whether they see it
                     dirs, full, seen = views(idx)
-                    seen_draws += int(seen.sum())
+                    seen_draws = seen_draws + seen.sum()
                     seen_total += seen.numel()
                 if fld.decoupled:
                     h1, h2 = fld.diffuse_hidden(f)
@@ -358,7 +358,7 @@ class VirgiModel(SplatfactoModel):
         res = {"error_before": before, "error_after": after}
         what = "degree-0 colours"
         if views is not None:
-            res["seen_share"] = seen_draws / max(seen_total, 1)
+            res["seen_share"] = float(seen_draws) / max(seen_total, 1)
             what = f"SH colours from the training cameras ({res['seen_share']:.0%} of the draws seen)"
         CONSOLE.log(f"virgi: colour field warm-started from the geometry's {what} ({steps} steps of {b:,} "
                     f"Gaussians): mean diffuse colour error {before:.3f} -> {after:.3f}")
