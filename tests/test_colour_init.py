@@ -184,10 +184,10 @@ def test_sh_warm_start_fits_the_view_dependent_colours(scene, random_ply, tmp_pa
     assert errors["geometry_sh"][0] < 0.75 * errors["geometry"][0], errors  # measured 0.57x
 
 
-def test_camera_sees_matches_the_reference_projection(scene):
-    """The warm start's visibility test against the reference rasterizer's projection: in front of
-    the camera and inside the image; narrowed images leave part of the scene outside."""
-    from virgi_ns.model import camera_sees
+def test_project_points_matches_the_reference_projection(scene):
+    """The visibility test of the warm start and the tile sampler (Cameras.project_points) against
+    the reference rasterizer's projection: in front of the camera and inside the image; narrowed
+    images leave part of the scene outside."""
     from virgi_ns.raster.reference import project
 
     g = scene.gaussians
@@ -201,7 +201,10 @@ def test_camera_sees_matches_the_reference_projection(scene):
     V, N = inside.shape
     views = torch.arange(V).repeat_interleave(N)
     points = g.means.repeat(V, 1)
-    got = camera_sees(points, narrow, views).view(V, N)
+    uv, seen = narrow.project_points(points, views)
+    got = seen.view(V, N)
+    front = proj.depths > 0.01
+    torch.testing.assert_close(uv.view(V, N, 2)[front], proj.means2d.float()[front], atol=1e-3, rtol=0)
     border = ((u.abs() < 1e-3) | ((u - W).abs() < 1e-3) | (v.abs() < 1e-3) | ((v - H).abs() < 1e-3))
     assert 0.2 < float(inside.float().mean()) < 0.8  # both outcomes occur
     assert bool(((got == inside) | border).all())

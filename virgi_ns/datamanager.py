@@ -88,18 +88,11 @@ def sample_tiles(
         n_try = n_mini * 2 + 8
     pick = anchor_pool[torch.randint(len(anchor_pool), (n_try,), generator=g).to(anchor_pool.device)]
     pts = means[pick.to(dev)].float()  # [A,3]
-    K = cameras.Ks.to(dev).float()
-    vm = cameras.viewmats.to(dev).float()
-    pc = torch.einsum("vij,aj->avi", vm[:, :3, :3], pts) + vm[None, :, :3, 3]  # [A,V,3]
-    z = pc[..., 2]
-    zs = z.clamp_min(1e-6)
-    u = K[None, :, 0, 0] * pc[..., 0] / zs + K[None, :, 0, 2]
-    v = K[None, :, 1, 1] * pc[..., 1] / zs + K[None, :, 1, 2]
-    W = cameras.widths.to(dev)[None].float()
-    H = cameras.heights.to(dev)[None].float()
-    vis = (z > 0.01) & (u >= 0) & (v >= 0) & (u < W) & (v < H)  # [A,V]
-    vis = vis.cpu()
-    u, v = u.cpu(), v.cpu()
+    n_views = len(cameras)
+    every_view = torch.arange(n_views, device=dev).repeat(len(pts))  # (anchor, view) pairs, anchor-major
+    uv, vis = cameras.project_points(pts.repeat_interleave(n_views, 0), every_view)
+    vis = vis.view(-1, n_views).cpu()  # [A,V]
+    u, v = uv[:, 0].view(-1, n_views).cpu(), uv[:, 1].view(-1, n_views).cpu()
     Wc, Hc = cameras.widths, cameras.heights
 
     def origin(a: Tensor, view: Tensor) -> tuple[Tensor, Tensor]:

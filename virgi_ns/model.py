@@ -91,18 +91,6 @@ class VirgiModelConfig(SplatfactoModelConfig):
     """Gaussians per warm-start step (drawn uniformly, weighted by opacity in the loss)."""
 
 
-def camera_sees(points: Tensor, cams: Cameras, views: Tensor, near: float = 0.01) -> Tensor:
-    """[B] bool: camera ``views[i]`` of ``cams`` has ``points[i]`` in front of it (depth > ``near``)
-    and inside its image (pixel-edge coordinates in ``[0, W) x [0, H)``). Occlusion is not checked."""
-    vm = cams.viewmats.to(points)
-    Ks = cams.Ks.to(points)
-    pc = (vm[views, :3, :3] @ points[:, :, None])[:, :, 0] + vm[views, :3, 3]
-    z = pc[:, 2]
-    uv = (Ks[views, :2, :2] @ (pc[:, :2] / z.clamp_min(1e-6)[:, None])[:, :, None])[:, :, 0] + Ks[views, :2, 2]
-    wh = torch.stack([cams.widths, cams.heights], -1).to(points)[views]
-    return (z > near) & (uv >= 0).all(-1) & (uv < wh).all(-1)
-
-
 class VirgiModel(SplatfactoModel):
     """See the module docstring."""
 
@@ -368,7 +356,7 @@ class VirgiModel(SplatfactoModel):
         """For the 'geometry_sh' warm start: a function of Gaussian indices [B] that draws one
         training camera per Gaussian and returns (unit directions camera -> Gaussian [B,3], logit
         of the Gaussian's SH colour along them [B,3], whether the camera sees the Gaussian [B],
-        :func:`camera_sees`). The SH coefficients are evaluated in the frame they were trained in:
+        :meth:`Cameras.project_points`). The SH coefficients are evaluated in the frame they were trained in:
         an imported file's directions are rotated back into the file's frame. None without
         training cameras or without SH coefficients above degree 0 (the degree-0 warm start is
         then the same thing)."""
@@ -389,7 +377,7 @@ class VirgiModel(SplatfactoModel):
         def draw(idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
             v = torch.randint(len(cams), idx.shape, device=idx.device)
             m = means[idx]
-            seen = camera_sees(m, cams, v)
+            seen = cams.project_points(m, v)[1]
             dirs = torch.nn.functional.normalize(m - centres[v], dim=-1)
             file_dirs = dirs if rot is None else dirs @ rot
             full = torch.logit(sh_colors(sh[idx], file_dirs).clamp(eps, 1.0 - eps))

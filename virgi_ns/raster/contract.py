@@ -71,6 +71,21 @@ class Cameras:
         t = self.viewmats[:, :3, 3]
         return -(R.transpose(1, 2) @ t[:, :, None])[:, :, 0]
 
+    def project_points(self, points: Tensor, views: Tensor, near: float = 0.01) -> tuple[Tensor, Tensor]:
+        """Point ``points[i]`` [B,3] seen by view ``views[i]`` [B]: its pixel position [B,2]
+        (pixel-edge coordinates, pinhole, no skew) and whether it lies in front of the camera
+        (depth > ``near``) and inside the image, ``[0, W) x [0, H)`` [B]. Occlusion is not checked."""
+        vm = self.viewmats.to(points)[views]
+        K = self.Ks.to(points)[views]
+        pc = torch.einsum("bij,bj->bi", vm[:, :3, :3], points) + vm[:, :3, 3]
+        z = pc[:, 2]
+        zs = z.clamp_min(1e-6)
+        u = K[:, 0, 0] * pc[:, 0] / zs + K[:, 0, 2]
+        v = K[:, 1, 1] * pc[:, 1] / zs + K[:, 1, 2]
+        W = self.widths.to(points)[views]
+        H = self.heights.to(points)[views]
+        return torch.stack([u, v], -1), (z > near) & (u >= 0) & (v >= 0) & (u < W) & (v < H)
+
 
 @dataclass
 class Request:
