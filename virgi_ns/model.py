@@ -315,12 +315,13 @@ class VirgiModel(SplatfactoModel):
             for _ in range(steps):
                 idx = torch.randint(n, (b,), device=dev) if b < n else torch.arange(n, device=dev)
                 f = fld.encode(means[idx])
-                dirs = torch.nn.functional.normalize(torch.randn(b, 3, device=dev), dim=-1)
                 seen = None
                 if views is not None:  # directions from training cameras, and whether they see it
                     dirs, full, seen = views(idx)
                     seen_draws = seen_draws + seen.sum()
                     seen_total += seen.numel()
+                else:
+                    dirs = torch.nn.functional.normalize(torch.randn(b, 3, device=dev), dim=-1)
                 if fld.decoupled:
                     h1, h2 = fld.diffuse_hidden(f)
                     c_d = fld.diffuse(h2)

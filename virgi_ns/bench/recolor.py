@@ -139,6 +139,7 @@ class Bench:
     photos: list[torch.Tensor]
     base: list[torch.Tensor]
     fingerprint: str
+    edit_base: torch.Tensor  # the edit view's unedited render
     # per-Gaussian-rule figures by (rule, held-out view): they depend on neither the edit nor its
     # settings, so a sweep measures them once
     _reference: dict = field(default_factory=dict, repr=False)
@@ -168,15 +169,13 @@ class Bench:
             base.append(render_view(scene, cams, 0)["rgb"].clamp(0, 1))
         ecam = raster_cameras(train.cameras[edit_view : edit_view + 1]).to(dev)
         return Bench(pipeline, scene, ecam, train.get_image_float32(edit_view)[..., :3].to(dev), views, photos,
-                     base, scene.fingerprint())
+                     base, scene.fingerprint(), render_view(scene, ecam, 0)["rgb"].clamp(0, 1))
 
     def edited_image(self, rule: RecolorRule, source: str) -> torch.Tensor:
-        from virgi_ns.edit import render_view
-
         if source == "photo":
             img = self.edit_photo
         elif source == "render":
-            img = render_view(self.scene, self.edit_camera, 0)["rgb"].clamp(0, 1)
+            img = self.edit_base
         else:
             raise InputError(f"--edit-source must be 'photo' or 'render', got {source!r}")
         return recolor(img, rule)[0]
@@ -264,9 +263,8 @@ class Bench:
         # the same figures on the edited view itself, against the rule on its render (the edit was fitted
         # to the rule on the photo): far above the held-out figures, the edit carries badly to other
         # views; close to them, the fit itself is the limit
-        base = render_view(self.scene, self.edit_camera, 0)["rgb"].clamp(0, 1)
         after = render_view(self.scene, self.edit_camera, 0, stack)["rgb"].clamp(0, 1)
-        truth_render, mask = recolor(base, rule)
+        truth_render, mask = recolor(self.edit_base, rule)
         mean.update({"edit_view_propagation_psnr": psnr(after, truth_render),
                      "edit_view_miss_psnr": psnr(after, truth_render, mask),
                      "edit_view_leak_psnr": psnr(after, truth_render, ~mask)})
