@@ -54,18 +54,23 @@ class Args:
     colour_steps: int = 10000
     """virgi colour-stage steps."""
     ablation: bool = False
-    """Also train decoupled x multi-view variants on the imported geometry (first seed only)."""
+    """Also train decoupled x multi-view variants on the imported geometry (first repeat only)."""
     skip_trained_virgi: bool = False
     """Only the imported-geometry virgi rows (saves one geometry training)."""
     fps_repeats: int = 3
     colour_variants: List[str] = field(default_factory=list)
-    """More imported-geometry rows (on the first seed's splatfacto geometry), each a comma-separated
+    """More imported-geometry rows (on the first repeat's splatfacto geometry), each a comma-separated
     list of config settings: 'colour_steps=3000' or dotted TrainerConfig paths such as
     'optimizers.field_grid.optimizer.lr=0.02,pipeline.datamanager.pixel_budget=327680'."""
     repeats: int = 1
-    """Train every method this many times (seeds 42, 43, ...; the imported-geometry rows use that
-    repeat's splatfacto run) and print the mean, spread and paired differences: single runs of
-    either method vary by ~0.4 dB on beercan."""
+    """Train every method this many times (seeds first_seed, first_seed + 1, ...; the imported-geometry
+    rows use that repeat's splatfacto run) and print the mean, spread and paired differences: single
+    runs of either method vary by ~0.4 dB on beercan."""
+    first_seed: int = 42
+    """Seed of the first repeat (one call can go on where another stopped; see --merge)."""
+    merge: List[Path] = field(default_factory=list)
+    """Train nothing: read the rows of these results.json files (e.g. seeds split over two calls),
+    print the tables and the summary over all of them, and write them to --out/results.json."""
 
 
 def dataparser_for(scene: str, root: Path):
@@ -307,7 +312,7 @@ def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]
         torch.cuda.empty_cache()
 
     variants = [("virgi (imported geometry)", True, "multiview")]
-    if args.ablation and seed == 42:
+    if args.ablation and seed == args.first_seed:
         variants += [("imported, decoupled, single-view", True, "singleview"),
                      ("imported, single MLP, multi-view", False, "multiview"),
                      ("imported, single MLP, single-view", False, "singleview")]
@@ -317,7 +322,7 @@ def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]
                                    colour_steps=args.colour_steps)
         cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
         configs.append((name, cfg))
-    if seed == 42:
+    if seed == args.first_seed:
         configs += [(f"imported, {v}", colour_variant_config(args, scene, v)) for v in args.colour_variants]
     for name, cfg in configs:
         cfg.pipeline.model.geometry_from = ckpt
@@ -351,7 +356,42 @@ def print_table(rows: List[Dict[str, object]], device: str) -> None:
     console.print(b)
 
 
+def merged_results(paths: List[Path]) -> Dict[str, object]:
+    """The rows of several results.json files as one result; they must share device and step counts,
+    and no (scene, method, seed) may appear twice."""
+    out: Dict[str, object] = {}
+    rows: List[Dict[str, object]] = []
+    for p in paths:
+        try:
+            d = json.loads(Path(p).read_text())
+            head = {k: d[k] for k in ("device", "steps", "colour_steps")}
+            more = list(d["rows"])
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise InputError(f"--merge: {p} is not a bench/train.py results.json ({e})") from None
+        for k, v in head.items():
+            if out.setdefault(k, v) != v:
+                raise InputError(f"--merge: {p} has {k}={v!r}, an earlier file {out[k]!r}")
+        rows += more
+    keys = [(r["scene"], r["method"], r["seed"]) for r in rows]
+    twice = sorted({k for k in keys if keys.count(k) > 1}, key=str)
+    if twice:
+        raise InputError(f"--merge: runs in more than one file: {twice}")
+    out["rows"] = rows
+    return out
+
+
 def main(args: Args) -> None:
+    if args.merge:
+        res = merged_results(args.merge)
+        rows = list(res["rows"])  # type: ignore[arg-type]
+        print_table(rows, str(res["device"]))
+        summary = repeat_summary(rows)
+        print_summary(summary, str(res["device"]))
+        args.out.mkdir(parents=True, exist_ok=True)
+        with atomic_path(args.out / "results.json") as tmp:
+            tmp.write_text(json.dumps({**res, "merged_from": [str(p) for p in args.merge], "summary": summary},
+                                      indent=2))
+        return
     if not torch.cuda.is_available():
         raise InputError("bench/train.py needs a CUDA GPU (splatfacto trains with gsplat)")
     for scene in args.scenes:  # refuse a bad --colour-variants before any training
@@ -378,7 +418,7 @@ def main(args: Args) -> None:
 
     for scene in args.scenes:
         for r in range(max(1, args.repeats)):
-            rows += run_scene(args, scene, 42 + r)
+            rows += run_scene(args, scene, args.first_seed + r)
             write()  # after every run: a cut-off call keeps them
     print_table(rows, device)
     if args.repeats > 1:

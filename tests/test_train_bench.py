@@ -1,0 +1,64 @@
+"""``bench/train.py --merge``: seeds trained in separate calls summarised as one (no GPU, no training)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+from virgi_ns.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_train", ROOT / "bench" / "train.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # its dataclasses look their module up there
+    spec.loader.exec_module(mod)
+    yield mod
+    sys.modules.pop(spec.name, None)
+
+
+def _row(method, seed, psnr, secs):
+    return {"scene": "beercan", "method": method, "seed": seed, "psnr": psnr, "ssim": 0.9, "train_s": secs}
+
+
+def _write(path: Path, rows, device="GPU X", steps=7000):
+    path.write_text(json.dumps({"device": device, "steps": steps, "colour_steps": 1000, "rows": rows}))
+    return path
+
+
+def test_merge_pairs_seeds_across_files(bench, tmp_path):
+    a = _write(tmp_path / "a.json", [_row("splatfacto", 42, 23.5, 50.0), _row("virgi", 42, 23.3, 70.0),
+                                     _row("splatfacto", 43, 23.9, 52.0), _row("virgi", 43, 24.1, 65.0)])
+    b = _write(tmp_path / "b.json", [_row("splatfacto", 44, 23.0, 48.0), _row("virgi", 44, 23.2, 72.0)])
+    out = tmp_path / "out"
+    bench.main(bench.Args(merge=[a, b], out=out))
+    res = json.loads((out / "results.json").read_text())
+    assert len(res["rows"]) == 6 and res["device"] == "GPU X"
+    virgi = next(s for s in res["summary"] if s["method"] == "virgi")
+    diffs = [23.3 - 23.5, 24.1 - 23.9, 23.2 - 23.0]  # paired by seed, computed here by hand
+    assert virgi["runs"] == 3
+    assert virgi["psnr_vs_splatfacto"] == pytest.approx(sum(diffs) / 3)
+    assert virgi["psnr_vs_splatfacto_min"] == pytest.approx(-0.2)
+    assert virgi["psnr_vs_splatfacto_max"] == pytest.approx(0.2)
+    ratios = [70 / 50, 65 / 52, 72 / 48]
+    assert virgi["train_time_vs_splatfacto"] == pytest.approx(sum(ratios) / 3)
+
+
+def test_merge_refuses_mixed_or_repeated_runs(bench, tmp_path):
+    a = _write(tmp_path / "a.json", [_row("splatfacto", 42, 23.5, 50.0)])
+    other = _write(tmp_path / "b.json", [_row("splatfacto", 43, 23.5, 50.0)], steps=30000)
+    with pytest.raises(InputError, match="steps=30000"):
+        bench.merged_results([a, other])
+    with pytest.raises(InputError, match="more than one file"):
+        bench.merged_results([a, a])
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(InputError, match="not a bench/train.py results.json"):
+        bench.merged_results([bad])
