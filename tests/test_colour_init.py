@@ -132,12 +132,14 @@ def test_warm_start_after_own_geometry_stage(scene):
     assert errors["geometry"] < 0.03 and errors["none"] > 0.1, errors
 
 
-@pytest.mark.parametrize("rotated", [False, True], ids=["capture-frame", "rotated-capture"])
-def test_sh_warm_start_fits_the_view_dependent_colours(scene, random_ply, tmp_path, rotated):
+@pytest.mark.parametrize("rotated,decoupled", [(False, True), (True, True), (False, False)],
+                         ids=["capture-frame", "rotated-capture", "single-mlp"])
+def test_sh_warm_start_fits_the_view_dependent_colours(scene, random_ply, tmp_path, rotated, decoupled):
     """'geometry_sh': sigmoid(c_d) still fits the degree-0 colour, and sigmoid(c_d + c_s) the
     Gaussian's degree-1 SH colour seen from the training cameras, which the degree-0 warm start
     leaves to the photometric steps. The .ply is in the capture's frame with its SH coefficients
-    there: in the rotated capture the run's directions must be turned back before evaluating them."""
+    there: in the rotated capture the run's directions must be turned back before evaluating them.
+    The single-MLP baseline's view-dependent colour fits the same SH colours."""
     from virgi_ns.sh import sh_colors
 
     sc = rotated_copy(scene, tmp_path / "rotated", axis_angle((1.0, 2.0, 0.5), 70.0)) if rotated else scene
@@ -154,7 +156,7 @@ def test_sh_warm_start_fits_the_view_dependent_colours(scene, random_ply, tmp_pa
     save_ply(g, ply)
     errors = {}
     for init in ("geometry", "geometry_sh"):
-        pipeline, _, cbs = _imported(sc, ply, init)
+        pipeline, _, cbs = _imported(sc, ply, init, decoupled)
         model = pipeline.model
         model.config.colour_init_steps = 400
         for cb in cbs:
@@ -171,17 +173,24 @@ def test_sh_warm_start_fits_the_view_dependent_colours(scene, random_ply, tmp_pa
         view_err = []
         with torch.no_grad():
             f = fld.encode(means)
-            h1, h2 = fld.diffuse_hidden(f)
-            c_d = fld.diffuse(h2)
-            dc_err = float((torch.sigmoid(c_d) - colours).abs().mean())
+            dc_err = 0.0
+            if decoupled:
+                h1, h2 = fld.diffuse_hidden(f)
+                c_d = fld.diffuse(h2)
+                dc_err = float((torch.sigmoid(c_d) - colours).abs().mean())
             for c in cams.camera_centers():  # every camera of the ring sees the whole scene
                 d = torch.nn.functional.normalize(means - c, dim=-1)
                 truth = sh_colors(sh, d @ R).clamp(0, 1)
-                pred = torch.sigmoid(c_d + fld.specular(f, d, h1, h2))
+                if decoupled:
+                    pred = torch.sigmoid(c_d + fld.specular(f, d, h1, h2))
+                else:
+                    pred = torch.sigmoid(fld.diffuse(fld.diffuse_hidden(f, d)[1]))
                 view_err.append(float((pred - truth).abs().mean()))
         errors[init] = (sum(view_err) / len(view_err), dc_err)
-    assert errors["geometry_sh"][1] < 0.05, errors  # the diffuse branch keeps the degree-0 colour
-    assert errors["geometry_sh"][0] < 0.75 * errors["geometry"][0], errors  # measured 0.57x
+    if decoupled:
+        assert errors["geometry_sh"][1] < 0.05, errors  # the diffuse branch keeps the degree-0 colour
+    # measured 0.53x, 0.43x in the rotated capture, 0.51x for the single MLP (1.0x before it had an SH start)
+    assert errors["geometry_sh"][0] < 0.75 * errors["geometry"][0], errors
 
 
 def test_project_points_matches_the_reference_projection(scene):

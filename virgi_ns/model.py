@@ -83,8 +83,9 @@ class VirgiModelConfig(SplatfactoModelConfig):
     """Start of the colour stage: 'geometry' first fits the colour field to each Gaussian's own
     degree-0 colour (a warm start, no rendering); 'geometry_sh' also fits ``c_d + c_s`` to the
     Gaussian's full SH colour seen from training cameras that see it (the diffuse branch still to
-    the degree-0 colour, so the specular branch starts as the geometry's view-dependent residual);
-    'none' starts from the random field."""
+    the degree-0 colour, so the specular branch starts as the geometry's view-dependent residual;
+    the single-MLP baseline fits its view-dependent colour to the same SH colours); 'none' starts
+    from the random field."""
     colour_init_steps: int = 300
     """Adam steps of the warm start (the field's own learning rates)."""
     colour_init_batch: int = 16384
@@ -287,7 +288,9 @@ class VirgiModel(SplatfactoModel):
         ``(eps, 1 - eps)``). With ``colour_init="geometry_sh"``, training ``cams`` and SH above
         degree 0, each sampled Gaussian also gets one training camera drawn at random: where that
         camera sees it, ``c_d + c_s`` is fitted to the logit of its SH colour along that direction;
-        elsewhere (and in the other modes) ``||c_s||^2`` is pushed towards 0. L1 in logit space,
+        elsewhere (and in the other modes) ``||c_s||^2`` is pushed towards 0. The single-MLP
+        baseline (no ``c_s``; its ``c_d`` sees the direction) fits its colour along the drawn
+        direction to the SH colour where the camera sees the Gaussian, to the degree-0 one elsewhere. L1 in logit space,
         weighted by opacity, on mini-batches of Gaussians; Adam with the field's own learning
         rates, the trainer's optimizer state untouched. Returns the opacity-weighted mean diffuse
         colour error before and after (and, with SH, the share of draws the camera saw)."""
@@ -302,10 +305,7 @@ class VirgiModel(SplatfactoModel):
         b = min(int(batch or self.config.colour_init_batch), n)
         views = None
         if self.config.colour_init == "geometry_sh":
-            if fld.decoupled:
-                views = self._sh_views(cams, eps)
-            else:
-                CONSOLE.log("virgi: the single-MLP field has no specular branch: degree-0 warm start")
+            views = self._sh_views(cams, eps)
         seen_draws, seen_total = torch.zeros((), device=dev), 0  # summed on the device: no per-step sync
         grid_lr, mlp_lr = self._field_lrs
         opt = torch.optim.Adam([{"params": fld.grid_parameters(), "lr": grid_lr},
@@ -335,8 +335,10 @@ class VirgiModel(SplatfactoModel):
                 per = (c_d - target[idx]).abs().mean(-1)
                 if seen is None:
                     per = per + spec
-                else:  # seen: c_d + c_s to the SH colour; unseen: c_s towards 0
+                elif fld.decoupled:  # seen: c_d + c_s to the SH colour; unseen: c_s towards 0
                     per = per + torch.where(seen, (c_d + c_s - full).abs().mean(-1), spec)
+                else:  # the single MLP's colour: the SH colour where seen, the degree-0 one elsewhere
+                    per = torch.where(seen, (c_d - full).abs().mean(-1), per)
                 loss = (per * w).sum() / w.sum()
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
