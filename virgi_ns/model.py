@@ -290,9 +290,9 @@ class VirgiModel(SplatfactoModel):
         camera sees it, ``c_d + c_s`` is fitted to the logit of its SH colour along that direction;
         elsewhere (and in the other modes) ``||c_s||^2`` is pushed towards 0. The single-MLP
         baseline (no ``c_s``; its ``c_d`` sees the direction) fits its colour along the drawn
-        direction to the SH colour where the camera sees the Gaussian, to the degree-0 one elsewhere. L1 in logit space,
-        weighted by opacity, on mini-batches of Gaussians; Adam with the field's own learning
-        rates, the trainer's optimizer state untouched. Returns the opacity-weighted mean diffuse
+        direction to the SH colour where the camera sees the Gaussian, to the degree-0 one
+        elsewhere. L1 in logit space, weighted by opacity, on mini-batches of Gaussians; Adam with
+        the field's own learning rates, the trainer's optimizer state untouched. Returns the opacity-weighted mean diffuse
         colour error before and after (and, with SH, the share of draws the camera saw)."""
         fld = self.field
         n = self.num_points
