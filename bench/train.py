@@ -360,22 +360,29 @@ def merged_results(paths: List[Path]) -> Dict[str, object]:
     """The rows of several results.json files as one result; they must share device and step counts,
     and no (scene, method, seed) may appear twice."""
     out: Dict[str, object] = {}
+    origin: Dict[str, Path] = {}
     rows: List[Dict[str, object]] = []
+    where: Dict[tuple, Path] = {}
     for p in paths:
         try:
             d = json.loads(Path(p).read_text())
             head = {k: d[k] for k in ("device", "steps", "colour_steps")}
             more = list(d["rows"])
+            keys = [(str(r["scene"]), str(r["method"]), int(r["seed"])) for r in more]
+            for r in more:
+                float(r["psnr"]), float(r["ssim"]), float(r["train_s"])
         except (OSError, ValueError, KeyError, TypeError) as e:
-            raise InputError(f"--merge: {p} is not a bench/train.py results.json ({e})") from None
+            raise InputError(f"--merge: {p} is not a bench/train.py results.json ({e!r})") from None
         for k, v in head.items():
             if out.setdefault(k, v) != v:
-                raise InputError(f"--merge: {p} has {k}={v!r}, an earlier file {out[k]!r}")
+                raise InputError(f"--merge: {p} has {k}={v!r}, but {origin[k]} has {out[k]!r}")
+            origin.setdefault(k, p)
+        for k in keys:
+            if k in where:
+                raise InputError(f"--merge: {k} is in both {where[k]} and {p}; give each call its own seeds "
+                                 "with --first-seed")
+            where[k] = p
         rows += more
-    keys = [(r["scene"], r["method"], r["seed"]) for r in rows]
-    twice = sorted({k for k in keys if keys.count(k) > 1}, key=str)
-    if twice:
-        raise InputError(f"--merge: runs in more than one file: {twice}")
     out["rows"] = rows
     return out
 

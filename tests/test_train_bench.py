@@ -56,8 +56,13 @@ def test_merge_refuses_mixed_or_repeated_runs(bench, tmp_path):
     other = _write(tmp_path / "b.json", [_row("splatfacto", 43, 23.5, 50.0)], steps=30000)
     with pytest.raises(InputError, match="steps=30000"):
         bench.merged_results([a, other])
-    with pytest.raises(InputError, match="more than one file"):
+    with pytest.raises(InputError, match="in both .* --first-seed"):
         bench.merged_results([a, a])
+    no_seed = tmp_path / "no_seed.json"
+    no_seed.write_text(json.dumps({"device": "GPU X", "steps": 7000, "colour_steps": 1000,
+                                   "rows": [{"scene": "beercan", "method": "virgi", "psnr": 23.0}]}))
+    with pytest.raises(InputError, match="not a bench/train.py results.json"):
+        bench.merged_results([no_seed])
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")
     with pytest.raises(InputError, match="not a bench/train.py results.json"):

@@ -292,8 +292,10 @@ class VirgiModel(SplatfactoModel):
         baseline (no ``c_s``; its ``c_d`` sees the direction) fits its colour along the drawn
         direction to the SH colour where the camera sees the Gaussian, to the degree-0 one
         elsewhere. L1 in logit space, weighted by opacity, on mini-batches of Gaussians; Adam with
-        the field's own learning rates, the trainer's optimizer state untouched. Returns the opacity-weighted mean diffuse
-        colour error before and after (and, with SH, the share of draws the camera saw)."""
+        the field's own learning rates, the trainer's optimizer state untouched. Returns the
+        opacity-weighted mean diffuse colour error before and after (and, with SH, the share of
+        draws the camera saw; the single MLP's error is along random directions, so after an SH
+        start it also counts the view-dependent part it was meant to learn)."""
         fld = self.field
         n = self.num_points
         if n == 0 or steps <= 0:
