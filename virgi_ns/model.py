@@ -44,7 +44,7 @@ from torch.nn import Parameter
 
 from virgi_ns.datamanager import TileBatch
 from virgi_ns.errors import InputError
-from virgi_ns.field import ColorFieldConfig, DecoupledColorField
+from virgi_ns.field import ColorFieldConfig, DecoupledColorField, view_directions
 from virgi_ns.gaussians import SH_C0, Gaussians
 from virgi_ns.nscams import raster_cameras, transform_gaussians
 from virgi_ns.raster import Cameras, Contributions, Request, composite, composite_depth, rasterize
@@ -383,7 +383,7 @@ class VirgiModel(SplatfactoModel):
             v = torch.randint(len(cams), idx.shape, device=idx.device)
             m = means[idx]
             seen = cams.project_points(m, v)[1]
-            dirs = torch.nn.functional.normalize(m - centres[v], dim=-1)
+            dirs = view_directions(m, centres[v])
             file_dirs = dirs if rot is None else dirs @ rot
             full = torch.logit(sh_colors(sh[idx], file_dirs).clamp(eps, 1.0 - eps))
             return dirs, full, seen
@@ -568,12 +568,12 @@ class VirgiModel(SplatfactoModel):
                 u_sel, i_sel = torch.unique(g_sel, return_inverse=True)
                 fs = fld.encode(means[u_sel])
                 hs1, hs2 = fld.diffuse_hidden(fs)
-                d = torch.nn.functional.normalize(means[g_sel] - centres[pv[sel]], dim=-1)
+                d = view_directions(means[g_sel], centres[pv[sel]])
                 c_s[sel] = fld.specular(fs[i_sel], d, hs1[i_sel], hs2[i_sel]).to(c_s.dtype)
         else:
             uniq, inv = torch.unique(pg, return_inverse=True)
             f = fld.encode(means[uniq])
-            d = torch.nn.functional.normalize(means[pg] - centres[pv], dim=-1)
+            d = view_directions(means[pg], centres[pv])
             if fld.decoupled:
                 h1, h2 = fld.diffuse_hidden(f)
                 c_d_u = fld.diffuse(h2)
@@ -610,7 +610,7 @@ class VirgiModel(SplatfactoModel):
                 _, h2 = fld.diffuse_hidden(f)
             else:  # the single MLP's hidden layers need a direction: use each pair's
                 centres = cams.to(self.device).camera_centers().to(f.dtype)
-                d = torch.nn.functional.normalize(self.means.detach()[pg] - centres[pv], dim=-1)
+                d = view_directions(self.means.detach()[pg], centres[pv])
                 _, h2 = fld.diffuse_hidden(f[inv], d)
                 return st.segmentation(f[inv], h2, self.segmentation_edit).to(f.dtype)
         return st.segmentation(f, h2, self.segmentation_edit)[inv].to(f.dtype)
