@@ -157,7 +157,7 @@ def main(args: Args) -> None:
     from virgi_ns.nscams import raster_cameras
     from virgi_ns.recolor import RecolorRule, recolor
     from virgi_ns.cli.render import render_image
-    from virgi_ns.camera_json import CameraSpec
+    from virgi_ns.io.camera_json import CameraSpec
 
     use_gsplat = args.gsplat and torch.cuda.is_available()
     args.out.mkdir(parents=True, exist_ok=True)

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from test_model_train import build, scene, train  # noqa: F401  (fixture re-exported)
-from virgi_ns.camera_json import CameraSpec
+from virgi_ns.io.camera_json import CameraSpec
 from virgi_ns.cli.render import render_image
 from virgi_ns.edit_stack import Edit, EditSource, EditStack, SegmentationHead
 from virgi_ns.errors import InputError

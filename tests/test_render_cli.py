@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from virgi_ns.camera_json import CameraSpec, parse_camera, read_camera_json, write_camera_json
+from virgi_ns.io.camera_json import CameraSpec, parse_camera, read_camera_json, write_camera_json
 from virgi_ns.cli.render import Render, run
 from virgi_ns.errors import InputError
 from virgi_ns.gaussians import Gaussians

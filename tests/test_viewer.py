@@ -13,7 +13,7 @@ import pytest
 import torch
 from PIL import Image
 
-from virgi_ns.camera_json import read_camera_json
+from virgi_ns.io.camera_json import read_camera_json
 from virgi_ns.viewer import ALL_EDITS, Upload, VirgiPanel, camera_from_spec, camera_spec, capture_frame
 
 from viewer_run import train_tiny

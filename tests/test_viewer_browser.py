@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from virgi_ns.camera_json import read_camera_json
+from virgi_ns.io.camera_json import read_camera_json
 
 from viewer_run import train_tiny
 from virgi_scene import make_scene

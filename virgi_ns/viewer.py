@@ -46,7 +46,7 @@ from nerfstudio.viewer.viewer_elements import (
     ViewerSlider,
 )
 
-from virgi_ns.camera_json import CameraSpec, parse_camera
+from virgi_ns.io.camera_json import CameraSpec, parse_camera
 from virgi_ns.errors import InputError, VirgiError, atomic_path
 from virgi_ns.nscams import raster_cameras
 

@@ -245,7 +245,7 @@ def original_image(pipeline, args: Apply, shape: tuple, console: Console):
 def camera_from_json(model, path: Path):
     """Raster Cameras of a CAM.json; ``"frame": "dataparser"`` means the run's own frame, anything
     else the capture's (as the viewer saves views)."""
-    from virgi_ns.camera_json import read_camera_json
+    from virgi_ns.io.camera_json import read_camera_json
     from virgi_ns.nscams import raster_cameras
     from virgi_ns.viewer import camera_from_spec, capture_frame
 

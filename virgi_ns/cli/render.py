@@ -64,7 +64,7 @@ def run(args: Render) -> str:
         raise InputError(f"output {args.out} must end in .npy or .png")
     if not all(np.isfinite(args.background)):
         raise InputError(f"--background must be finite numbers, got {args.background}")
-    from virgi_ns.camera_json import read_camera_json
+    from virgi_ns.io.camera_json import read_camera_json
     from virgi_ns.io import load_splat
 
     spec = read_camera_json(args.camera)
