@@ -260,7 +260,7 @@ def bench_million(repeats: int, steps: Optional[int], n: int = 1_000_000, width:
                   device: str = "cuda") -> dict:
     """Setup and step times of one edit on ``n`` random Gaussians filling a 1280x720 view."""
     from virgi_ns.edit import EditConfig, EditEngine, FrozenScene
-    from virgi_ns.field import ColorFieldConfig, DecoupledColorField
+    from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
     from virgi_ns.raster import Cameras
 
     dev = torch.device(device)

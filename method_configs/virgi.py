@@ -17,7 +17,7 @@ from nerfstudio.plugins.types import MethodSpecification
 
 from virgi_ns import compat  # noqa: F401  (checkpoint-loading work-arounds for torch >= 2.6)
 from virgi_ns.datamanager import VirgiDataManagerConfig
-from virgi_ns.field import ColorFieldConfig
+from virgi_ns.colour.field import ColorFieldConfig
 from virgi_ns.model import VirgiModelConfig
 from virgi_ns.pipeline import VirgiPipelineConfig
 

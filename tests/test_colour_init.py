@@ -12,7 +12,7 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallbackLocation
 
 from method_configs.virgi import virgi_trainer_config
-from virgi_ns.field import ColorFieldConfig
+from virgi_ns.colour.field import ColorFieldConfig
 from virgi_ns.gaussians import SH_C0
 from virgi_ns.io import save_ply
 from virgi_ns.pipeline import train_step, training_state
@@ -140,7 +140,7 @@ def test_sh_warm_start_fits_the_view_dependent_colours(scene, random_ply, tmp_pa
     leaves to the photometric steps. The .ply is in the capture's frame with its SH coefficients
     there: in the rotated capture the run's directions must be turned back before evaluating them.
     The single-MLP baseline's view-dependent colour fits the same SH colours."""
-    from virgi_ns.sh import sh_colors
+    from virgi_ns.colour.sh import sh_colors
 
     sc = rotated_copy(scene, tmp_path / "rotated", axis_angle((1.0, 2.0, 0.5), 70.0)) if rotated else scene
     _, colours = random_ply

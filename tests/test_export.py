@@ -22,7 +22,7 @@ from virgi_ns.errors import InputError
 from virgi_ns.export import BakeConfig, CaptureFrame, bake_pipeline, fibonacci_sphere, fit_sh, frame_of_model
 from virgi_ns.gaussians import SH_C0
 from virgi_ns.nscams import rotmat_to_quat, transform_gaussians
-from virgi_ns.sh import sh_basis
+from virgi_ns.colour.sh import sh_basis
 from virgi_scene import Scene, axis_angle, lobe, rotated_copy
 
 warnings.filterwarnings("ignore", message="virgi-ns: no GPU")

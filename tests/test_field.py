@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from virgi_ns.field import ColorFieldConfig, DecoupledColorField, view_directions
+from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField, view_directions
 
 AABB = torch.tensor([[-1.0, -2.0, 0.0], [1.0, 2.0, 4.0]])
 

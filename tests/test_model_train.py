@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from method_configs.virgi import virgi_trainer_config
-from virgi_ns.field import ColorFieldConfig
+from virgi_ns.colour.field import ColorFieldConfig
 from virgi_ns.nscams import raster_cameras
 from virgi_ns.pipeline import train_step, training_state
 from virgi_ns.raster import Request, rasterize

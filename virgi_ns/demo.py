@@ -128,7 +128,7 @@ def _cached_model_class():
 def trainer_config(cfg: DemoConfig, scene: Path, geometry: Optional[Path], use_cache: bool):
     """``ns-train virgi``'s recipe on ``scene``, with the demo's step counts and sizes."""
     from method_configs.virgi import virgi_trainer_config
-    from virgi_ns.field import ColorFieldConfig
+    from virgi_ns.colour.field import ColorFieldConfig
 
     g_steps = 0 if geometry is not None else geometry_steps(cfg)
     tc = virgi_trainer_config("virgi-demo", geometry_steps=g_steps, colour_steps=colour_steps(cfg, geometry))

@@ -50,7 +50,7 @@ from torch import Tensor
 
 from virgi_ns.edit_stack import Edit, EditSource, EditStack, SegmentationHead, field_fingerprint, new_edit_info
 from virgi_ns.errors import InputError
-from virgi_ns.field import DecoupledColorField, view_directions
+from virgi_ns.colour.field import DecoupledColorField, view_directions
 from virgi_ns.raster import Cameras, Contributions, Request, composite, rasterize
 
 

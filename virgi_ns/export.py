@@ -10,7 +10,7 @@ specular strength. :func:`bake` samples ``C`` per Gaussian over a set of directi
 directions from which the training cameras see it, weighted by whether it is in their view, plus a
 Fibonacci sphere with a small weight so the fit stays sane everywhere) and fits SH coefficients by
 weighted least squares in the 3DGS convention, ``C(d) ~ SH(d) . coeffs + 0.5`` with
-:func:`virgi_ns.sh.sh_basis` (what ``virgi-render`` and other 3DGS viewers evaluate). Gaussians
+:func:`virgi_ns.colour.sh.sh_basis` (what ``virgi-render`` and other 3DGS viewers evaluate). Gaussians
 whose colour does not depend on the direction (below the model's specular gate, every Gaussian
 when ``k = 0``) get their exact colour in the DC coefficient alone, as the model renders them.
 
@@ -37,7 +37,7 @@ from virgi_ns.errors import InputError
 from virgi_ns.gaussians import SH_C0, Gaussians
 from virgi_ns.nscams import transform_gaussians
 from virgi_ns.raster import Cameras
-from virgi_ns.sh import sh_basis
+from virgi_ns.colour.sh import sh_basis
 
 __all__ = ["BakeConfig", "CaptureFrame", "bake", "bake_pipeline", "export_model", "fibonacci_sphere", "fit_sh",
            "frame_of_model", "write_splat"]
@@ -171,7 +171,7 @@ class BakeConfig:
 def fit_sh(dirs: Float[Tensor, "N P 3"], colours: Float[Tensor, "N P 3"], weights: Float[Tensor, "N P"],
            degree: int = SH_DEGREE, ridge: float = 1e-4) -> Float[Tensor, "N K 3"]:
     """Weighted least-squares SH coefficients per row: ``min sum_p w_p |B(d_p) c + 0.5 - C_p|^2 +
-    ridge * sum_p w_p * |c_{k>0}|^2``, with ``B`` :func:`virgi_ns.sh.sh_basis` (3DGS signs)."""
+    ridge * sum_p w_p * |c_{k>0}|^2``, with ``B`` :func:`virgi_ns.colour.sh.sh_basis` (3DGS signs)."""
     B = sh_basis(degree, torch.nn.functional.normalize(dirs, dim=-1))  # [N,P,K]
     Bw = B * weights[..., None]
     A = Bw.transpose(1, 2) @ B  # [N,K,K]

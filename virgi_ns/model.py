@@ -44,7 +44,7 @@ from torch.nn import Parameter
 
 from virgi_ns.datamanager import TileBatch
 from virgi_ns.errors import InputError
-from virgi_ns.field import ColorFieldConfig, DecoupledColorField, view_directions
+from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField, view_directions
 from virgi_ns.gaussians import SH_C0, Gaussians
 from virgi_ns.nscams import raster_cameras, transform_gaussians
 from virgi_ns.raster import Cameras, Contributions, Request, composite, composite_depth, rasterize
@@ -369,7 +369,7 @@ class VirgiModel(SplatfactoModel):
         if cams is None or len(cams) == 0 or rest.shape[1] == 0 or not bool((rest != 0).any()):
             CONSOLE.log("virgi: no training cameras or no SH above degree 0: degree-0 warm start")
             return None
-        from virgi_ns.sh import sh_colors
+        from virgi_ns.colour.sh import sh_colors
 
         dtype = self.means.dtype
         cams = cams.to(self.device, dtype)

@@ -41,7 +41,7 @@ class Render:
 def render_image(g, spec, backend: str = "auto", background=(0.0, 0.0, 0.0), device=None) -> np.ndarray:
     """HxWx3 float32 image of Gaussians ``g`` seen by camera ``spec`` (a CameraSpec)."""
     from virgi_ns.raster import Request, composite, rasterize
-    from virgi_ns.sh import view_colors
+    from virgi_ns.colour.sh import view_colors
 
     if device is None:
         device = torch.device("cuda" if backend != "reference" and torch.cuda.is_available() else "cpu")
