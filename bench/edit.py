@@ -140,7 +140,7 @@ def check_variant(text: str, scenes: List[str]) -> None:
 def parse_variant(text: str) -> dict:
     """'steps=200,seg_init_bias=-2' -> EditConfig fields, typed as the fields' defaults are, checked
     as EditConfig checks them; 'rule=h0/h1/shift/s_min/v_min' -> another rule (key ``rule``)."""
-    from virgi_ns.edit import EditConfig
+    from virgi_ns.edit.engine import EditConfig
 
     defaults = EditConfig()
     out: dict = {}
@@ -259,7 +259,7 @@ def bench_scene(args: Args, scene: str) -> List[dict]:
 def bench_million(repeats: int, steps: Optional[int], n: int = 1_000_000, width: int = 1280, height: int = 720,
                   device: str = "cuda") -> dict:
     """Setup and step times of one edit on ``n`` random Gaussians filling a 1280x720 view."""
-    from virgi_ns.edit import EditConfig, EditEngine, FrozenScene
+    from virgi_ns.edit.engine import EditConfig, EditEngine, FrozenScene
     from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
     from virgi_ns.raster import Cameras
 

@@ -12,11 +12,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import edit_scene as es  # noqa: E402
 
-from virgi_ns.edit import EditConfig, EditEngine, _pixel_batches, _SparseRender, render_view  # noqa: E402
-from virgi_ns.edit_stack import Edit, EditStack  # noqa: E402
+from virgi_ns.edit.engine import EditConfig, EditEngine, _pixel_batches, _SparseRender, render_view  # noqa: E402
+from virgi_ns.edit.stack import Edit, EditStack  # noqa: E402
 from virgi_ns.errors import InputError  # noqa: E402
 from virgi_ns.raster import Request, composite  # noqa: E402
-from virgi_ns.recolor import RecolorRule, recolor  # noqa: E402
+from virgi_ns.edit.recolor import RecolorRule, recolor  # noqa: E402
 
 BLUE_TO_RED = RecolorRule(h0=190, h1=260, shift=135, s_min=0.3, v_min=0.1)
 EDIT_VIEW, HELD_OUT = 0, (1, 7)
@@ -467,7 +467,7 @@ def test_a_small_edit_is_not_outvoted_by_the_unchanged_pixels(world):
 def test_logit_colour_map_recovers_affine_maps():
     """The least-squares map in logit space: a channel permutation (a hue shift of 120 degrees) and
     a random affine map are found again; pixels of one colour leave the map at the identity."""
-    from virgi_ns.edit import logit_colour_map
+    from virgi_ns.edit.engine import logit_colour_map
 
     g = torch.Generator().manual_seed(0)
     src = 0.05 + 0.9 * torch.rand(5000, 3, generator=g)

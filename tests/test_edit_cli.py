@@ -17,7 +17,7 @@ from rich.console import Console
 
 from virgi_ns.cli.edit import Apply, Disable, Enable, Import, List, Reset, Specular, Undo, run
 from virgi_ns.errors import InputError
-from virgi_ns.recolor import RecolorRule, recolor
+from virgi_ns.edit.recolor import RecolorRule, recolor
 
 from viewer_run import train_tiny
 from virgi_scene import make_scene
@@ -103,7 +103,7 @@ def test_python_api_apply_moves_the_render_and_undo_restores_it(saved):
     base = model.get_outputs_for_camera(cam)["rgb"].detach().clone()
     out = run(_apply(saved, steps=60), _quiet(), pl)
     assert out.startswith("edit 1 saved")
-    from virgi_ns.edit_stack import EditStack
+    from virgi_ns.edit.stack import EditStack
 
     model.set_edit_stack(EditStack.open(saved["config"].parent, model.fingerprint()))
     after = model.get_outputs_for_camera(cam)["rgb"]
@@ -151,7 +151,7 @@ def test_bad_inputs_refused_with_nothing_saved(saved, tmp_path):
     _refused(saved, Apply(saved["config"], saved["png"]), "exactly one of")
     _refused(saved, _apply(saved, image=tmp_path / "missing.png"), "no such image")
     # an edit file of another base run
-    from virgi_ns.edit_stack import Edit, EditSource, SegmentationHead
+    from virgi_ns.edit.stack import Edit, EditSource, SegmentationHead
 
     model = saved["pipeline"].model
     foreign = Edit(model.field.diffuse_head.weight.detach(), model.field.diffuse_head.bias.detach(),
@@ -188,7 +188,7 @@ def test_original_image_limits_the_fit_to_changed_pixels(saved, tmp_path):
     """--original (here the render the edit was made from): the saved edit records the share of
     pixels the rule changed; --whole-image fits them all; an --original of another size is refused
     with nothing saved."""
-    from virgi_ns.edit_stack import EditStack
+    from virgi_ns.edit.stack import EditStack
 
     pl = saved["pipeline"]
     cam = pl.datamanager.train_dataset.cameras[0:1]

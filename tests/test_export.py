@@ -17,7 +17,7 @@ import torch
 from test_model_train import build, scene, train  # noqa: F401  (fixture re-exported)
 from virgi_ns.io.camera_json import CameraSpec
 from virgi_ns.cli.render import render_image
-from virgi_ns.edit_stack import Edit, EditSource, EditStack, SegmentationHead
+from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead
 from virgi_ns.errors import InputError
 from virgi_ns.export import BakeConfig, CaptureFrame, bake_pipeline, fibonacci_sphere, fit_sh, frame_of_model
 from virgi_ns.gaussians import SH_C0
@@ -297,7 +297,7 @@ def test_import_recolour_export_flow_through_the_cli(rscene, tmp_path, capsys, m
     from virgi_ns.cli.convert import run as convert
     from virgi_ns.cli.export import Export, entrypoint
     from virgi_ns.cli.export import run as export
-    from virgi_ns.edit import EditConfig, EditEngine, FrozenScene
+    from virgi_ns.edit.engine import EditConfig, EditEngine, FrozenScene
     from virgi_ns.io import load_splat
 
     scene = rscene

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from test_model_train import build, scene, train  # noqa: F401  (fixture re-exported)
-from virgi_ns.edit_stack import Edit, EditSource, EditStack, SegmentationHead
+from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead
 
 warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
 

@@ -7,7 +7,7 @@ import colorsys
 import pytest
 import torch
 
-from virgi_ns.recolor import RecolorRule, hsv_to_rgb, recolor, rgb_to_hsv
+from virgi_ns.edit.recolor import RecolorRule, hsv_to_rgb, recolor, rgb_to_hsv
 
 
 def _rule_by_colorsys(rgb, rule: RecolorRule):

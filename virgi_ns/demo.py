@@ -6,9 +6,9 @@
    geometry's own colours (the model's ``colour_init``), then trained on multi-view tile batches.
    On a CPU every training view is rasterized once
    (:class:`~virgi_ns.contrib_cache.ContributionCache`) and the tiles are sliced from those lists.
-3. **Edit**: the recolour rule (:mod:`virgi_ns.recolor`, the can's blue to red) applied to the
+3. **Edit**: the recolour rule (:mod:`virgi_ns.edit.recolor`, the can's blue to red) applied to the
    photo of one training view (the one where the rule selects most pixels) is the edited image;
-   :class:`~virgi_ns.edit.EditEngine` fits the edit.
+   :class:`~virgi_ns.edit.engine.EditEngine` fits the edit.
 4. **Outputs**: ``grid.png`` (held-out views: photo, render, recoloured render, segmentation,
    diffuse, specular), ``metrics.json`` (reconstruction, recolour and propagation PSNR, edit
    time, stage times) and ``edited_scene.ply`` (the edited scene baked to SH, capture frame).
@@ -37,7 +37,7 @@ from torch import Tensor
 
 from virgi_ns.data.bundle import BUNDLED_SCENE, BundleDataParserConfig, bundled_geometry
 from virgi_ns.errors import InputError, atomic_path, cli_entry
-from virgi_ns.recolor import RecolorRule, recolor, rule_mask
+from virgi_ns.edit.recolor import RecolorRule, recolor, rule_mask
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_BEERCAN = REPO.parent / "shared" / "data" / "beercan"
@@ -332,8 +332,8 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                 model.contrib_cache = None  # frees the lists
 
             # ---------------------------------------------------------- evaluation + edit
-            from virgi_ns.edit import EditConfig, EditEngine, FrozenScene, render_view
-            from virgi_ns.edit_stack import EditSource, EditStack
+            from virgi_ns.edit.engine import EditConfig, EditEngine, FrozenScene, render_view
+            from virgi_ns.edit.stack import EditSource, EditStack
             from virgi_ns.nscams import raster_cameras
 
             pipeline.eval()

@@ -217,7 +217,7 @@ def bake(
     """The model's Gaussians with baked SH degree 3 colours, in ``frame``'s capture frame.
 
     ``model``: a :class:`virgi_ns.model.VirgiModel` (frozen ``means/scales/quats/opacities`` and a
-    ``field``). ``stack``: an :class:`~virgi_ns.edit_stack.EditStack` whose enabled edits recolour
+    ``field``). ``stack``: an :class:`~virgi_ns.edit.stack.EditStack` whose enabled edits recolour
     the diffuse term (None: the base colours). ``specular_strength``: ``k`` (default: the stack's,
     else 1). ``cameras``: the training cameras in the run's frame (rasterizer :class:`Cameras`),
     whose directions are sampled; without them only the sphere is. ``progress(done, total)`` is

@@ -515,7 +515,7 @@ class VirgiModel(SplatfactoModel):
                              backend=self.config.raster_backend if self.geometry_frozen else "reference")
 
     def set_edit_stack(self, stack) -> None:
-        """Render through ``stack`` (a :class:`virgi_ns.edit_stack.EditStack`, or None for the base
+        """Render through ``stack`` (a :class:`virgi_ns.edit.stack.EditStack`, or None for the base
         colours) from now on: its enabled edits recolour ``c_d``, its ``specular_strength`` scales
         ``c_s``."""
         self.edit_stack = stack.to(self.device) if stack is not None else None
@@ -523,7 +523,7 @@ class VirgiModel(SplatfactoModel):
 
     def fingerprint(self) -> str:
         """The base run's fingerprint that every edit of it carries."""
-        from virgi_ns.edit_stack import field_fingerprint
+        from virgi_ns.edit.stack import field_fingerprint
 
         return field_fingerprint(self.means.detach(), self.field,
                                  [self.quats.detach(), torch.exp(self.scales.detach()),

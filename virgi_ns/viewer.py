@@ -12,7 +12,7 @@ lock, the run directory and the output selector). It holds, top to bottom:
   ``<run>/views/view_NNN.png`` and its camera ``view_NNN.json`` (``virgi-render``'s CAM.json, in
   the capture's original frame, as the exported splat) and sends both to the browser;
 - **Upload edited image** (:class:`ViewerUpload`, over viser's upload button) and **Apply edit**:
-  fits an edit (:class:`virgi_ns.edit.EditEngine`) for the saved view the image came from (its
+  fits an edit (:class:`virgi_ns.edit.engine.EditEngine`) for the saved view the image came from (its
   name holds ``view_NNN``; otherwise the last saved view), in a background thread with progress;
 - the edits with enable toggles, the edit whose segmentation is shown, **Undo**, **Reset**;
 - **Export**: bakes the edited scene to a splat file (:mod:`virgi_ns.export`).
@@ -340,7 +340,7 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
 
     def _stack(self):
         """The model's edit stack, opened from ``<run>/edits`` (or started) on first use."""
-        from virgi_ns.edit_stack import EditStack
+        from virgi_ns.edit.stack import EditStack
 
         m = self._model
         if m.edit_stack is None:
@@ -542,8 +542,8 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
 
     def _fit(self, name: str, image: np.ndarray, view: SavedView, stack, steps: Optional[int],
              progress: Callable[[int, int], None]) -> str:
-        from virgi_ns.edit import EditEngine, FrozenScene
-        from virgi_ns.edit_stack import EditSource
+        from virgi_ns.edit.engine import EditEngine, FrozenScene
+        from virgi_ns.edit.stack import EditSource
 
         m = self._model
         with self._lock():

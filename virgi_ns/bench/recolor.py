@@ -1,5 +1,5 @@
 """``virgi-bench recolor`` and ``virgi-bench accuracy-time``: how well and how fast one edited view
-recolours a trained run, measured with the deterministic HSV rule of :mod:`virgi_ns.recolor`.
+recolours a trained run, measured with the deterministic HSV rule of :mod:`virgi_ns.edit.recolor`.
 
 The rule applied to one training view (its photo, or the model's render of it) is the edit;
 applied to the held-out views it is the truth. Figures, per held-out view and averaged:
@@ -33,7 +33,7 @@ import tyro
 from rich.console import Console
 
 from virgi_ns.errors import InputError, atomic_path, cli_entry
-from virgi_ns.recolor import RecolorRule, recolor
+from virgi_ns.edit.recolor import RecolorRule, recolor
 
 
 # ---------------------------------------------------------------------------- options
@@ -146,7 +146,7 @@ class Bench:
 
     @staticmethod
     def load(pipeline, edit_view: int, max_views: int = 0) -> "Bench":
-        from virgi_ns.edit import FrozenScene, render_view
+        from virgi_ns.edit.engine import FrozenScene, render_view
         from virgi_ns.nscams import raster_cameras
 
         dm = pipeline.datamanager
@@ -191,8 +191,8 @@ class Bench:
         """(edit, {setup_s, steps_s, total_s} medians) after one untimed warm-up fit; ``None`` for
         ``steps`` or ``pixel_batches`` takes the engine's default. ``original``: the unedited image
         (the engine then fits only the changed pixels); ``whole_image``: fit every pixel to
-        ``edited``; ``config``: other :class:`~virgi_ns.edit.EditConfig` fields."""
-        from virgi_ns.edit import EditConfig, EditEngine
+        ``edited``; ``config``: other :class:`~virgi_ns.edit.engine.EditConfig` fields."""
+        from virgi_ns.edit.engine import EditConfig, EditEngine
 
         cfg = EditConfig(**config)
         if steps is not None:
@@ -217,7 +217,7 @@ class Bench:
         recoloured and untouched Gaussians (thin leaves over a bright background) the per-pixel rule
         and any per-Gaussian edit disagree; this says how much of the propagation error that alone
         explains. Rendered once per (rule, view)."""
-        from virgi_ns.edit import render_view
+        from virgi_ns.edit.engine import render_view
 
         key = (rule, i)
         if key not in self._reference:
@@ -230,8 +230,8 @@ class Bench:
 
     def measure(self, edit, rule: RecolorRule, lpips: bool = True, keep: int = 0) -> tuple[dict, list]:
         """Per-view and mean figures for ``edit``; the first ``keep`` views' pictures too."""
-        from virgi_ns.edit import render_view
-        from virgi_ns.edit_stack import EditStack
+        from virgi_ns.edit.engine import render_view
+        from virgi_ns.edit.stack import EditStack
         from virgi_ns.metrics import image_metrics
 
         stack = EditStack(self.fingerprint)

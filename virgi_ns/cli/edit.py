@@ -260,7 +260,7 @@ def camera_from_json(model, path: Path):
 
 def _edits_stack(load_config: Path):
     """The stack of a run from its files alone (no model): trusts the manifest's fingerprint."""
-    from virgi_ns.edit_stack import MANIFEST, EditStack
+    from virgi_ns.edit.stack import MANIFEST, EditStack
 
     load_config = Path(load_config)
     if not load_config.is_file():
@@ -289,8 +289,8 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
     """Fit and save one edit; returns the summary line. ``pipeline``: an already loaded run."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from virgi_ns.edit import EditConfig, EditEngine, FrozenScene
-    from virgi_ns.edit_stack import EditSource, EditStack
+    from virgi_ns.edit.engine import EditConfig, EditEngine, FrozenScene
+    from virgi_ns.edit.stack import EditSource, EditStack
 
     if args.steps is not None and args.steps < 1:
         raise InputError(f"--steps must be >= 1, got {args.steps}")
@@ -340,7 +340,7 @@ def run(cmd: object, console: Optional[Console] = None, pipeline=None) -> str:
     if isinstance(cmd, Apply):
         return apply(cmd, console, pipeline)
     if isinstance(cmd, Import):
-        from virgi_ns.edit_stack import EditStack
+        from virgi_ns.edit.stack import EditStack
 
         if not Path(cmd.edit_file).is_file():
             raise InputError(f"no such edit file: {cmd.edit_file}")

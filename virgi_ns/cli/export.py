@@ -80,7 +80,7 @@ def load_run(config_path: Path):
 def run(args: Export) -> str:
     """Do the export; returns the one-line summary."""
     _validate(args)
-    from virgi_ns.edit_stack import EditStack
+    from virgi_ns.edit.stack import EditStack
     from virgi_ns.export import BakeConfig, CaptureFrame, bake_pipeline, write_splat
 
     console = Console(stderr=True)

@@ -29,7 +29,7 @@ takes the current render's logits to the changed pixels' (least squares,
 colours (a hue shift of 120 degrees is a channel permutation, exactly such a map) starts where
 100 steps from the base layer do not reach.
 
-The result is an :class:`~virgi_ns.edit_stack.Edit` for the :class:`EditStack`.
+The result is an :class:`~virgi_ns.edit.stack.Edit` for the :class:`EditStack`.
 
 :class:`FrozenScene` bundles what the engine reads from a trained model (geometry, colour field,
 background); :func:`render_view` renders a view through a stack with the full colour model,
@@ -48,7 +48,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from virgi_ns.edit_stack import Edit, EditSource, EditStack, SegmentationHead, field_fingerprint, new_edit_info
+from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead, field_fingerprint, new_edit_info
 from virgi_ns.errors import InputError
 from virgi_ns.colour.field import DecoupledColorField, view_directions
 from virgi_ns.raster import Cameras, Contributions, Request, composite, rasterize
