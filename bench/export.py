@@ -152,9 +152,9 @@ def main(args: Args) -> None:
     from virgi_ns.cli.export import load_run
     from virgi_ns.edit.engine import EditConfig, EditEngine, FrozenScene
     from virgi_ns.edit.stack import EditStack
-    from virgi_ns.export import BakeConfig, CaptureFrame, bake, bake_pipeline, write_splat
+    from virgi_ns.nerfstudio.export import BakeConfig, CaptureFrame, bake, bake_pipeline, write_splat
     from virgi_ns.io import load_splat
-    from virgi_ns.nscams import raster_cameras
+    from virgi_ns.nerfstudio.cameras import raster_cameras
     from virgi_ns.edit.recolor import RecolorRule, recolor
     from virgi_ns.cli.render import render_image
     from virgi_ns.io.camera_json import CameraSpec

@@ -130,7 +130,7 @@ def train(cfg) -> tuple[object, float, Path, Dict[str, float]]:
 def breakdown(trainer, steps: List[tuple[int, float]], total: float) -> Dict[str, float]:
     """Seconds by stage: geometry steps, the colour stage's first step (warm start included), the
     other colour steps, the last step (the specular gate's measurement), outside the iterations."""
-    from virgi_ns.model import VirgiModel
+    from virgi_ns.nerfstudio.model import VirgiModel
 
     model = trainer.pipeline.model
     res: Dict[str, float] = {"iterations_s": sum(s for _, s in steps)}
@@ -153,7 +153,7 @@ def breakdown(trainer, steps: List[tuple[int, float]], total: float) -> Dict[str
 @torch.no_grad()
 def evaluate(pipeline, repeats: int, picture: Optional[Path]) -> Dict[str, float]:
     from virgi_ns.metrics import image_metrics
-    from virgi_ns.model import VirgiModel
+    from virgi_ns.nerfstudio.model import VirgiModel
 
     model = pipeline.model
     model.eval()

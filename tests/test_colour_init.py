@@ -15,7 +15,7 @@ from method_configs.virgi import virgi_trainer_config
 from virgi_ns.colour.field import ColorFieldConfig
 from virgi_ns.gaussians import SH_C0
 from virgi_ns.io import save_ply
-from virgi_ns.pipeline import train_step, training_state
+from virgi_ns.nerfstudio.pipeline import train_step, training_state
 
 from virgi_scene import Scene, axis_angle, make_scene, rotated_copy, use_scene
 

@@ -1,4 +1,4 @@
-"""Loading nerfstudio checkpoints on torch >= 2.6 without environment variables (virgi_ns.compat)."""
+"""Loading nerfstudio checkpoints on torch >= 2.6 without environment variables (virgi_ns.nerfstudio.compat)."""
 
 from __future__ import annotations
 
@@ -96,11 +96,11 @@ LOAD_LIKE_NERFSTUDIO = f"""
     import numpy as np
     import torch
 
-    assert "virgi_ns.compat" not in sys.modules
+    assert "virgi_ns.nerfstudio.compat" not in sys.modules
     # what every ns-* command does first: discover methods and dataparsers through entry points
     from nerfstudio.configs.method_configs import all_methods
 
-    assert "virgi_ns.compat" in sys.modules  # brought in by entry-point discovery alone
+    assert "virgi_ns.nerfstudio.compat" in sys.modules  # brought in by entry-point discovery alone
     from nerfstudio.engine.trainer import Trainer, TrainerConfig
     from nerfstudio.utils.eval_utils import eval_load_checkpoint
 
@@ -175,7 +175,7 @@ def test_allow_list_is_narrow(tmp_path: Path) -> None:
     out = _run(
         """
         import sys, torch
-        import virgi_ns.compat
+        import virgi_ns.nerfstudio.compat
         torch.load(sys.argv[1].replace("array", "scalar"), map_location="cpu")
         try:
             torch.load(sys.argv[1], map_location="cpu")
@@ -194,7 +194,7 @@ def test_scalar_loads_under_either_numpy_spelling(tmp_path: Path, module: str) -
     a checkpoint written with either loads with either."""
     import zipfile
 
-    import virgi_ns.compat  # noqa: F401
+    import virgi_ns.nerfstudio.compat  # noqa: F401
 
     src, dst = tmp_path / "src.ckpt", tmp_path / "dst.ckpt"
     torch.save({"lr": np.float64(0.25) * np.exp(-1.0)}, src)

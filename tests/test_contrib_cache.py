@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from virgi_ns.contrib_cache import ContributionCache
+from virgi_ns.nerfstudio.contrib_cache import ContributionCache
 from virgi_ns.raster import Request, composite
 from virgi_ns.raster.reference import rasterize
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from virgi_ns.datamanager import GRID, _gather_tiles, _stack_images, sample_tiles
+from virgi_ns.nerfstudio.datamanager import GRID, _gather_tiles, _stack_images, sample_tiles
 from virgi_ns.raster import Cameras, Request
 
 

@@ -19,9 +19,9 @@ from virgi_ns.io.camera_json import CameraSpec
 from virgi_ns.cli.render import render_image
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead
 from virgi_ns.errors import InputError
-from virgi_ns.export import BakeConfig, CaptureFrame, bake_pipeline, fibonacci_sphere, fit_sh, frame_of_model
+from virgi_ns.nerfstudio.export import BakeConfig, CaptureFrame, bake_pipeline, fibonacci_sphere, fit_sh, frame_of_model
 from virgi_ns.gaussians import SH_C0
-from virgi_ns.nscams import rotmat_to_quat, transform_gaussians
+from virgi_ns.nerfstudio.cameras import rotmat_to_quat, transform_gaussians
 from virgi_ns.colour.sh import sh_basis
 from virgi_scene import Scene, axis_angle, lobe, rotated_copy
 
@@ -145,7 +145,7 @@ def test_capture_frame_inverts_the_import_and_matches_the_saved_json(fitted, rsc
     # cameras: the run's held-out viewmats in the capture frame project the source means as the
     # scene's own cameras do
     vm_run = pipeline.datamanager.eval_dataset.cameras
-    from virgi_ns.nscams import raster_cameras
+    from virgi_ns.nerfstudio.cameras import raster_cameras
 
     vm = frame.viewmats_to_capture(raster_cameras(vm_run).viewmats)
     want = scene.cameras.viewmats[HELD_OUT]
@@ -250,7 +250,7 @@ def test_export_with_an_edit_and_without_specular(fitted, rscene):
 
 def test_bake_without_cameras_uses_the_sphere_and_rejects_bad_strength(fitted, rscene, tmp_path):
     scene = rscene
-    from virgi_ns.export import bake, export_model
+    from virgi_ns.nerfstudio.export import bake, export_model
     from virgi_ns.io import load_splat
 
     pipeline = fitted

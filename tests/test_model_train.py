@@ -10,8 +10,8 @@ import torch
 
 from method_configs.virgi import virgi_trainer_config
 from virgi_ns.colour.field import ColorFieldConfig
-from virgi_ns.nscams import raster_cameras
-from virgi_ns.pipeline import train_step, training_state
+from virgi_ns.nerfstudio.cameras import raster_cameras
+from virgi_ns.nerfstudio.pipeline import train_step, training_state
 from virgi_ns.raster import Request, rasterize
 
 from virgi_scene import GLOSSY_ALBEDO, HIGHLIGHT_AXIS, HIGHLIGHT_POWER, MATTE_ALBEDO, Scene, make_scene, use_scene

@@ -14,7 +14,7 @@ import torch
 from PIL import Image
 
 from virgi_ns.io.camera_json import read_camera_json
-from virgi_ns.viewer import ALL_EDITS, Upload, VirgiPanel, camera_from_spec, camera_spec, capture_frame
+from virgi_ns.nerfstudio.viewer.panel import ALL_EDITS, Upload, VirgiPanel, camera_from_spec, camera_spec, capture_frame
 
 from viewer_run import train_tiny
 from virgi_scene import make_scene
@@ -64,7 +64,7 @@ def test_camera_json_round_trip_and_capture_frame(run):
         p = pc @ K.T
         return p[:, :2] / p[:, 2:3]
 
-    from virgi_ns.nscams import raster_cameras
+    from virgi_ns.nerfstudio.cameras import raster_cameras
 
     rc = raster_cameras(cam)
     want = project(model.means.detach(), rc.viewmats[0].double(), rc.Ks[0].double())

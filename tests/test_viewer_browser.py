@@ -36,8 +36,8 @@ EDIT_RGB = np.array([0.1, 0.8, 0.15], dtype=np.float32)
 # Starts ns-viewer; attaches the panel itself only where the model does not hold one yet.
 LAUNCH = """
 import sys
-from virgi_ns.model import VirgiModel
-from virgi_ns.viewer import VirgiPanel
+from virgi_ns.nerfstudio.model import VirgiModel
+from virgi_ns.nerfstudio.viewer.panel import VirgiPanel
 _populate = VirgiModel.populate_modules
 def populate(self):
     _populate(self)

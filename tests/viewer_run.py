@@ -11,7 +11,7 @@ import torch
 
 from method_configs.virgi import virgi_trainer_config
 from virgi_ns.colour.field import ColorFieldConfig
-from virgi_ns.pipeline import train_step, training_state
+from virgi_ns.nerfstudio.pipeline import train_step, training_state
 
 from virgi_scene import Scene, use_scene
 

@@ -5,7 +5,7 @@
 2. **Colour**: the colour stage of ``ns-train virgi``: the field is warm-started from the
    geometry's own colours (the model's ``colour_init``), then trained on multi-view tile batches.
    On a CPU every training view is rasterized once
-   (:class:`~virgi_ns.contrib_cache.ContributionCache`) and the tiles are sliced from those lists.
+   (:class:`~virgi_ns.nerfstudio.contrib_cache.ContributionCache`) and the tiles are sliced from those lists.
 3. **Edit**: the recolour rule (:mod:`virgi_ns.edit.recolor`, the can's blue to red) applied to the
    photo of one training view (the one where the rule selects most pixels) is the edited image;
    :class:`~virgi_ns.edit.engine.EditEngine` fits the edit.
@@ -111,7 +111,7 @@ class DemoConfig:
 # ------------------------------------------------------------------------------- model
 def _cached_model_class():
     """VirgiModel whose colour-stage rasterization can come from a contribution cache."""
-    from virgi_ns.model import VirgiModel
+    from virgi_ns.nerfstudio.model import VirgiModel
 
     class CachedVirgiModel(VirgiModel):
         contrib_cache = None
@@ -175,7 +175,7 @@ def geometry_steps(cfg: DemoConfig) -> int:
 def train(pipeline, tc, steps: int, on_step: Callable[[int, Dict[str, float]], None],
           before_colour: Callable[[], None], after_init: Callable[[], None] = lambda: None) -> None:
     """nerfstudio's training loop (callbacks, optimizers, schedulers), without checkpoints or viewer."""
-    from virgi_ns.pipeline import train_step, training_state
+    from virgi_ns.nerfstudio.pipeline import train_step, training_state
 
     opt, cbs = training_state(tc, pipeline)
     model = pipeline.model
@@ -303,7 +303,7 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             def before_colour() -> None:
                 marks["geometry_done"] = time.perf_counter()
                 if use_cache:
-                    from virgi_ns.contrib_cache import ContributionCache
+                    from virgi_ns.nerfstudio.contrib_cache import ContributionCache
 
                     model.contrib_cache = ContributionCache(
                         train_cams, model.num_points,
@@ -334,7 +334,7 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             # ---------------------------------------------------------- evaluation + edit
             from virgi_ns.edit.engine import EditConfig, EditEngine, FrozenScene, render_view
             from virgi_ns.edit.stack import EditSource, EditStack
-            from virgi_ns.nscams import raster_cameras
+            from virgi_ns.nerfstudio.cameras import raster_cameras
 
             pipeline.eval()
             frozen = FrozenScene.from_model(model)
@@ -416,7 +416,7 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             exported = None
             times_export = 0.0
             if cfg.export:
-                from virgi_ns.export import BakeConfig, bake_pipeline
+                from virgi_ns.nerfstudio.export import BakeConfig, bake_pipeline
 
                 t_ex = progress.add_task("bake edited scene", total=1, info="")
                 t0 = time.perf_counter()

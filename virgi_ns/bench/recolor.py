@@ -147,7 +147,7 @@ class Bench:
     @staticmethod
     def load(pipeline, edit_view: int, max_views: int = 0) -> "Bench":
         from virgi_ns.edit.engine import FrozenScene, render_view
-        from virgi_ns.nscams import raster_cameras
+        from virgi_ns.nerfstudio.cameras import raster_cameras
 
         dm = pipeline.datamanager
         model = pipeline.model

@@ -191,7 +191,7 @@ def _find_image(pipeline, name: str):
 
 def resolve_camera(pipeline, args: Apply):
     """(raster Cameras of one view, a description) for the chosen camera of ``args``."""
-    from virgi_ns.nscams import raster_cameras
+    from virgi_ns.nerfstudio.cameras import raster_cameras
 
     chosen = [x is not None for x in (args.camera_index, args.image_name, args.camera_json)]
     if sum(chosen) != 1:
@@ -246,8 +246,8 @@ def camera_from_json(model, path: Path):
     """Raster Cameras of a CAM.json; ``"frame": "dataparser"`` means the run's own frame, anything
     else the capture's (as the viewer saves views)."""
     from virgi_ns.io.camera_json import read_camera_json
-    from virgi_ns.nscams import raster_cameras
-    from virgi_ns.viewer import camera_from_spec, capture_frame
+    from virgi_ns.nerfstudio.cameras import raster_cameras
+    from virgi_ns.nerfstudio.viewer.panel import camera_from_spec, capture_frame
 
     spec = read_camera_json(path)
     frame = json.loads(path.read_text(encoding="utf-8")).get("frame", "capture")

@@ -2,7 +2,7 @@
 
 The run's edits (``<run>/edits``, as the viewer panel and the edit tools keep them) and its
 specular strength are applied unless ``--no-edits``; ``--specular-strength`` overrides ``k``.
-Colours are fitted to SH degree 3 per Gaussian (:mod:`virgi_ns.export`); geometry is put back in
+Colours are fitted to SH degree 3 per Gaussian (:mod:`virgi_ns.nerfstudio.export`); geometry is put back in
 the capture's original frame (the inverse of the run's ``dataparser_transforms.json``), so the file lines up with the source data and any splat imported from it.
 """
 
@@ -39,7 +39,7 @@ class Export:
 
 
 def _validate(args: Export) -> None:
-    from virgi_ns.export import check_output_path
+    from virgi_ns.nerfstudio.export import check_output_path
 
     check_output_path(args.out)
     if args.directions < 0:
@@ -56,14 +56,14 @@ def load_run(config_path: Path):
     import yaml
     from nerfstudio.utils.eval_utils import eval_setup
 
-    from virgi_ns.model import VirgiModel
+    from virgi_ns.nerfstudio.model import VirgiModel
 
     try:
         cfg = yaml.load(config_path.read_text(), Loader=yaml.Loader)
     except Exception as e:  # noqa: BLE001 - any unreadable config is the same user error
         raise InputError(f"{config_path}: not a nerfstudio config ({type(e).__name__})") from None
     model_cfg = getattr(getattr(cfg, "pipeline", None), "model", None)
-    from virgi_ns.model import VirgiModelConfig
+    from virgi_ns.nerfstudio.model import VirgiModelConfig
 
     if not isinstance(model_cfg, VirgiModelConfig):
         raise InputError(f"{config_path}: not a virgi run (method {getattr(cfg, 'method_name', '?')})")
@@ -81,7 +81,7 @@ def run(args: Export) -> str:
     """Do the export; returns the one-line summary."""
     _validate(args)
     from virgi_ns.edit.stack import EditStack
-    from virgi_ns.export import BakeConfig, CaptureFrame, bake_pipeline, write_splat
+    from virgi_ns.nerfstudio.export import BakeConfig, CaptureFrame, bake_pipeline, write_splat
 
     console = Console(stderr=True)
     with console.status(f"loading {args.load_config}"):

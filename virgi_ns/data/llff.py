@@ -34,7 +34,7 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from virgi_ns import compat  # noqa: F401  (checkpoint-loading work-arounds; imported by entry-point discovery)
+from virgi_ns.nerfstudio import compat  # noqa: F401  (checkpoint-loading work-arounds; imported by entry-point discovery)
 from virgi_ns.errors import InputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")

@@ -77,7 +77,7 @@ class FrozenScene:
 
     @staticmethod
     def from_model(model) -> "FrozenScene":
-        """From a trained :class:`virgi_ns.model.VirgiModel` (or anything with splatfacto's
+        """From a trained :class:`virgi_ns.nerfstudio.model.VirgiModel` (or anything with splatfacto's
         ``means/quats/scales/opacities``, a ``field`` and a ``background_color``)."""
         dev = model.means.device
         backend = getattr(getattr(model, "config", None), "raster_backend", "auto")

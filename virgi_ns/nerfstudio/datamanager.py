@@ -20,7 +20,7 @@ import torch
 from nerfstudio.data.datamanagers.full_images_datamanager import FullImageDatamanager, FullImageDatamanagerConfig
 from torch import Tensor
 
-from virgi_ns.nscams import raster_cameras
+from virgi_ns.nerfstudio.cameras import raster_cameras
 from virgi_ns.raster import Cameras, Request
 
 GRID = 16  # the rasterizer's tile grid (gsplat's tile size)

@@ -15,7 +15,7 @@ whose colour does not depend on the direction (below the model's specular gate, 
 when ``k = 0``) get their exact colour in the DC coefficient alone, as the model renders them.
 
 Geometry is moved back into the capture's original frame with :class:`CaptureFrame`, the inverse
-of the frame change an imported splat goes through (:func:`virgi_ns.nscams.transform_gaussians`):
+of the frame change an imported splat goes through (:func:`virgi_ns.nerfstudio.cameras.transform_gaussians`):
 the dataparser's ``x -> scale (R x + t)`` (for COLMAP captures nerfstudio folds its world-axis swap
 into that transform). View directions are rotated the same way before the SH basis is evaluated, so the
 exported colours are those the model shows from the same physical camera.
@@ -35,7 +35,7 @@ from torch import Tensor
 
 from virgi_ns.errors import InputError
 from virgi_ns.gaussians import SH_C0, Gaussians
-from virgi_ns.nscams import transform_gaussians
+from virgi_ns.nerfstudio.cameras import transform_gaussians
 from virgi_ns.raster import Cameras
 from virgi_ns.colour.sh import sh_basis
 
@@ -216,7 +216,7 @@ def bake(
 ) -> Gaussians:
     """The model's Gaussians with baked SH degree 3 colours, in ``frame``'s capture frame.
 
-    ``model``: a :class:`virgi_ns.model.VirgiModel` (frozen ``means/scales/quats/opacities`` and a
+    ``model``: a :class:`virgi_ns.nerfstudio.model.VirgiModel` (frozen ``means/scales/quats/opacities`` and a
     ``field``). ``stack``: an :class:`~virgi_ns.edit.stack.EditStack` whose enabled edits recolour
     the diffuse term (None: the base colours). ``specular_strength``: ``k`` (default: the stack's,
     else 1). ``cameras``: the training cameras in the run's frame (rasterizer :class:`Cameras`),
@@ -333,7 +333,7 @@ def bake_pipeline(pipeline, stack=None, specular_strength: Optional[float] = Non
                   progress: Optional[Callable[[int, int], None]] = None) -> Gaussians:
     """:func:`bake` a pipeline's model with its training cameras' directions, in the capture's
     frame (``frame`` defaults to :meth:`CaptureFrame.from_pipeline`)."""
-    from virgi_ns.nscams import raster_cameras
+    from virgi_ns.nerfstudio.cameras import raster_cameras
 
     frame = frame or CaptureFrame.from_pipeline(pipeline)
     dm = pipeline.datamanager

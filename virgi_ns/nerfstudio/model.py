@@ -9,7 +9,7 @@ Two stages in one nerfstudio run:
 2. **Colour**: first (``colour_init="geometry_sh"``) a warm start fits the colour field to each
    Gaussian's own colours, per Gaussian and without rendering: ``c_d`` to its degree-0 colour,
    ``c_d + c_s`` to its SH colour seen from training cameras that see it
-   (:meth:`VirgiModel.init_colour_field`); then batches of tiles (:mod:`virgi_ns.datamanager`)
+   (:meth:`VirgiModel.init_colour_field`); then batches of tiles (:mod:`virgi_ns.nerfstudio.datamanager`)
    are rasterized once into contribution lists; the colour field runs only for the (view,
    Gaussian) pairs the batch touches: hash features and MLP_diff per Gaussian, MLP_spec per pair
    with that pair's view direction. Loss ``L1 + lambda_spec * mean ||c_s||^2``, ``lambda_spec`` decaying linearly from
@@ -42,11 +42,11 @@ from pytorch_msssim import SSIM
 from torch import Tensor
 from torch.nn import Parameter
 
-from virgi_ns.datamanager import TileBatch
+from virgi_ns.nerfstudio.datamanager import TileBatch
 from virgi_ns.errors import InputError
 from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField, view_directions
 from virgi_ns.gaussians import SH_C0, Gaussians
-from virgi_ns.nscams import raster_cameras, transform_gaussians
+from virgi_ns.nerfstudio.cameras import raster_cameras, transform_gaussians
 from virgi_ns.raster import Cameras, Contributions, Request, composite, composite_depth, rasterize
 
 
@@ -159,7 +159,7 @@ class VirgiModel(SplatfactoModel):
         self._edited_cache: Optional[tuple] = None
         if self.imported:
             self.freeze_geometry()
-        from virgi_ns.viewer import VirgiPanel
+        from virgi_ns.nerfstudio.viewer.panel import VirgiPanel
 
         self.viewer_panel = VirgiPanel(self)  # a plain attribute: the viewer finds it, checkpoints don't
 

@@ -13,8 +13,8 @@ from typing import Type
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils import profiler
 
-from virgi_ns.datamanager import VirgiDataManager
-from virgi_ns.model import VirgiModel
+from virgi_ns.nerfstudio.datamanager import VirgiDataManager
+from virgi_ns.nerfstudio.model import VirgiModel
 
 
 @dataclass

@@ -15,7 +15,7 @@ lock, the run directory and the output selector). It holds, top to bottom:
   fits an edit (:class:`virgi_ns.edit.engine.EditEngine`) for the saved view the image came from (its
   name holds ``view_NNN``; otherwise the last saved view), in a background thread with progress;
 - the edits with enable toggles, the edit whose segmentation is shown, **Undo**, **Reset**;
-- **Export**: bakes the edited scene to a splat file (:mod:`virgi_ns.export`).
+- **Export**: bakes the edited scene to a splat file (:mod:`virgi_ns.nerfstudio.export`).
 
 Every action is also a plain method (:meth:`VirgiPanel.save_view`, :meth:`VirgiPanel.upload`,
 :meth:`VirgiPanel.apply_edit`, ...) usable without a viewer.
@@ -48,7 +48,7 @@ from nerfstudio.viewer.viewer_elements import (
 
 from virgi_ns.io.camera_json import CameraSpec, parse_camera
 from virgi_ns.errors import InputError, VirgiError, atomic_path
-from virgi_ns.nscams import raster_cameras
+from virgi_ns.nerfstudio.cameras import raster_cameras
 
 if TYPE_CHECKING:
     from viser import ViserServer
@@ -198,7 +198,7 @@ def decode_image(name: str, content: bytes) -> np.ndarray:
 
 # ---------------------------------------------------------------------------- the panel
 class VirgiPanel(ViewerElement[None], ViewerControl):
-    """The VIRGi panel for ``model`` (a :class:`virgi_ns.model.VirgiModel`); see the module
+    """The VIRGi panel for ``model`` (a :class:`virgi_ns.nerfstudio.model.VirgiModel`); see the module
     docstring. ``run_dir``: where edits and saved views go (default: the viewer's run directory,
     else a temporary one)."""
 
@@ -634,7 +634,7 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
 
     # ------------------------------------------------------------------------ export
     def export(self, path: Optional[Path] = None, wait: bool = False, client=None) -> threading.Thread:
-        """Bake the model with its enabled edits and specular strength (:mod:`virgi_ns.export`) into
+        """Bake the model with its enabled edits and specular strength (:mod:`virgi_ns.nerfstudio.export`) into
         ``path`` (default ``<run>/exports/edited.ply``) in a background thread; files up to
         ``MAX_DOWNLOAD_BYTES`` are also sent to the browser."""
         self._check_idle()
@@ -643,7 +643,7 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
 
         def job(progress: Callable[[int, int], None]) -> str:
             try:
-                from virgi_ns.export import export_model
+                from virgi_ns.nerfstudio.export import export_model
             except ImportError as e:
                 raise InputError(f"export is not available in this installation ({e})") from None
             g = export_model(target, out, progress=progress)

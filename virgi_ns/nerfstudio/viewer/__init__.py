@@ -1,0 +1,1 @@
+"""VIRGi's panel in nerfstudio's viewer (:mod:`.panel`)."""
