@@ -1,0 +1,45 @@
+"""Runs trained before the package was regrouped still load: a run's config.yml names its classes
+by module path, and older ones name ``virgi_ns.model``, ``.datamanager``, ``.pipeline`` and
+``.field`` (kept as aliases of the modules that moved)."""
+
+from __future__ import annotations
+
+import yaml
+
+from method_configs.virgi import virgi_trainer_config
+
+OLD_CONFIG = """\
+!!python/object:virgi_ns.pipeline.VirgiPipelineConfig
+_target: !!python/name:virgi_ns.pipeline.VirgiPipeline ''
+datamanager: !!python/object:virgi_ns.datamanager.VirgiDataManagerConfig
+  _target: !!python/name:virgi_ns.datamanager.VirgiDataManager ''
+  tile_size: 16
+model: !!python/object:virgi_ns.model.VirgiModelConfig
+  _target: !!python/name:virgi_ns.model.VirgiModel ''
+  colour_init_steps: 7
+  color_field: !!python/object:virgi_ns.field.ColorFieldConfig
+    hidden: 32
+"""
+
+
+def test_a_config_naming_the_old_module_paths_loads_the_new_classes():
+    from virgi_ns.colour.field import ColorFieldConfig
+    from virgi_ns.nerfstudio.datamanager import VirgiDataManager, VirgiDataManagerConfig
+    from virgi_ns.nerfstudio.model import VirgiModel, VirgiModelConfig
+    from virgi_ns.nerfstudio.pipeline import VirgiPipeline, VirgiPipelineConfig
+
+    cfg = yaml.load(OLD_CONFIG, Loader=yaml.Loader)  # as nerfstudio's eval_setup reads config.yml
+    assert type(cfg) is VirgiPipelineConfig and cfg._target is VirgiPipeline
+    assert type(cfg.datamanager) is VirgiDataManagerConfig and cfg.datamanager._target is VirgiDataManager
+    assert cfg.datamanager.tile_size == 16
+    assert type(cfg.model) is VirgiModelConfig and cfg.model._target is VirgiModel
+    assert cfg.model.colour_init_steps == 7
+    assert type(cfg.model.color_field) is ColorFieldConfig and cfg.model.color_field.hidden == 32
+
+    # a whole saved config, as written before the move, loads as today's
+    new = yaml.dump(virgi_trainer_config())
+    old = new.replace("virgi_ns.nerfstudio.", "virgi_ns.").replace("virgi_ns.colour.field.", "virgi_ns.field.")
+    for name in ("model.VirgiModelConfig", "datamanager.VirgiDataManagerConfig", "pipeline.VirgiPipelineConfig",
+                 "field.ColorFieldConfig"):
+        assert f"virgi_ns.{name}" in old
+    assert yaml.dump(yaml.load(old, Loader=yaml.Loader)) == new
