@@ -150,7 +150,8 @@ class _Scaled:
 def main(args: Args) -> None:
     warnings.filterwarnings("ignore", category=FutureWarning)
     from virgi_ns.cli.export import load_run
-    from virgi_ns.edit.engine import EditConfig, EditEngine, FrozenScene
+    from virgi_ns.edit.engine import EditConfig, EditEngine
+    from virgi_ns.edit.scene import FrozenScene
     from virgi_ns.edit.stack import EditStack
     from virgi_ns.nerfstudio.export import BakeConfig, CaptureFrame, bake, bake_pipeline, write_splat
     from virgi_ns.io import load_splat

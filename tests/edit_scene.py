@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from virgi_ns.edit.engine import FrozenScene
+from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField, view_directions
 from virgi_ns.raster import Cameras
 

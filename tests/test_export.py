@@ -297,7 +297,8 @@ def test_import_recolour_export_flow_through_the_cli(rscene, tmp_path, capsys, m
     from virgi_ns.cli.convert import run as convert
     from virgi_ns.cli.export import Export, entrypoint
     from virgi_ns.cli.export import run as export
-    from virgi_ns.edit.engine import EditConfig, EditEngine, FrozenScene
+    from virgi_ns.edit.engine import EditConfig, EditEngine
+    from virgi_ns.edit.scene import FrozenScene
     from virgi_ns.io import load_splat
 
     scene = rscene

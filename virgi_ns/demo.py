@@ -332,7 +332,8 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                 model.contrib_cache = None  # frees the lists
 
             # ---------------------------------------------------------- evaluation + edit
-            from virgi_ns.edit.engine import EditConfig, EditEngine, FrozenScene, render_view
+            from virgi_ns.edit.engine import EditConfig, EditEngine
+            from virgi_ns.edit.scene import FrozenScene, render_view
             from virgi_ns.edit.stack import EditSource, EditStack
             from virgi_ns.nerfstudio.cameras import raster_cameras
 

@@ -146,7 +146,7 @@ class Bench:
 
     @staticmethod
     def load(pipeline, edit_view: int, max_views: int = 0) -> "Bench":
-        from virgi_ns.edit.engine import FrozenScene, render_view
+        from virgi_ns.edit.scene import FrozenScene, render_view
         from virgi_ns.nerfstudio.cameras import raster_cameras
 
         dm = pipeline.datamanager
@@ -217,7 +217,7 @@ class Bench:
         recoloured and untouched Gaussians (thin leaves over a bright background) the per-pixel rule
         and any per-Gaussian edit disagree; this says how much of the propagation error that alone
         explains. Rendered once per (rule, view)."""
-        from virgi_ns.edit.engine import render_view
+        from virgi_ns.edit.scene import render_view
 
         key = (rule, i)
         if key not in self._reference:
@@ -230,7 +230,7 @@ class Bench:
 
     def measure(self, edit, rule: RecolorRule, lpips: bool = True, keep: int = 0) -> tuple[dict, list]:
         """Per-view and mean figures for ``edit``; the first ``keep`` views' pictures too."""
-        from virgi_ns.edit.engine import render_view
+        from virgi_ns.edit.scene import render_view
         from virgi_ns.edit.stack import EditStack
         from virgi_ns.metrics import image_metrics
 

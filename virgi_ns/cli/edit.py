@@ -289,7 +289,8 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
     """Fit and save one edit; returns the summary line. ``pipeline``: an already loaded run."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from virgi_ns.edit.engine import EditConfig, EditEngine, FrozenScene
+    from virgi_ns.edit.engine import EditConfig, EditEngine
+    from virgi_ns.edit.scene import FrozenScene
     from virgi_ns.edit.stack import EditSource, EditStack
 
     if args.steps is not None and args.steps < 1:

@@ -29,18 +29,15 @@ takes the current render's logits to the changed pixels' (least squares,
 colours (a hue shift of 120 degrees is a channel permutation, exactly such a map) starts where
 100 steps from the base layer do not reach.
 
-The result is an :class:`~virgi_ns.edit.stack.Edit` for the :class:`EditStack`.
-
-:class:`FrozenScene` bundles what the engine reads from a trained model (geometry, colour field,
-background); :func:`render_view` renders a view through a stack with the full colour model,
-including each pixel's segmentation, for tests and benchmarks.
+The result is an :class:`~virgi_ns.edit.stack.Edit` for the :class:`EditStack`. The engine reads
+the model through a :class:`~virgi_ns.edit.scene.FrozenScene`; the view's pixels are split into
+sparse batches by :mod:`virgi_ns.edit.pixels`.
 """
 
 from __future__ import annotations
 
 import copy
 import time
-import warnings
 from dataclasses import dataclass
 from typing import Callable, Literal, Optional
 
@@ -48,174 +45,14 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead, field_fingerprint, new_edit_info
+from virgi_ns.colour.field import view_directions
+from virgi_ns.edit.pixels import PixelBatch, SparseRender, pixel_batches
+from virgi_ns.edit.scene import FrozenScene
+from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead, new_edit_info
 from virgi_ns.errors import InputError
-from virgi_ns.colour.field import DecoupledColorField, view_directions
-from virgi_ns.raster import Cameras, Contributions, Request, composite, rasterize
+from virgi_ns.raster import Cameras, Request, composite
 
 
-# --------------------------------------------------------------------------- scene
-@dataclass
-class FrozenScene:
-    """Frozen Gaussians (``scales`` are standard deviations, ``opacities`` probabilities [N]),
-    their colour field, the render background [3], and the rasterizer backend to use."""
-
-    means: Tensor
-    quats: Tensor
-    scales: Tensor
-    opacities: Tensor
-    field: DecoupledColorField
-    background: Tensor
-    backend: str = "auto"
-    features: Optional[tuple[Tensor, Tensor, Tensor]] = None
-    """Optional cache of every Gaussian's (f, h1, h_diff) (:meth:`precompute_features`); edits
-    then gather them instead of running the hash grid and MLP_diff's first layers."""
-
-    @property
-    def device(self) -> torch.device:
-        return self.means.device
-
-    @staticmethod
-    def from_model(model) -> "FrozenScene":
-        """From a trained :class:`virgi_ns.nerfstudio.model.VirgiModel` (or anything with splatfacto's
-        ``means/quats/scales/opacities``, a ``field`` and a ``background_color``)."""
-        dev = model.means.device
-        backend = getattr(getattr(model, "config", None), "raster_backend", "auto")
-        return FrozenScene(model.means.detach(), model.quats.detach(), torch.exp(model.scales.detach()),
-                           torch.sigmoid(model.opacities.detach()).reshape(-1), model.field,
-                           torch.as_tensor(model.background_color, dtype=torch.float32).to(dev).reshape(3), backend)
-
-    @torch.no_grad()
-    def precompute_features(self, chunk: int = 1 << 18) -> "FrozenScene":
-        """Fill :attr:`features` for all Gaussians (about 640 bytes each with the default field)."""
-        parts: list[tuple[Tensor, Tensor, Tensor]] = []
-        for s in range(0, self.means.shape[0], chunk):
-            f = self.field.encode(self.means[s : s + chunk].float()).float()
-            h1, h2 = self.field.diffuse_hidden(f)
-            parts.append((f, h1.float(), h2.float()))
-        self.features = tuple(torch.cat(x) for x in zip(*parts))  # type: ignore[assignment]
-        return self
-
-    def gaussian_features(self, idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """(f, h1, h_diff) of Gaussians ``idx``, from the cache when present."""
-        if self.features is not None:
-            f, h1, h2 = self.features
-            return f[idx], h1[idx], h2[idx]
-        f = self.field.encode(self.means[idx].float()).float()
-        h1, h2 = self.field.diffuse_hidden(f)
-        return f, h1.float(), h2.float()
-
-    def fingerprint(self) -> str:
-        """The base run's fingerprint that every edit of it carries."""
-        return field_fingerprint(self.means, self.field, [self.quats, self.scales, self.opacities])
-
-    def contributions(self, cameras: Cameras, request: Request) -> Contributions:
-        with torch.no_grad():
-            return rasterize(self.means, self.quats, self.scales, self.opacities, cameras.to(self.device), request,
-                             backend=self.backend)
-
-
-# -------------------------------------------------------------- sparse rendering
-class _SparseRender(torch.autograd.Function):
-    """``A @ C`` with ``A`` a constant CSR matrix; the backward pass uses a precomputed ``A^T``
-    (CSR too), so no scatter with atomics runs in either direction."""
-
-    @staticmethod
-    def forward(ctx, colours: Tensor, A: Tensor, At: Tensor) -> Tensor:  # type: ignore[override]
-        ctx.At = At
-        return A @ colours
-
-    @staticmethod
-    def backward(ctx, grad: Tensor):  # type: ignore[override]
-        return ctx.At @ grad.contiguous(), None, None
-
-
-def _csr(rows: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int]) -> Tensor:
-    """CSR matrix from entries already sorted by row."""
-    crow = torch.zeros(shape[0] + 1, dtype=torch.long, device=rows.device)
-    crow[1:] = torch.cumsum(torch.bincount(rows, minlength=shape[0]), 0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return torch.sparse_csr_tensor(crow, cols, vals, shape, check_invariants=False)
-
-
-@dataclass
-class _PixelBatch:
-    A: Tensor  # [p, U] CSR
-    At: Tensor  # [U, p] CSR
-    background: Tensor  # [p, 3] T * bg
-    target: Tensor  # [p, 3]
-    weight: Optional[Tensor] = None  # [p] per-pixel loss weights summing to 1 (None: the plain mean)
-
-
-def _group_weights(changed: Optional[Tensor], share: float) -> Optional[Tensor]:
-    """Per-pixel loss weights [p] summing to 1: the ``changed`` pixels carry ``share`` of the loss and
-    the others the rest, whatever their numbers (all of it when one group is empty)."""
-    if changed is None:
-        return None
-    n_c = int(changed.sum())
-    n_u = changed.numel() - n_c
-    if n_c == 0 or n_u == 0:
-        return torch.full(changed.shape, 1.0 / max(changed.numel(), 1), device=changed.device)
-    return torch.where(changed, share / n_c, (1.0 - share) / n_u).float()
-
-
-def _pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches: int, seed: int,
-                   changed: Optional[Tensor] = None, share: float = 0.5) -> list[_PixelBatch]:
-    """Split the view's pixels into ``n_batches`` random, equally sized sets, each with its own
-    rows of ``A`` (pixels ascending within a set) and its own ``A^T``. With ``changed`` [P] (the
-    pixels an edit changed) the changed and the other pixels are each spread evenly over the sets,
-    and within every set the changed ones carry ``share`` of the loss (:func:`_group_weights`)."""
-
-    dev, dt = target.device, target.dtype
-    P = contrib.num_pixels
-    U = int(contrib.pair_gaussian.shape[0])
-    # int64 indices: backends may hand int32 (CUDA), and the CSR index arrays must share one dtype
-    if n_batches == 1:  # the whole image: entries are already grouped by pixel
-        pix, pair = contrib.pixel.to(dev).long(), contrib.pair.to(dev).long()
-        w = contrib.weight.detach().to(dev, dt)
-        t_order = torch.argsort(pair * P + pix)
-        T = contrib.transmittance.detach().to(dev, dt)
-        return [_PixelBatch(_csr(pix, pair, w, (P, U)), _csr(pair[t_order], pix[t_order], w[t_order], (U, P)),
-                            T[:, None] * bg[None, :], target, _group_weights(changed, share))]
-    gen = torch.Generator().manual_seed(seed)
-    batch_of = torch.empty(P, dtype=torch.long)
-    if changed is None:
-        batch_of[torch.randperm(P, generator=gen)] = torch.arange(P) % n_batches
-    else:  # stratified: each set gets its part of the changed pixels and of the others
-        ch = changed.cpu()
-        for idx in (ch.nonzero().flatten(), (~ch).nonzero().flatten()):
-            batch_of[idx[torch.randperm(len(idx), generator=gen)]] = torch.arange(len(idx)) % n_batches
-    batch_of = batch_of.to(dev)
-    # local row of each pixel: its rank among its batch's pixels, in ascending pixel order
-    order = torch.argsort(batch_of, stable=True)
-    counts = torch.bincount(batch_of, minlength=n_batches)
-    starts = torch.cumsum(counts, 0) - counts
-    local = torch.empty(P, dtype=torch.long, device=dev)
-    local[order] = torch.arange(P, device=dev) - starts[batch_of[order]]
-    pix, pair = contrib.pixel.to(dev).long(), contrib.pair.to(dev).long()
-    w = contrib.weight.detach().to(dev, dt)
-    eb = batch_of[pix]
-    e_order = torch.argsort(eb, stable=True)  # entries stay in pixel order within a batch
-    e_counts = torch.bincount(eb, minlength=n_batches).tolist()
-    T = contrib.transmittance.detach().to(dev, dt)
-    out = []
-    e0 = 0
-    for b in range(n_batches):
-        sel = e_order[e0 : e0 + e_counts[b]]
-        e0 += e_counts[b]
-        rows, cols, vals = local[pix[sel]], pair[sel], w[sel]
-        p_b = int(counts[b])
-        A = _csr(rows, cols, vals, (p_b, U))
-        t_order = torch.argsort(cols * max(p_b, 1) + rows)
-        At = _csr(cols[t_order], rows[t_order], vals[t_order], (U, p_b))
-        pixels = order[int(starts[b]) : int(starts[b]) + p_b]
-        out.append(_PixelBatch(A, At, T[pixels, None] * bg[None, :], target[pixels],
-                               None if changed is None else _group_weights(changed[pixels], share)))
-    return out
-
-
-# -------------------------------------------------------------------------- engine
 @dataclass
 class EditConfig:
     """Knobs of one edit."""
@@ -425,7 +262,7 @@ class EditEngine:
                     edited = (current + (edited - original)).clamp(0.0, 1.0)
                 edited = torch.where(changed, edited, current)
                 self.changed_fraction = float(changed.float().mean())
-        self.batches = _pixel_batches(contrib, edited.reshape(-1, 3), bg, cfg.pixel_batches, cfg.seed,
+        self.batches = pixel_batches(contrib, edited.reshape(-1, 3), bg, cfg.pixel_batches, cfg.seed,
                                       None if changed is None else changed.reshape(-1), cfg.changed_share)
         # trainable copies (from the colour map of the changed pixels, see EditConfig.map_init)
         head = fld.diffuse_head
@@ -455,10 +292,10 @@ class EditEngine:
         c_dd = alpha * c_dp + (1.0 - alpha) * self.c_d
         return torch.sigmoid(c_dd + self.k * self.c_s), alpha
 
-    def step(self, batch: _PixelBatch) -> Tensor:
+    def step(self, batch: PixelBatch) -> Tensor:
         self.opt.zero_grad(set_to_none=True)
         C, _ = self.colours()
-        img = _SparseRender.apply(C, batch.A, batch.At) + batch.background
+        img = SparseRender.apply(C, batch.A, batch.At) + batch.background
         err = (img - batch.target).abs()
         loss = err.mean() if batch.weight is None else (err.mean(-1) * batch.weight).sum()
         loss.backward()
@@ -502,40 +339,4 @@ class EditEngine:
         return {"rgb": composite(C, self.contrib, bg)[0], "alpha": composite(alpha, self.contrib)[0]}
 
 
-# ------------------------------------------------------------------------ rendering
-@torch.no_grad()
-def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional[EditStack] = None,
-                seg_index: Optional[int] = None, contrib: Optional[Contributions] = None,
-                colour_map: Optional[Callable[[Tensor], Tensor]] = None) -> dict[str, Tensor]:
-    """Render view ``view`` of ``cameras`` with the full (ungated) colour model through ``stack``:
-    ``rgb`` [H,W,3] (``sigmoid(c_d'' + k c_s)``), ``diffuse`` (``sigmoid(c_d'')``), ``specular``
-    (rgb - diffuse) and ``segmentation`` [H,W,1] (alpha of edit ``seg_index``, or the combined
-    share of all enabled edits; zeros with no stack). ``contrib``: the view's contributions when
-    the caller has them already (:meth:`FrozenScene.contributions` of the one-view camera).
-    ``colour_map``: applied to each Gaussian's final colour [U,3] before ``rgb`` is composited
-    (e.g. a recolour rule per Gaussian instead of per pixel)."""
-    cams = cameras.index(view).to(scene.device, torch.float32)
-    if contrib is None:
-        contrib = scene.contributions(cams, Request.whole_images(cams))
-    fld = scene.field
-    g = contrib.pair_gaussian.to(scene.device)
-    m = scene.means[g].float()
-    f, h1, h2 = scene.gaussian_features(g)
-    c_d = fld.diffuse(h2).float()
-    dirs = view_directions(m, cams.camera_centers()[0].to(m).expand_as(m))
-    c_s = fld.specular(f, dirs, h1, h2).float()
-    k = 1.0
-    seg = torch.zeros_like(c_d[:, :1])
-    if stack is not None:
-        c_d = stack.diffuse(f, h2.float(), c_d)
-        k = stack.specular_strength
-        if len(stack):
-            seg = stack.segmentation(f, h2.float(), seg_index).float()
-    bg = scene.background.to(scene.device, torch.float32)
-    colours = torch.sigmoid(c_d + k * c_s)
-    rgb = composite(colours if colour_map is None else colour_map(colours), contrib, bg)[0]
-    diff = composite(torch.sigmoid(c_d), contrib, bg)[0]
-    return {"rgb": rgb, "diffuse": diff, "specular": rgb - diff, "segmentation": composite(seg, contrib)[0]}
-
-
-__all__ = ["EditConfig", "EditEngine", "EditTiming", "FrozenScene", "render_view"]
+__all__ = ["EditConfig", "EditEngine", "EditTiming", "logit_colour_map"]

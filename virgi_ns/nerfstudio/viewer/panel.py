@@ -542,7 +542,8 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
 
     def _fit(self, name: str, image: np.ndarray, view: SavedView, stack, steps: Optional[int],
              progress: Callable[[int, int], None]) -> str:
-        from virgi_ns.edit.engine import EditEngine, FrozenScene
+        from virgi_ns.edit.engine import EditEngine
+        from virgi_ns.edit.scene import FrozenScene
         from virgi_ns.edit.stack import EditSource
 
         m = self._model

@@ -1,0 +1,117 @@
+"""What the edit engine reads from a trained model, and rendering through an edit stack.
+
+:class:`FrozenScene` bundles the frozen Gaussians, their colour field, the render background and
+the rasterizer backend; :func:`render_view` renders a view through a stack with the full colour
+model, including each pixel's segmentation, for tests, benchmarks and the demo.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import torch
+from torch import Tensor
+
+from virgi_ns.colour.field import DecoupledColorField, view_directions
+from virgi_ns.edit.stack import EditStack, field_fingerprint
+from virgi_ns.raster import Cameras, Contributions, Request, composite, rasterize
+
+
+@dataclass
+class FrozenScene:
+    """Frozen Gaussians (``scales`` are standard deviations, ``opacities`` probabilities [N]),
+    their colour field, the render background [3], and the rasterizer backend to use."""
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    field: DecoupledColorField
+    background: Tensor
+    backend: str = "auto"
+    features: Optional[tuple[Tensor, Tensor, Tensor]] = None
+    """Optional cache of every Gaussian's (f, h1, h_diff) (:meth:`precompute_features`); edits
+    then gather them instead of running the hash grid and MLP_diff's first layers."""
+
+    @property
+    def device(self) -> torch.device:
+        return self.means.device
+
+    @staticmethod
+    def from_model(model) -> "FrozenScene":
+        """From a trained :class:`virgi_ns.nerfstudio.model.VirgiModel` (or anything with splatfacto's
+        ``means/quats/scales/opacities``, a ``field`` and a ``background_color``)."""
+        dev = model.means.device
+        backend = getattr(getattr(model, "config", None), "raster_backend", "auto")
+        return FrozenScene(model.means.detach(), model.quats.detach(), torch.exp(model.scales.detach()),
+                           torch.sigmoid(model.opacities.detach()).reshape(-1), model.field,
+                           torch.as_tensor(model.background_color, dtype=torch.float32).to(dev).reshape(3), backend)
+
+    @torch.no_grad()
+    def precompute_features(self, chunk: int = 1 << 18) -> "FrozenScene":
+        """Fill :attr:`features` for all Gaussians (about 640 bytes each with the default field)."""
+        parts: list[tuple[Tensor, Tensor, Tensor]] = []
+        for s in range(0, self.means.shape[0], chunk):
+            f = self.field.encode(self.means[s : s + chunk].float()).float()
+            h1, h2 = self.field.diffuse_hidden(f)
+            parts.append((f, h1.float(), h2.float()))
+        self.features = tuple(torch.cat(x) for x in zip(*parts))  # type: ignore[assignment]
+        return self
+
+    def gaussian_features(self, idx: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(f, h1, h_diff) of Gaussians ``idx``, from the cache when present."""
+        if self.features is not None:
+            f, h1, h2 = self.features
+            return f[idx], h1[idx], h2[idx]
+        f = self.field.encode(self.means[idx].float()).float()
+        h1, h2 = self.field.diffuse_hidden(f)
+        return f, h1.float(), h2.float()
+
+    def fingerprint(self) -> str:
+        """The base run's fingerprint that every edit of it carries."""
+        return field_fingerprint(self.means, self.field, [self.quats, self.scales, self.opacities])
+
+    def contributions(self, cameras: Cameras, request: Request) -> Contributions:
+        with torch.no_grad():
+            return rasterize(self.means, self.quats, self.scales, self.opacities, cameras.to(self.device), request,
+                             backend=self.backend)
+
+
+@torch.no_grad()
+def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional[EditStack] = None,
+                seg_index: Optional[int] = None, contrib: Optional[Contributions] = None,
+                colour_map: Optional[Callable[[Tensor], Tensor]] = None) -> dict[str, Tensor]:
+    """Render view ``view`` of ``cameras`` with the full (ungated) colour model through ``stack``:
+    ``rgb`` [H,W,3] (``sigmoid(c_d'' + k c_s)``), ``diffuse`` (``sigmoid(c_d'')``), ``specular``
+    (rgb - diffuse) and ``segmentation`` [H,W,1] (alpha of edit ``seg_index``, or the combined
+    share of all enabled edits; zeros with no stack). ``contrib``: the view's contributions when
+    the caller has them already (:meth:`FrozenScene.contributions` of the one-view camera).
+    ``colour_map``: applied to each Gaussian's final colour [U,3] before ``rgb`` is composited
+    (e.g. a recolour rule per Gaussian instead of per pixel)."""
+    cams = cameras.index(view).to(scene.device, torch.float32)
+    if contrib is None:
+        contrib = scene.contributions(cams, Request.whole_images(cams))
+    fld = scene.field
+    g = contrib.pair_gaussian.to(scene.device)
+    m = scene.means[g].float()
+    f, h1, h2 = scene.gaussian_features(g)
+    c_d = fld.diffuse(h2).float()
+    dirs = view_directions(m, cams.camera_centers()[0].to(m).expand_as(m))
+    c_s = fld.specular(f, dirs, h1, h2).float()
+    k = 1.0
+    seg = torch.zeros_like(c_d[:, :1])
+    if stack is not None:
+        c_d = stack.diffuse(f, h2.float(), c_d)
+        k = stack.specular_strength
+        if len(stack):
+            seg = stack.segmentation(f, h2.float(), seg_index).float()
+    bg = scene.background.to(scene.device, torch.float32)
+    colours = torch.sigmoid(c_d + k * c_s)
+    rgb = composite(colours if colour_map is None else colour_map(colours), contrib, bg)[0]
+    diff = composite(torch.sigmoid(c_d), contrib, bg)[0]
+    return {"rgb": rgb, "diffuse": diff, "specular": rgb - diff, "segmentation": composite(seg, contrib)[0]}
+
+
+
+__all__ = ["FrozenScene", "render_view"]
