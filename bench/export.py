@@ -153,7 +153,8 @@ def main(args: Args) -> None:
     from virgi_ns.edit.engine import EditConfig, EditEngine
     from virgi_ns.edit.scene import FrozenScene
     from virgi_ns.edit.stack import EditStack
-    from virgi_ns.nerfstudio.export import BakeConfig, CaptureFrame, bake, bake_pipeline, write_splat
+    from virgi_ns.nerfstudio.export import BakeConfig, bake, bake_pipeline, write_splat
+    from virgi_ns.nerfstudio.frames import CaptureFrame
     from virgi_ns.io import load_splat
     from virgi_ns.nerfstudio.cameras import raster_cameras
     from virgi_ns.edit.recolor import RecolorRule, recolor

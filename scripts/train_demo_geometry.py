@@ -95,7 +95,7 @@ def to_capture_frame(params: dict, transform: torch.Tensor, scale: float):
     """splatfacto parameters (run frame, ``x_run = scale (R x + t)``, ``transform`` = [R|t]) ->
     :class:`Gaussians` in the capture frame, SH degree 0."""
     from virgi_ns.gaussians import Gaussians
-    from virgi_ns.nerfstudio.cameras import transform_gaussians
+    from virgi_ns.nerfstudio.frames import transform_gaussians
 
     T = torch.as_tensor(transform).float().cpu()[:3]
     R, t = T[:, :3], T[:, 3]

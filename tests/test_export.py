@@ -19,9 +19,9 @@ from virgi_ns.io.camera_json import CameraSpec
 from virgi_ns.cli.render import render_image
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead
 from virgi_ns.errors import InputError
-from virgi_ns.nerfstudio.export import BakeConfig, CaptureFrame, bake_pipeline, fibonacci_sphere, fit_sh, frame_of_model
+from virgi_ns.nerfstudio.export import BakeConfig, bake_pipeline, fibonacci_sphere, fit_sh
 from virgi_ns.gaussians import SH_C0
-from virgi_ns.nerfstudio.cameras import rotmat_to_quat, transform_gaussians
+from virgi_ns.nerfstudio.frames import CaptureFrame, frame_of_model, rotmat_to_quat, transform_gaussians
 from virgi_ns.colour.sh import sh_basis
 from virgi_scene import Scene, axis_angle, lobe, rotated_copy
 

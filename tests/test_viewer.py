@@ -14,7 +14,8 @@ import torch
 from PIL import Image
 
 from virgi_ns.io.camera_json import read_camera_json
-from virgi_ns.nerfstudio.viewer.panel import ALL_EDITS, Upload, VirgiPanel, camera_from_spec, camera_spec, capture_frame
+from virgi_ns.nerfstudio.frames import camera_from_spec, camera_spec, capture_frame
+from virgi_ns.nerfstudio.viewer.panel import ALL_EDITS, Upload, VirgiPanel
 
 from viewer_run import train_tiny
 from virgi_scene import make_scene

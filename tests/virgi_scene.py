@@ -15,7 +15,7 @@ from PIL import Image
 
 from virgi_ns.gaussians import SH_C0, Gaussians
 from virgi_ns.io import save_ply
-from virgi_ns.nerfstudio.cameras import quat_multiply, rotmat_to_quat
+from virgi_ns.nerfstudio.frames import quat_multiply, rotmat_to_quat
 from virgi_ns.raster import Cameras, Request, composite
 from virgi_ns.raster.reference import rasterize
 

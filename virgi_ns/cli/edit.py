@@ -247,7 +247,7 @@ def camera_from_json(model, path: Path):
     else the capture's (as the viewer saves views)."""
     from virgi_ns.io.camera_json import read_camera_json
     from virgi_ns.nerfstudio.cameras import raster_cameras
-    from virgi_ns.nerfstudio.viewer.panel import camera_from_spec, capture_frame
+    from virgi_ns.nerfstudio.frames import camera_from_spec, capture_frame
 
     spec = read_camera_json(path)
     frame = json.loads(path.read_text(encoding="utf-8")).get("frame", "capture")

@@ -81,7 +81,8 @@ def run(args: Export) -> str:
     """Do the export; returns the one-line summary."""
     _validate(args)
     from virgi_ns.edit.stack import EditStack
-    from virgi_ns.nerfstudio.export import BakeConfig, CaptureFrame, bake_pipeline, write_splat
+    from virgi_ns.nerfstudio.export import BakeConfig, bake_pipeline, write_splat
+    from virgi_ns.nerfstudio.frames import CaptureFrame
 
     console = Console(stderr=True)
     with console.status(f"loading {args.load_config}"):

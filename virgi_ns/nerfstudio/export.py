@@ -14,16 +14,14 @@ weighted least squares in the 3DGS convention, ``C(d) ~ SH(d) . coeffs + 0.5`` w
 whose colour does not depend on the direction (below the model's specular gate, every Gaussian
 when ``k = 0``) get their exact colour in the DC coefficient alone, as the model renders them.
 
-Geometry is moved back into the capture's original frame with :class:`CaptureFrame`, the inverse
-of the frame change an imported splat goes through (:func:`virgi_ns.nerfstudio.cameras.transform_gaussians`):
-the dataparser's ``x -> scale (R x + t)`` (for COLMAP captures nerfstudio folds its world-axis swap
-into that transform). View directions are rotated the same way before the SH basis is evaluated, so the
+Geometry is moved back into the capture's original frame with
+:class:`~virgi_ns.nerfstudio.frames.CaptureFrame`, the inverse of the frame change an imported splat
+goes through. View directions are rotated the same way before the SH basis is evaluated, so the
 exported colours are those the model shows from the same physical camera.
 """
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,104 +31,16 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from virgi_ns.colour.sh import sh_basis
 from virgi_ns.errors import InputError
 from virgi_ns.gaussians import SH_C0, Gaussians
-from virgi_ns.nerfstudio.cameras import transform_gaussians
+from virgi_ns.nerfstudio.frames import CaptureFrame, frame_of_model
 from virgi_ns.raster import Cameras
-from virgi_ns.colour.sh import sh_basis
 
-__all__ = ["BakeConfig", "CaptureFrame", "bake", "bake_pipeline", "export_model", "fibonacci_sphere", "fit_sh",
-           "frame_of_model", "write_splat"]
+__all__ = ["BakeConfig", "bake", "bake_pipeline", "export_model", "fibonacci_sphere", "fit_sh", "write_splat"]
 
 SH_DEGREE = 3
 
-
-# ------------------------------------------------------------------------------------ frame
-@dataclass
-class CaptureFrame:
-    """The run's frame relative to the capture's: ``x_run = scale * (R x_capture + t)``
-    (``transform`` = [R | t], 3x4, R a rotation)."""
-
-    transform: Float[Tensor, "3 4"]
-    scale: float
-
-    @staticmethod
-    def identity() -> "CaptureFrame":
-        return CaptureFrame(torch.cat([torch.eye(3), torch.zeros(3, 1)], dim=1).double(), 1.0)
-
-    @staticmethod
-    def from_dataparser(transform: Tensor, scale: float) -> "CaptureFrame":
-        """From a dataparser's ``transform`` (3x4 or 4x4) and ``scale``. nerfstudio 1.x's COLMAP
-        parser folds its world-axis swap into that transform, so it alone maps the capture's world
-        to the run's (checked on beercan against COLMAP's images.bin to 5e-7)."""
-        T = torch.as_tensor(transform, dtype=torch.float64)[:3, :4]
-        return CaptureFrame(T.clone(), float(scale))
-
-    @staticmethod
-    def from_transforms_json(path: str | Path) -> "CaptureFrame":
-        """From a run's ``dataparser_transforms.json`` (``transform``, ``scale``)."""
-        path = Path(path)
-        try:
-            d = json.loads(path.read_text())
-            T = torch.tensor(d["transform"], dtype=torch.float64)
-            s = float(d["scale"])
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            raise InputError(f"{path}: not a readable dataparser_transforms.json ({type(e).__name__})") from None
-        if T.shape not in ((3, 4), (4, 4)) or not torch.isfinite(T).all() or not (s > 0 and math.isfinite(s)):
-            raise InputError(f"{path}: transform must be 3x4 and scale a positive number")
-        return CaptureFrame.from_dataparser(T, s)
-
-    @staticmethod
-    def from_pipeline(pipeline) -> "CaptureFrame":
-        """The frame a VIRGi datamanager recorded for imports (``virgi_capture_transform``), or
-        else its dataparser's transform."""
-        dm = pipeline.datamanager
-        meta = getattr(getattr(dm, "train_dataset", None), "metadata", None) or {}
-        if meta.get("virgi_capture_transform") is not None:
-            return CaptureFrame(torch.as_tensor(meta["virgi_capture_transform"], dtype=torch.float64)[:3, :4],
-                                float(meta.get("virgi_capture_scale", 1.0)))
-        out = dm.train_dataparser_outputs
-        return CaptureFrame.from_dataparser(out.dataparser_transform, float(out.dataparser_scale))
-
-    # ---- maps run -> capture
-    @property
-    def rotation(self) -> Tensor:
-        """R of ``x_run = scale (R x + t)`` (float64)."""
-        return self.transform[:, :3].double()
-
-    def inverse_transform(self) -> tuple[Tensor, float]:
-        """([R' | t'], scale') with ``x_capture = scale' (R' x_run + t')``."""
-        R = self.rotation
-        t = self.transform[:, 3].double()
-        Rt = R.T
-        return torch.cat([Rt, (-self.scale * (Rt @ t))[:, None]], dim=1), 1.0 / self.scale
-
-    def points_to_capture(self, x: Tensor) -> Tensor:
-        T, s = self.inverse_transform()
-        return (s * (x.double() @ T[:, :3].T + T[:, 3])).to(x.dtype)
-
-    def directions_to_capture(self, d: Tensor) -> Tensor:
-        """Directions (any length) of the run's frame in the capture's (rotation only)."""
-        return d @ self.rotation.to(d)
-
-    def directions_to_run(self, d: Tensor) -> Tensor:
-        return d @ self.rotation.T.to(d)
-
-    def gaussians_to_capture(self, means: Tensor, log_scales: Tensor, quats: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """Means, log-scales, wxyz quaternions of the run's frame in the capture's (float64 inside)."""
-        T, s = self.inverse_transform()
-        m, sc, q = transform_gaussians(means.double(), log_scales.double(), quats.double(), T, s)
-        return m.to(means.dtype), sc.to(log_scales.dtype), q.to(quats.dtype)
-
-    def viewmats_to_capture(self, viewmats: Tensor) -> Tensor:
-        """OpenCV world-to-camera [V,4,4] of the run's frame -> the same cameras in the capture's
-        frame (``p_cam`` divided by ``scale``, which no pinhole projection sees)."""
-        R = self.rotation.to(viewmats)
-        t = self.transform[:, 3].to(viewmats)
-        out = viewmats.clone()
-        out[:, :3, :3] = viewmats[:, :3, :3] @ R
-        out[:, :3, 3] = (viewmats[:, :3, :3] @ t) + viewmats[:, :3, 3] / self.scale
-        return out
 
 
 # ----------------------------------------------------------------------------- directions
@@ -339,15 +249,6 @@ def bake_pipeline(pipeline, stack=None, specular_strength: Optional[float] = Non
     dm = pipeline.datamanager
     cams = raster_cameras(dm.train_dataset.cameras) if getattr(dm, "train_dataset", None) is not None else None
     return bake(pipeline.model, stack, specular_strength, frame, cams, cfg, progress)
-
-
-def frame_of_model(model) -> CaptureFrame:
-    """The capture frame a VIRGi datamanager recorded in the model's metadata (identity if none)."""
-    meta = (getattr(model, "kwargs", None) or {}).get("metadata") or {}
-    T = meta.get("virgi_capture_transform")
-    if T is None:
-        return CaptureFrame.identity()
-    return CaptureFrame(torch.as_tensor(T, dtype=torch.float64)[:3, :4], float(meta.get("virgi_capture_scale", 1.0)))
 
 
 def write_splat(g: Gaussians, out: str | Path) -> Path:

@@ -46,7 +46,8 @@ from virgi_ns.nerfstudio.datamanager import TileBatch
 from virgi_ns.errors import InputError
 from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField, view_directions
 from virgi_ns.gaussians import SH_C0, Gaussians
-from virgi_ns.nerfstudio.cameras import raster_cameras, transform_gaussians
+from virgi_ns.nerfstudio.cameras import raster_cameras
+from virgi_ns.nerfstudio.frames import transform_gaussians
 from virgi_ns.raster import Cameras, Contributions, Request, composite, composite_depth, rasterize
 
 

@@ -46,9 +46,10 @@ from nerfstudio.viewer.viewer_elements import (
     ViewerSlider,
 )
 
-from virgi_ns.io.camera_json import CameraSpec, parse_camera
 from virgi_ns.errors import InputError, VirgiError, atomic_path
+from virgi_ns.io.camera_json import parse_camera
 from virgi_ns.nerfstudio.cameras import raster_cameras
+from virgi_ns.nerfstudio.frames import camera_from_spec, camera_spec, capture_frame
 
 if TYPE_CHECKING:
     from viser import ViserServer
@@ -123,47 +124,6 @@ class SavedView:
     @property
     def name(self) -> str:
         return f"view_{self.number:03d}"
-
-
-def capture_frame(model) -> tuple[torch.Tensor, float]:
-    """The dataparser transform ``x_dp = s (R x + t)`` from the capture's frame (``[R|t]`` 3x4, ``s``);
-    identity when the run does not record it."""
-    meta = (getattr(model, "kwargs", None) or {}).get("metadata") or {}
-    T = meta.get("virgi_capture_transform")
-    s = float(meta.get("virgi_capture_scale", 1.0))
-    if T is None:
-        return torch.eye(4)[:3].double(), 1.0
-    return torch.as_tensor(T).double().cpu()[:3], s
-
-
-def camera_spec(camera: NSCameras, transform: torch.Tensor, scale: float) -> CameraSpec:
-    """CAM.json of a one-view nerfstudio camera, in the frame ``transform``/``scale`` map from.
-
-    With ``x_dp = s (R x + t)`` and the dataparser-frame viewmat ``[Rv|tv]``, the capture-frame
-    camera is ``[Rv R | Rv t + tv / s]`` (camera coordinates shrink by ``s``; pixels are equal)."""
-    rc = raster_cameras(camera)
-    vm = rc.viewmats[0].double().cpu()
-    K = rc.Ks[0].double().cpu()
-    R, t = transform[:3, :3].double(), transform[:3, 3].double()
-    M = torch.eye(4, dtype=torch.float64)
-    M[:3, :3] = vm[:3, :3] @ R
-    M[:3, 3] = vm[:3, :3] @ t + vm[:3, 3] / scale
-    return CameraSpec(int(rc.widths[0]), int(rc.heights[0]), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
-                      float(K[1, 2]), M.numpy())
-
-
-def camera_from_spec(spec: CameraSpec, transform: torch.Tensor, scale: float) -> NSCameras:
-    """The nerfstudio camera (dataparser frame) of a capture-frame CAM.json; inverse of :func:`camera_spec`."""
-    M = torch.as_tensor(spec.world_to_camera, dtype=torch.float64)
-    R, t = transform[:3, :3].double(), transform[:3, 3].double()
-    Rv = M[:3, :3] @ R.T
-    tv = scale * (M[:3, 3] - Rv @ t)
-    c2w = torch.eye(4, dtype=torch.float64)[:3]
-    c2w[:3, :3] = Rv.T
-    c2w[:3, 3] = -Rv.T @ tv
-    c2w[:3, 1:3] *= -1  # OpenCV -> OpenGL camera axes
-    return NSCameras(camera_to_worlds=c2w[None].float(), fx=spec.fx, fy=spec.fy, cx=spec.cx, cy=spec.cy,
-                     width=spec.width, height=spec.height)
 
 
 def png_bytes(image: np.ndarray) -> bytes:
@@ -658,4 +618,4 @@ class VirgiPanel(ViewerElement[None], ViewerControl):
         return self._background(f"exporting to {out.name}", "the export", job, wait)
 
 
-__all__ = ["VirgiPanel", "ViewerUpload", "Upload", "SavedView", "camera_spec", "camera_from_spec", "decode_image"]
+__all__ = ["VirgiPanel", "ViewerUpload", "Upload", "SavedView", "decode_image"]
