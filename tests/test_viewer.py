@@ -15,7 +15,8 @@ from PIL import Image
 
 from virgi_ns.io.camera_json import read_camera_json
 from virgi_ns.nerfstudio.frames import camera_from_spec, camera_spec, capture_frame
-from virgi_ns.nerfstudio.viewer.panel import ALL_EDITS, Upload, VirgiPanel
+from virgi_ns.nerfstudio.viewer.panel import ALL_EDITS, VirgiPanel
+from virgi_ns.nerfstudio.viewer.upload import Upload
 
 from viewer_run import train_tiny
 from virgi_scene import make_scene
