@@ -40,7 +40,9 @@ def _tiny_bundle(root: Path) -> Path:
 
 
 def test_demo_pipeline_on_a_tiny_capture(tmp_path):
-    from virgi_ns.demo import COLUMNS, DemoConfig, run
+    from virgi_ns.demo.config import DemoConfig
+    from virgi_ns.demo.picture import COLUMNS
+    from virgi_ns.demo.run import run
 
     scene = _tiny_bundle(tmp_path)
     out = tmp_path / "out"
@@ -81,7 +83,7 @@ def test_demo_pipeline_on_a_tiny_capture(tmp_path):
 
 
 def test_bad_scene_exits_2_and_writes_nothing(tmp_path, monkeypatch, capsys):
-    from virgi_ns import demo
+    from virgi_ns.demo import run as demo
 
     out = tmp_path / "out"
     monkeypatch.setattr(sys, "argv", ["demo", "--scene", str(tmp_path / "nowhere"), "--out", str(out)])
@@ -95,7 +97,7 @@ def test_bad_scene_exits_2_and_writes_nothing(tmp_path, monkeypatch, capsys):
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without a GPU")
 def test_full_resolution_without_a_gpu_is_refused(tmp_path, monkeypatch, capsys):
-    from virgi_ns import demo
+    from virgi_ns.demo import run as demo
 
     out = tmp_path / "out"
     monkeypatch.setattr(sys, "argv", ["demo", "--full", "--out", str(out)])
@@ -155,7 +157,8 @@ def test_geometry_script_returns_gaussians_to_the_capture_frame(tmp_path):
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # dataclasses look their module up
     spec.loader.exec_module(mod)
-    from virgi_ns.demo import DemoConfig, trainer_config
+    from virgi_ns.demo.config import DemoConfig
+    from virgi_ns.demo.training import trainer_config
 
     scene = _tiny_bundle(tmp_path)
     tc = trainer_config(DemoConfig(scene=scene, hash_log2=12), scene, scene / "geometry.ply", use_cache=False)

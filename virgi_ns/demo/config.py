@@ -1,0 +1,79 @@
+"""The demo's knobs (``python -m virgi_ns.demo --help``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+from virgi_ns.data.bundle import BUNDLED_SCENE
+from virgi_ns.edit.recolor import RecolorRule
+
+REPO = Path(__file__).resolve().parents[2]
+SHARED_BEERCAN = REPO.parent / "shared" / "data" / "beercan"
+
+
+@dataclass
+class DemoConfig:
+    """VIRGi on the bundled capture: train, recolour from one view, write pictures and numbers."""
+
+    out: Path = Path("demo_out")
+    """Output folder (grid.png, metrics.json, edited_scene.ply)."""
+    scene: Path = BUNDLED_SCENE
+    """A nerfstudio-format capture (transforms.json); the bundled beercan by default."""
+    geometry: Optional[Path] = None
+    """Pre-trained geometry (.ply/.spz/.compressed.ply in the capture's frame); default: the
+    scene's geometry.ply if it has one, otherwise geometry is trained here."""
+    full: bool = False
+    """Rebuild the capture at full resolution from --source first (use a GPU)."""
+    source: Path = SHARED_BEERCAN
+    """COLMAP beercan used by --full."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    geometry_steps: Optional[int] = None
+    """Geometry steps when no pre-trained geometry is found; default 15000 on a GPU, 400 on a CPU
+    (half at 1/4, half at 1/2 resolution, no densification: a coarse stand-in seeded from the
+    sparse points)."""
+    colour_steps: Optional[int] = None
+    """Colour-stage steps; default 5000 on a GPU, 1000 on a CPU."""
+    colour_init: Literal["geometry", "geometry_sh", "none"] = "geometry"
+    """Warm-start the colour field from the geometry's own colours before the colour steps
+    (the model's ``colour_init``), or start from a random field. The bundled geometry stores
+    degree-0 colours only, for which 'geometry_sh' (the model's default) is the same as 'geometry'."""
+    colour_init_steps: Optional[int] = None
+    """Warm-start steps; default 200 on a CPU, the model's (300) on a GPU."""
+    colour_init_batch: Optional[int] = None
+    """Gaussians per warm-start step; default 4096 on a CPU, the model's (16384) on a GPU."""
+    tile_size: int = 32
+    views_per_anchor: int = 5
+    pixel_budget: Optional[int] = None
+    """Pixels per colour step (whole multi-view mini-batches); default 10240 on a CPU, 163840 on a GPU."""
+    hash_log2: int = 17
+    """log2 of the hash table size (the paper's 19 is for GPUs and large scenes)."""
+    edit_steps: Optional[int] = None
+    """Edit steps; default: the edit engine's (its measured knee; longer fits leak the recolour)."""
+    edit_source: Literal["photo", "render"] = "photo"
+    """The image the rule recolours for the edit: the view's photo (as the benchmark does) or the
+    model's own render of it (no reconstruction error in the edit's target)."""
+    edit_view: Optional[int] = None
+    """Training view to edit (index among training views); default: where the rule selects most."""
+    hue_from: float = 190.0
+    """Rule: hue range start (degrees)."""
+    hue_to: float = 260.0
+    """Rule: hue range end (degrees)."""
+    hue_shift: float = 130.0
+    """Rule: hue shift (degrees); blue + 130 is red."""
+    sat_min: float = 0.25
+    val_min: float = 0.1
+    grid_views: int = 4
+    """Held-out views shown in grid.png."""
+    export: bool = True
+    """Bake the edited scene to edited_scene.ply."""
+    export_directions: int = 64
+    """Sphere directions per Gaussian when baking SH."""
+    seed: int = 0
+
+    def rule(self) -> RecolorRule:
+        return RecolorRule(self.hue_from, self.hue_to, self.hue_shift, self.sat_min, self.val_min)
+
+
+__all__ = ["DemoConfig", "SHARED_BEERCAN"]
