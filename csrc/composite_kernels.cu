@@ -9,13 +9,12 @@
 #include <cuda_runtime.h>
 
 #include "kernels.h"
+#include "launch.cuh"
 #include "unit_pixel.cuh"
 
 namespace virgi {
 
 namespace {
-
-constexpr int kThreads = 256;
 
 // D > 0: channel count known at compile time; D == 0: d_rt channels.
 template <int D>
@@ -170,43 +169,31 @@ __global__ void __launch_bounds__(kTile* kTile)
   }
 }
 
-inline unsigned blocks_for(int64_t n) { return static_cast<unsigned>((n + kThreads - 1) / kThreads); }
-
 }  // namespace
 
 cudaError_t launch_composite_forward(int64_t P, int D, const float* colors, const int* pair,
                                      const float* weight, const int64_t* offsets,
                                      const float* trans, const float* background, float* out,
                                      cudaStream_t stream) {
-  if (P == 0) return cudaSuccess;
-#define VIRGI_FWD(DD)                                                                           \
-  composite_fwd_kernel<DD><<<blocks_for(P), kThreads, 0, stream>>>(P, D, colors, pair, weight, \
-                                                                   offsets, trans, background, out)
-  switch (D) {
-    case 1: VIRGI_FWD(1); break;
-    case 3: VIRGI_FWD(3); break;
-    case 4: VIRGI_FWD(4); break;
-    default: VIRGI_FWD(0); break;
-  }
-#undef VIRGI_FWD
-  return cudaGetLastError();
+  const auto run = [&](auto d) {
+    return launch_elements(composite_fwd_kernel<decltype(d)::value>, P, stream, P, D, colors, pair,
+                           weight, offsets, trans, background, out);
+  };
+  // 1, 3 and 4 channels are compiled for; other counts take the kernel with a runtime count
+  return D == 1 || D == 3 || D == 4 ? dispatch<1, 3, 4>(D, run)
+                                    : run(std::integral_constant<int, 0>{});
 }
 
 cudaError_t launch_composite_backward(int64_t M, int D, const float* grad, const int* pixel,
                                       const int* pair, const float* weight, float* grad_colors,
                                       cudaStream_t stream) {
-  if (M == 0) return cudaSuccess;
-#define VIRGI_BWD(DD)                                                                \
-  composite_bwd_kernel<DD><<<blocks_for(M), kThreads, 0, stream>>>(M, D, grad, pixel, pair, \
-                                                                   weight, grad_colors)
-  switch (D) {
-    case 1: VIRGI_BWD(1); break;
-    case 3: VIRGI_BWD(3); break;
-    case 4: VIRGI_BWD(4); break;
-    default: VIRGI_BWD(0); break;
-  }
-#undef VIRGI_BWD
-  return cudaGetLastError();
+  const auto run = [&](auto d) {
+    return launch_elements(composite_bwd_kernel<decltype(d)::value>, M, stream, M, D, grad, pixel,
+                           pair, weight, grad_colors);
+  };
+  // 1, 3 and 4 channels are compiled for; other counts take the kernel with a runtime count
+  return D == 1 || D == 3 || D == 4 ? dispatch<1, 3, 4>(D, run)
+                                    : run(std::integral_constant<int, 0>{});
 }
 
 cudaError_t launch_composite_backward_tiles(int num_units, int D, const int* units,
@@ -216,18 +203,11 @@ cudaError_t launch_composite_backward_tiles(int num_units, int D, const int* uni
                                             const float* weight, const float* grad,
                                             float* grad_colors, cudaStream_t stream) {
   if (num_units == 0) return cudaSuccess;
-#define VIRGI_BWDT(DD)                                                                        \
-  composite_bwd_tile_kernel<DD><<<num_units, kTile * kTile, 0, stream>>>(                     \
-      units, items, views, item_w, item_h, ranges, list_pair, offsets, pair, weight, grad, \
-      grad_colors)
-  switch (D) {
-    case 1: VIRGI_BWDT(1); break;
-    case 3: VIRGI_BWDT(3); break;
-    case 4: VIRGI_BWDT(4); break;
-    default: return cudaErrorInvalidValue;
-  }
-#undef VIRGI_BWDT
-  return cudaGetLastError();
+  return dispatch<1, 3, 4>(D, [&](auto d) {
+    return launch_units(composite_bwd_tile_kernel<decltype(d)::value>, num_units, stream, units,
+                        items, views, item_w, item_h, ranges, list_pair, offsets, pair, weight, grad,
+                        grad_colors);
+  });
 }
 
 }  // namespace virgi

@@ -16,13 +16,13 @@
 #include <algorithm>
 
 #include "kernels.h"
+#include "launch.cuh"
 #include "unit_pixel.cuh"
 
 namespace virgi {
 
 namespace {
 
-constexpr int kThreads = 256;
 constexpr float kNear = 0.01f;
 constexpr float kFar = 1e10f;
 constexpr float kEps2d = 0.3f;
@@ -745,8 +745,6 @@ __global__ void __launch_bounds__(kTile* kTile)
   }
 }
 
-inline unsigned blocks_for(int64_t n) { return static_cast<unsigned>((n + kThreads - 1) / kThreads); }
-
 }  // namespace
 
 cudaError_t launch_project_compact(int N, int Vr, const float* means, const float* quats,
@@ -754,11 +752,9 @@ cudaError_t launch_project_compact(int N, int Vr, const float* means, const floa
                                    const float* viewmats, const int* views, const int* sat,
                                    int64_t cap, float4* rec0, float4* rec1, int* counts, int* fids,
                                    int* pos, unsigned long long* counters, cudaStream_t stream) {
-  if (N == 0 || Vr == 0) return cudaSuccess;
-  project_compact_kernel<<<blocks_for(N), kThreads, 0, stream>>>(
-      N, Vr, means, quats, scales, opacities, Ks, viewmats, views, sat, cap, rec0, rec1, counts,
-      fids, pos, counters);
-  return cudaGetLastError();
+  if (Vr == 0) return cudaSuccess;
+  return launch_elements(project_compact_kernel, N, stream, N, Vr, means, quats, scales, opacities,
+                         Ks, viewmats, views, sat, cap, rec0, rec1, counts, fids, pos, counters);
 }
 
 cudaError_t sort_ints(void* temp, size_t& temp_bytes, int64_t n, int end_bit, const int* keys_in,
@@ -771,26 +767,19 @@ cudaError_t launch_gather_compact(int64_t n, int N, const int* perm, const float
                                   const float4* rec1_in, const int* counts_in, const int* fids,
                                   float4* rec0, float4* rec1, int* counts, uint8_t* mark,
                                   int* depth_key, int* iota, float4* bin_rec, cudaStream_t stream) {
-  if (n == 0) return cudaSuccess;
-  gather_compact_kernel<<<blocks_for(n), kThreads, 0, stream>>>(
-      n, N, perm, rec0_in, rec1_in, counts_in, fids, rec0, rec1, counts, mark, depth_key, iota,
-      bin_rec);
-  return cudaGetLastError();
+  return launch_elements(gather_compact_kernel, n, stream, n, N, perm, rec0_in, rec1_in, counts_in,
+                         fids, rec0, rec1, counts, mark, depth_key, iota, bin_rec);
 }
 
 cudaError_t launch_bin(int64_t n, const int* order, const int* counts, const int64_t* cum_counts,
                        const float4* bin_rec, const int* views, const int* tile_slot, int* keys,
                        int* vals, cudaStream_t stream) {
-  if (n == 0) return cudaSuccess;
-  bin_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, order, counts, cum_counts, bin_rec, views,
-                                                     tile_slot, keys, vals);
-  return cudaGetLastError();
+  return launch_elements(bin_kernel, n, stream, n, order, counts, cum_counts, bin_rec, views,
+                         tile_slot, keys, vals);
 }
 
 cudaError_t launch_ranges(int64_t n, const int* slots, int* ranges, cudaStream_t stream) {
-  if (n == 0) return cudaSuccess;
-  ranges_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, slots, ranges);
-  return cudaGetLastError();
+  return launch_elements(ranges_kernel, n, stream, n, slots, ranges);
 }
 
 cudaError_t launch_init_request(int64_t P, int item_w, int item_h, const int* items,
@@ -799,9 +788,8 @@ cudaError_t launch_init_request(int64_t P, int item_w, int item_h, const int* it
                                 int64_t* offsets, cudaStream_t stream) {
   // (launched even for P == 0: the counters must start at 0)
   const int64_t n = std::max(std::max(P, n_zero), static_cast<int64_t>(kNumCounters));
-  init_request_kernel<<<blocks_for(n), kThreads, 0, stream>>>(
-      P, item_w, item_h, items, views, trans, valid, px_count, n_zero, zero_ints, counters, offsets);
-  return cudaGetLastError();
+  return launch_elements(init_request_kernel, n, stream, P, item_w, item_h, items, views, trans,
+                         valid, px_count, n_zero, zero_ints, counters, offsets);
 }
 
 cudaError_t launch_collect_sizes(const int64_t* entries, const int* pairs,
@@ -817,75 +805,40 @@ cudaError_t launch_raster(int mode, int num_units, const int* units, const int* 
                           int2* out_entry, uint8_t* mark, int pcap, cudaStream_t stream,
                           int* keep_list, int* keep_end, unsigned long long* max_count) {
   if (num_units == 0) return cudaSuccess;
-#define VIRGI_RASTER(MM)                                                                        \
-  raster_kernel<MM><<<num_units, kTile * kTile, 0, stream>>>(                                   \
-      units, items, views, item_w, item_h, ranges, sorted_vals, rec0, rec1, px_count, px_trans, \
-      px_offsets, out_entry, mark, pcap, keep_list, keep_end, max_count)
-  switch (mode) {
-    case kCount: VIRGI_RASTER(kCount); break;
-    case kFill: VIRGI_RASTER(kFill); break;
-    case kSingle: VIRGI_RASTER(kSingle); break;
-    case kCountMark: VIRGI_RASTER(kCountMark); break;
-    default: return cudaErrorInvalidValue;
-  }
-#undef VIRGI_RASTER
-  return cudaGetLastError();
+  return dispatch<kCount, kFill, kSingle, kCountMark>(mode, [&](auto m) {
+    return launch_units(raster_kernel<decltype(m)::value>, num_units, stream, units, items, views,
+                        item_w, item_h, ranges, sorted_vals, rec0, rec1, px_count, px_trans,
+                        px_offsets, out_entry, mark, pcap, keep_list, keep_end, max_count);
+  });
 }
 
 cudaError_t launch_split_padded(int64_t P, int pcap, const int64_t* offsets, const int2* padded,
                                 const int* rank_incl, int* pixel, int* pair, float* weight,
                                 cudaStream_t stream) {
-  if (P == 0) return cudaSuccess;
-  split_padded_kernel<<<blocks_for(P), kThreads, 0, stream>>>(P, pcap, offsets, padded, rank_incl,
-                                                              pixel, pair, weight);
-  return cudaGetLastError();
+  return launch_elements(split_padded_kernel, P, stream, P, pcap, offsets, padded, rank_incl, pixel,
+                         pair, weight);
 }
 
 cudaError_t launch_pairs(int64_t n, const uint8_t* mark, const int* rank_incl, int N,
                          const int* fids, const int* views, const float4* rec0, int64_t* pair_view,
                          int64_t* pair_gaussian, float* pair_depth, cudaStream_t stream) {
-  if (n == 0) return cudaSuccess;
-  pairs_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, mark, rank_incl, N, fids, views, rec0,
-                                                       pair_view, pair_gaussian, pair_depth);
-  return cudaGetLastError();
+  return launch_elements(pairs_kernel, n, stream, n, mark, rank_incl, N, fids, views, rec0,
+                         pair_view, pair_gaussian, pair_depth);
 }
 
 cudaError_t launch_split(int64_t M, const int2* entry, const int* rank_incl, int* pair,
                          float* weight, cudaStream_t stream) {
-  if (M == 0) return cudaSuccess;
-  split_kernel<<<blocks_for(M), kThreads, 0, stream>>>(M, entry, rank_incl, pair, weight);
-  return cudaGetLastError();
+  return launch_elements(split_kernel, M, stream, M, entry, rank_incl, pair, weight);
 }
 
 cudaError_t launch_list_pair(int64_t n, const int* sorted_vals, const uint8_t* mark,
                              const int* rank_incl, int* list_pair, cudaStream_t stream) {
-  if (n == 0) return cudaSuccess;
-  list_pair_kernel<<<blocks_for(n), kThreads, 0, stream>>>(n, sorted_vals, mark, rank_incl, list_pair);
-  return cudaGetLastError();
+  return launch_elements(list_pair_kernel, n, stream, n, sorted_vals, mark, rank_incl, list_pair);
 }
 
 cudaError_t launch_pixel_fill(int64_t P, const int64_t* offsets, int* pixel, cudaStream_t stream) {
-  if (P == 0) return cudaSuccess;
-  pixel_fill_kernel<<<blocks_for(P), kThreads, 0, stream>>>(P, offsets, pixel);
-  return cudaGetLastError();
+  return launch_elements(pixel_fill_kernel, P, stream, P, offsets, pixel);
 }
-
-}  // namespace virgi
-
-namespace virgi {
-
-#define VIRGI_DEFERRED_CASES(MACRO) \
-  switch (D) {                      \
-    case 1: MACRO(1); break;        \
-    case 2: MACRO(2); break;        \
-    case 3: MACRO(3); break;        \
-    case 4: MACRO(4); break;        \
-    case 5: MACRO(5); break;        \
-    case 6: MACRO(6); break;        \
-    case 7: MACRO(7); break;        \
-    case 8: MACRO(8); break;        \
-    default: return cudaErrorInvalidValue; \
-  }
 
 cudaError_t launch_deferred_forward(int num_units, int D, const int* units, const int* items,
                                     const int* views, int item_w, int item_h, const int* ranges,
@@ -894,13 +847,11 @@ cudaError_t launch_deferred_forward(int num_units, int D, const int* units, cons
                                     const float* background, float* out, const int* keep_list,
                                     const int* keep_end, cudaStream_t stream) {
   if (num_units == 0) return cudaSuccess;
-#define VIRGI_DFWD(DD)                                                                       \
-  deferred_fwd_kernel<DD><<<num_units, kTile * kTile, 0, stream>>>(                          \
-      units, items, views, item_w, item_h, ranges, sorted_vals, list_pair, rec0, rec1, colors, \
-      background, out, keep_list, keep_end)
-  VIRGI_DEFERRED_CASES(VIRGI_DFWD)
-#undef VIRGI_DFWD
-  return cudaGetLastError();
+  return dispatch<1, 2, 3, 4, 5, 6, 7, 8>(D, [&](auto d) {
+    return launch_units(deferred_fwd_kernel<decltype(d)::value>, num_units, stream, units, items,
+                        views, item_w, item_h, ranges, sorted_vals, list_pair, rec0, rec1, colors,
+                        background, out, keep_list, keep_end);
+  });
 }
 
 cudaError_t launch_deferred_backward(int num_units, int D, const int* units, const int* items,
@@ -910,15 +861,11 @@ cudaError_t launch_deferred_backward(int num_units, int D, const int* units, con
                                      float* grad_colors, const int* keep_list, const int* keep_end,
                                      cudaStream_t stream) {
   if (num_units == 0) return cudaSuccess;
-#define VIRGI_DBWD(DD)                                                                       \
-  deferred_bwd_kernel<DD><<<num_units, kTile * kTile, 0, stream>>>(                          \
-      units, items, views, item_w, item_h, ranges, sorted_vals, list_pair, rec0, rec1, grad, \
-      grad_colors, keep_list, keep_end)
-  VIRGI_DEFERRED_CASES(VIRGI_DBWD)
-#undef VIRGI_DBWD
-  return cudaGetLastError();
+  return dispatch<1, 2, 3, 4, 5, 6, 7, 8>(D, [&](auto d) {
+    return launch_units(deferred_bwd_kernel<decltype(d)::value>, num_units, stream, units, items,
+                        views, item_w, item_h, ranges, sorted_vals, list_pair, rec0, rec1, grad,
+                        grad_colors, keep_list, keep_end);
+  });
 }
-
-#undef VIRGI_DEFERRED_CASES
 
 }  // namespace virgi
