@@ -131,8 +131,7 @@ __global__ void __launch_bounds__(kTile* kTile)
     if (__syncthreads_count(done) == B) break;
     const int j = b0 + tid;
     s_pair[tid] = j < end ? list_pair[j] : -1;
-#pragma unroll
-    for (int d = 0; d < D; ++d) s_acc[tid * D + d] = 0.f;
+    clear_element_sums<D>(s_acc);
     __syncthreads();
     const int nb = min(B, end - b0);
     // The warp steps through the batch together: lanes whose next entry is element t add their
@@ -141,31 +140,14 @@ __global__ void __launch_bounds__(kTile* kTile)
       if (__all_sync(0xffffffffu, done)) break;
       const bool hit = !done && s_pair[t] == q;
       if (!__any_sync(0xffffffffu, hit)) continue;
-      float v[D];
-      const float w = hit ? weight[e] : 0.f;
-#pragma unroll
-      for (int d = 0; d < D; ++d) v[d] = w * gv[d];
-#pragma unroll
-      for (int off = 16; off > 0; off >>= 1)
-#pragma unroll
-        for (int d = 0; d < D; ++d) v[d] += __shfl_down_sync(0xffffffffu, v[d], off);
-      if ((tid & 31) == 0)
-#pragma unroll
-        for (int d = 0; d < D; ++d) atomicAdd(&s_acc[t * D + d], v[d]);
+      warp_sum_to_shared<D>(hit ? weight[e] : 0.f, gv, s_acc, t);
       if (hit) {
         if (++e == e_end) done = true;
         else q = pair[e];
       }
     }
     __syncthreads();
-    const int qt = s_pair[tid];
-    if (qt >= 0) {
-#pragma unroll
-      for (int d = 0; d < D; ++d) {
-        const float v = s_acc[tid * D + d];
-        if (v != 0.f) atomicAdd(grad_colors + static_cast<int64_t>(qt) * D + d, v);
-      }
-    }
+    add_element_sums<D>(s_acc, s_pair[tid], grad_colors);
   }
 }
 

@@ -697,8 +697,7 @@ __global__ void __launch_bounds__(kTile* kTile)
       s_r0[tid] = rec0[f];
       s_r1[tid] = rec1[f];
     }
-#pragma unroll
-    for (int d = 0; d < D; ++d) s_acc[tid * D + d] = 0.f;
+    clear_element_sums<D>(s_acc);
     __syncthreads();
     const int nb = min(B, end - b0);
     for (int t = 0; t < nb; ++t) {
@@ -722,26 +721,10 @@ __global__ void __launch_bounds__(kTile* kTile)
           for (int d = 0; d < D; ++d) atomicAdd(&s_acc[t * D + d], w * gv[d]);
         continue;
       }
-      float v[D];
-#pragma unroll
-      for (int d = 0; d < D; ++d) v[d] = w * gv[d];
-#pragma unroll
-      for (int off = 16; off > 0; off >>= 1)
-#pragma unroll
-        for (int d = 0; d < D; ++d) v[d] += __shfl_down_sync(0xffffffffu, v[d], off);
-      if ((tid & 31) == 0)
-#pragma unroll
-        for (int d = 0; d < D; ++d) atomicAdd(&s_acc[t * D + d], v[d]);
+      warp_sum_to_shared<D>(w, gv, s_acc, t);
     }
     __syncthreads();
-    const int q = s_q[tid];
-    if (q >= 0) {
-#pragma unroll
-      for (int d = 0; d < D; ++d) {
-        const float v = s_acc[tid * D + d];
-        if (v != 0.f) atomicAdd(grad_colors + static_cast<int64_t>(q) * D + d, v);
-      }
-    }
+    add_element_sums<D>(s_acc, s_q[tid], grad_colors);
   }
 }
 

@@ -59,4 +59,42 @@ __device__ __forceinline__ bool pixel_alpha(const float4& m, const float4& q, co
   return !(sigma < 0.f || alpha < kAlphaMin);
 }
 
+// The per-tile colour gradients (composite_bwd_tile_kernel, deferred_bwd_kernel) sum the terms
+// of each list element of a batch over the block, in shared memory acc[element * D + d]: thread
+// tid clears the sums of element tid before the batch,
+template <int D>
+__device__ __forceinline__ void clear_element_sums(float* acc) {
+#pragma unroll
+  for (int d = 0; d < D; ++d) acc[threadIdx.x * D + d] = 0.f;
+}
+
+// for each element t the warp's lanes' terms w * g[d] are summed by shuffles and lane 0 adds
+// them to the block's sums,
+template <int D>
+__device__ __forceinline__ void warp_sum_to_shared(float w, const float (&g)[D], float* acc, int t) {
+  float v[D];
+#pragma unroll
+  for (int d = 0; d < D; ++d) v[d] = w * g[d];
+#pragma unroll
+  for (int off = 16; off > 0; off >>= 1)
+#pragma unroll
+    for (int d = 0; d < D; ++d) v[d] += __shfl_down_sync(0xffffffffu, v[d], off);
+  if ((threadIdx.x & 31) == 0)
+#pragma unroll
+    for (int d = 0; d < D; ++d) atomicAdd(&acc[t * D + d], v[d]);
+}
+
+// then, after the batch, thread tid adds the block's sums of element tid to the gradient row of
+// its pair q (one global atomic per non-zero channel; nothing where q < 0: no pair).
+template <int D>
+__device__ __forceinline__ void add_element_sums(const float* acc, int q, float* grad_colors) {
+  if (q >= 0) {
+#pragma unroll
+    for (int d = 0; d < D; ++d) {
+      const float v = acc[threadIdx.x * D + d];
+      if (v != 0.f) atomicAdd(grad_colors + static_cast<int64_t>(q) * D + d, v);
+    }
+  }
+}
+
 }  // namespace virgi
