@@ -7,6 +7,7 @@
 #include <torch/extension.h>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <cstdint>
 #include <cstdlib>
@@ -159,11 +160,75 @@ std::vector<int64_t> read_counters(const torch::Tensor& counters, int first, int
   return std::vector<int64_t>(h, h + n);
 }
 
+// ------------------------------------------------------------------ bindings' boilerplate
+// Each binding checks its tensors, makes their device current (OnDevice: the guard and that
+// device's current stream, on which every kernel of the call runs) and hands typed pointers to
+// the launchers of kernels.h.
+
 void check_input(const torch::Tensor& t, const char* name, int64_t cols) {
   TORCH_CHECK(t.is_cuda(), name, " must be on a CUDA device");
   TORCH_CHECK(t.scalar_type() == torch::kFloat32, name, " must be float32");
   TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
   if (cols > 0) TORCH_CHECK(t.dim() == 2 && t.size(1) == cols, name, " must have ", cols, " columns");
+}
+
+void check_f32(const torch::Tensor& t, const char* name) {
+  TORCH_CHECK(t.is_cuda() && t.is_contiguous() && t.scalar_type() == torch::kFloat32, name,
+              " must be a contiguous float32 CUDA tensor");
+}
+
+void check_i32(const torch::Tensor& t, const char* name) {
+  TORCH_CHECK(t.is_cuda() && t.is_contiguous() && t.scalar_type() == torch::kInt32, name,
+              " must be a contiguous int32 CUDA tensor");
+}
+
+struct OnDevice {
+  c10::cuda::CUDAGuard guard;
+  cudaStream_t stream;
+  explicit OnDevice(const torch::Tensor& t)
+      : guard(t.device()), stream(c10::cuda::getCurrentCUDAStream()) {}
+};
+
+// Records of four floats ([n, 4] float32) and entries of two ints ([n, 2] int32).
+float4* float4_ptr(const torch::Tensor& t) { return reinterpret_cast<float4*>(t.data_ptr<float>()); }
+int2* int2_ptr(const torch::Tensor& t) { return reinterpret_cast<int2*>(t.data_ptr<int>()); }
+
+// The background (one value per channel, checked), or null when it is empty (none).
+const float* background_ptr(const torch::Tensor& background, int D) {
+  if (background.numel() == 0) return nullptr;
+  check_f32(background, "background");
+  TORCH_CHECK(background.numel() == D, "background must hold one value per channel");
+  return background.data_ptr<float>();
+}
+
+// A request's work units, from its uploaded plan and the offsets in meta.
+struct Units {
+  const int* units;
+  const int* items;
+  const int* views;
+  int num_units, item_w, item_h;
+};
+
+Units units_of(const torch::Tensor& plan, const torch::Tensor& meta) {
+  TORCH_CHECK(plan.is_cuda() && plan.scalar_type() == torch::kInt32, "plan must be int32 on the GPU");
+  TORCH_CHECK(meta.device().is_cpu() && meta.scalar_type() == torch::kInt64 && meta.numel() == 6,
+              "meta must be 6 cpu int64");
+  auto m = meta.accessor<int64_t, 1>();
+  const int* pl = plan.data_ptr<int>();
+  return {pl + m[0], pl + m[1], pl + m[2], static_cast<int>(m[3]), static_cast<int>(m[4]),
+          static_cast<int>(m[5])};
+}
+
+// The kept elements of deferred lists (keep_list, keep_end), or nulls when none were kept (the
+// walks then cover the whole lists).
+struct Kept {
+  const int* list;
+  const int* end;
+};
+
+Kept kept_of(const torch::Tensor& keep_list, const torch::Tensor& keep_end) {
+  if (keep_list.numel() == 0) return {nullptr, nullptr};
+  return {keep_list.data_ptr<int>(), keep_end.data_ptr<int>()};
 }
 
 }  // namespace
@@ -198,8 +263,8 @@ std::vector<torch::Tensor> rasterize_contributions(
   TORCH_CHECK(item_views.device().is_cpu() && item_x0.device().is_cpu() && item_y0.device().is_cpu(),
               "request tensors must be on the CPU");
   TORCH_CHECK(item_w > 0 && item_h > 0 && item_w < (1 << 24) && item_h < (1 << 24), "bad item size");
-  const c10::cuda::CUDAGuard guard(means.device());
-  auto stream = c10::cuda::getCurrentCUDAStream();
+  const OnDevice on(means);
+  const cudaStream_t stream = on.stream;
   const int64_t N64 = means.size(0);
   const auto f32 = means.options();
   const auto i32 = f32.dtype(torch::kInt32);
@@ -262,8 +327,7 @@ std::vector<torch::Tensor> rasterize_contributions(
     VIRGI_CUDA_CHECK(launch_project_compact(
         N, Vr, means.data_ptr<float>(), quats.data_ptr<float>(), scales.data_ptr<float>(),
         opacities.data_ptr<float>(), Ks.data_ptr<float>(), viewmats.data_ptr<float>(), d_views,
-        d_sat, cap, reinterpret_cast<float4*>(c_rec0.data_ptr<float>()),
-        reinterpret_cast<float4*>(c_rec1.data_ptr<float>()), c_counts.data_ptr<int>(),
+        d_sat, cap, float4_ptr(c_rec0), float4_ptr(c_rec1), c_counts.data_ptr<int>(),
         c_fids.data_ptr<int>(), c_pos.data_ptr<int>(), d_counters, stream));
     // synchronisation 1 of 2 (must stay): the compact arrays, the sorts (cub takes host sizes)
     // and the tile keys are sized by these two counts
@@ -310,19 +374,17 @@ std::vector<torch::Tensor> rasterize_contributions(
     auto iota = torch::empty({Uc}, i32);
     bin_rec = torch::empty({Uc, 4}, f32);
     VIRGI_CUDA_CHECK(launch_gather_compact(
-        Uc, N, perm.data_ptr<int>(), reinterpret_cast<const float4*>(c_rec0.data_ptr<float>()),
-        reinterpret_cast<const float4*>(c_rec1.data_ptr<float>()), c_counts.data_ptr<int>(),
-        fids.data_ptr<int>(), reinterpret_cast<float4*>(rec0.data_ptr<float>()),
-        reinterpret_cast<float4*>(rec1.data_ptr<float>()), cnts.data_ptr<int>(),
-        mark.data_ptr<uint8_t>(), depth_key.data_ptr<int>(), iota.data_ptr<int>(),
-        reinterpret_cast<float4*>(bin_rec.data_ptr<float>()), stream));
+        Uc, N, perm.data_ptr<int>(), float4_ptr(c_rec0), float4_ptr(c_rec1),
+        c_counts.data_ptr<int>(), fids.data_ptr<int>(), float4_ptr(rec0), float4_ptr(rec1),
+        cnts.data_ptr<int>(), mark.data_ptr<uint8_t>(), depth_key.data_ptr<int>(),
+        iota.data_ptr<int>(), float4_ptr(bin_rec), stream));
     // depth bits are non-negative ints (depth >= the near plane > 0): 31 key bits
     auto depth_sorted = torch::empty_like(depth_key);
     sort_by(Uc, 31, depth_key, depth_sorted, iota, by_depth);
   }
   c_rec0 = c_rec1 = c_counts = c_fids = c_pos = torch::Tensor();
-  const float4* r0 = reinterpret_cast<const float4*>(rec0.data_ptr<float>());
-  const float4* r1 = reinterpret_cast<const float4*>(rec1.data_ptr<float>());
+  const float4* r0 = float4_ptr(rec0);
+  const float4* r1 = float4_ptr(rec1);
 
   // Bin into requested tiles in depth order, then a stable sort by slot: each slot's list comes
   // out by depth, ties in (view, Gaussian) order. (Two short sorts: the depth sort runs over the
@@ -334,9 +396,8 @@ std::vector<torch::Tensor> rasterize_contributions(
     auto keys = torch::empty({n_isect}, i32);
     auto vals = torch::empty({n_isect}, i32);
     VIRGI_CUDA_CHECK(launch_bin(Uc, by_depth.data_ptr<int>(), counts_by_depth.data_ptr<int>(),
-                                cum.data_ptr<int64_t>(),
-                                reinterpret_cast<const float4*>(bin_rec.data_ptr<float>()), d_views,
-                                d_slots, keys.data_ptr<int>(), vals.data_ptr<int>(), stream));
+                                cum.data_ptr<int64_t>(), float4_ptr(bin_rec), d_views, d_slots,
+                                keys.data_ptr<int>(), vals.data_ptr<int>(), stream));
     auto slots_sorted = torch::empty_like(keys);
     int slot_bits = 1;
     while ((int64_t{1} << slot_bits) < plan.num_slots) ++slot_bits;
@@ -357,9 +418,8 @@ std::vector<torch::Tensor> rasterize_contributions(
     VIRGI_CUDA_CHECK(launch_raster(kSingle, plan.num_units, d_units, d_items, d_views, iw, ih,
                                    ranges.data_ptr<int>(), sorted_vals.data_ptr<int>(), r0, r1,
                                    px_count.data_ptr<int>(), transmittance.data_ptr<float>(),
-                                   nullptr, reinterpret_cast<int2*>(padded.data_ptr<int>()),
-                                   mark.data_ptr<uint8_t>(), pcap, stream, nullptr, nullptr,
-                                   d_counters + kCtrMaxCount));
+                                   nullptr, int2_ptr(padded), mark.data_ptr<uint8_t>(), pcap,
+                                   stream, nullptr, nullptr, d_counters + kCtrMaxCount));
   } else {
     // deferred lists keep, per unit, the list elements that matter to its pixels (when every
     // slot has one unit, as for whole images: the kept elements then fit the slot's range)
@@ -378,6 +438,25 @@ std::vector<torch::Tensor> rasterize_contributions(
   auto meta = torch::tensor({plan.units_at, plan.items_at, plan.views_at,
                              static_cast<int64_t>(plan.num_units), item_w, item_h},
                             torch::TensorOptions().dtype(torch::kInt64));
+  // The U contributing (view, Gaussian) pairs (the marked ones, ascending in view * N + gaussian:
+  // the compact arrays' order) as views, Gaussians and depths, written when fill says so; and the
+  // first n elements of the tile lists as pair ranks. rank: the marks' inclusive scan.
+  auto pairs_of = [&](int64_t U, const torch::Tensor& rank, bool fill) {
+    std::array<torch::Tensor, 3> out{torch::empty({U}, i64), torch::empty({U}, i64),
+                                     torch::empty({U}, f32)};
+    if (fill)
+      VIRGI_CUDA_CHECK(launch_pairs(Uc, mark.data_ptr<uint8_t>(), rank.data_ptr<int>(), N,
+                                    fids.data_ptr<int>(), d_views, r0, out[0].data_ptr<int64_t>(),
+                                    out[1].data_ptr<int64_t>(), out[2].data_ptr<float>(), stream));
+    return out;
+  };
+  auto list_pair_of = [&](int64_t n, const torch::Tensor& rank) {
+    auto out = torch::empty({n}, i32);
+    if (n > 0)
+      VIRGI_CUDA_CHECK(launch_list_pair(n, sorted_vals.data_ptr<int>(), mark.data_ptr<uint8_t>(),
+                                        rank.data_ptr<int>(), out.data_ptr<int>(), stream));
+    return out;
+  };
   if (deferred) {
     // Pairs and the tile lists as pair ranks; the entries themselves are not stored.
     int64_t U = 0;
@@ -386,21 +465,11 @@ std::vector<torch::Tensor> rasterize_contributions(
       rank = torch::cumsum(mark.narrow(0, 0, Uc), 0, torch::kInt32);
       U = rank[-1].item<int>();
     }
-    auto pair_view = torch::empty({U}, i64);
-    auto pair_gaussian = torch::empty({U}, i64);
-    auto pair_depth = torch::empty({U}, f32);
-    auto list_pair = torch::empty({n_isect}, i32);
-    if (U > 0)
-      VIRGI_CUDA_CHECK(launch_pairs(Uc, mark.data_ptr<uint8_t>(), rank.data_ptr<int>(), N,
-                                    fids.data_ptr<int>(), d_views, r0, pair_view.data_ptr<int64_t>(),
-                                    pair_gaussian.data_ptr<int64_t>(), pair_depth.data_ptr<float>(),
-                                    stream));
-    if (n_isect > 0)
-      VIRGI_CUDA_CHECK(launch_list_pair(n_isect, sorted_vals.data_ptr<int>(), mark.data_ptr<uint8_t>(),
-                                        rank.data_ptr<int>(), list_pair.data_ptr<int>(), stream));
+    const auto pairs = pairs_of(U, rank, U > 0);
+    auto list_pair = list_pair_of(n_isect, rank);
     auto none_i = torch::empty({0}, i32);
     return {none_i, none_i, torch::empty({0}, f32), transmittance, valid, torch::empty({0}, i64),
-            pair_view, pair_gaussian, pair_depth, dev, meta, ranges, list_pair,
+            pairs[0], pairs[1], pairs[2], dev, meta, ranges, list_pair,
             px_count, sorted_vals, rec0, rec1, rank, keep_list, keep_end};
   }
   int64_t M = 0, max_count = 0;
@@ -438,8 +507,7 @@ std::vector<torch::Tensor> rasterize_contributions(
     VIRGI_CUDA_CHECK(launch_raster(kFill, plan.num_units, d_units, d_items, d_views, iw, ih,
                                    ranges.data_ptr<int>(), sorted_vals.data_ptr<int>(), r0, r1,
                                    nullptr, nullptr, offsets.data_ptr<int64_t>(),
-                                   reinterpret_cast<int2*>(packed.data_ptr<int>()),
-                                   mark.data_ptr<uint8_t>(), 0, stream));
+                                   int2_ptr(packed), mark.data_ptr<uint8_t>(), 0, stream));
   }
 
   // Distinct (view, Gaussian) pairs, ascending in view * N + gaussian (the compact arrays are
@@ -453,55 +521,30 @@ std::vector<torch::Tensor> rasterize_contributions(
       U = rank[-1].item<int>();
     }
   }
-  auto pair_view = torch::empty({U}, i64);
-  auto pair_gaussian = torch::empty({U}, i64);
-  auto pair_depth = torch::empty({U}, f32);
+  const auto pairs = pairs_of(U, rank, M > 0);
   auto pixel = torch::empty({M}, i32);
   auto pair = torch::empty({M}, i32);
   auto weight = torch::empty({M}, f32);
   if (M > 0) {
-    VIRGI_CUDA_CHECK(launch_pairs(Uc, mark.data_ptr<uint8_t>(), rank.data_ptr<int>(), N,
-                                  fids.data_ptr<int>(), d_views, r0, pair_view.data_ptr<int64_t>(),
-                                  pair_gaussian.data_ptr<int64_t>(), pair_depth.data_ptr<float>(),
-                                  stream));
     if (padded_ok) {
-      VIRGI_CUDA_CHECK(launch_split_padded(P, pcap, offsets.data_ptr<int64_t>(),
-                                           reinterpret_cast<const int2*>(padded.data_ptr<int>()),
+      VIRGI_CUDA_CHECK(launch_split_padded(P, pcap, offsets.data_ptr<int64_t>(), int2_ptr(padded),
                                            rank.data_ptr<int>(), pixel.data_ptr<int>(),
                                            pair.data_ptr<int>(), weight.data_ptr<float>(), stream));
     } else {
-      VIRGI_CUDA_CHECK(launch_split(M, reinterpret_cast<const int2*>(packed.data_ptr<int>()),
-                                    rank.data_ptr<int>(), pair.data_ptr<int>(),
-                                    weight.data_ptr<float>(), stream));
+      VIRGI_CUDA_CHECK(launch_split(M, int2_ptr(packed), rank.data_ptr<int>(),
+                                    pair.data_ptr<int>(), weight.data_ptr<float>(), stream));
       VIRGI_CUDA_CHECK(launch_pixel_fill(P, offsets.data_ptr<int64_t>(), pixel.data_ptr<int>(), stream));
     }
   }
   // The tile lists as pair ranks, for the per-tile gradient of the fused composite.
-  auto list_pair = torch::empty({M > 0 ? n_isect : 0}, i32);
-  if (M > 0)
-    VIRGI_CUDA_CHECK(launch_list_pair(n_isect, sorted_vals.data_ptr<int>(), mark.data_ptr<uint8_t>(),
-                                      rank.data_ptr<int>(), list_pair.data_ptr<int>(), stream));
+  auto list_pair = list_pair_of(M > 0 ? n_isect : 0, rank);
   // (The pinned host buffer's allocator waits on the upload's event before reusing it.)
   auto none_i = torch::empty({0}, i32);
   auto none_f = torch::empty({0, 4}, f32);
-  return {pixel,         pair,      weight, transmittance, valid,  offsets, pair_view,
-          pair_gaussian, pair_depth, dev,    meta,          ranges, list_pair,
-          none_i,        none_i,     none_f, none_f,        none_i, none_i,  none_i};
+  return {pixel,    pair,     weight, transmittance, valid,  offsets, pairs[0],
+          pairs[1], pairs[2], dev,    meta,          ranges, list_pair,
+          none_i,   none_i,   none_f, none_f,        none_i, none_i,  none_i};
 }
-
-namespace {
-
-void check_f32(const torch::Tensor& t, const char* name) {
-  TORCH_CHECK(t.is_cuda() && t.is_contiguous() && t.scalar_type() == torch::kFloat32, name,
-              " must be a contiguous float32 CUDA tensor");
-}
-
-void check_i32(const torch::Tensor& t, const char* name) {
-  TORCH_CHECK(t.is_cuda() && t.is_contiguous() && t.scalar_type() == torch::kInt32, name,
-              " must be a contiguous int32 CUDA tensor");
-}
-
-}  // namespace
 
 // Images [P, D] = sum over each pixel's entries of weight * colors[pair] (+ T * background).
 torch::Tensor composite_forward(torch::Tensor colors, torch::Tensor pair, torch::Tensor weight,
@@ -514,23 +557,17 @@ torch::Tensor composite_forward(torch::Tensor colors, torch::Tensor pair, torch:
   TORCH_CHECK(pixel_offsets.is_cuda() && pixel_offsets.scalar_type() == torch::kInt64,
               "pixel_offsets must be int64 on the GPU");
   TORCH_CHECK(colors.dim() == 2, "colors must be [U, D]");
-  const c10::cuda::CUDAGuard guard(colors.device());
+  const OnDevice on(colors);
   const int64_t P = transmittance.size(0);
   TORCH_CHECK(pixel_offsets.numel() == P + 1, "pixel_offsets must hold P + 1 entries");
   const int D = static_cast<int>(colors.size(1));
-  const float* bg = nullptr;
-  if (background.numel() > 0) {
-    check_f32(background, "background");
-    TORCH_CHECK(background.numel() == D, "background must hold one value per channel");
-    bg = background.data_ptr<float>();
-  }
+  const float* bg = background_ptr(background, D);
   auto out = torch::empty({P, D}, colors.options());
   VIRGI_CUDA_CHECK(launch_composite_forward(P, D, colors.data_ptr<float>(), pair.data_ptr<int>(),
                                             weight.data_ptr<float>(),
                                             pixel_offsets.data_ptr<int64_t>(),
                                             transmittance.data_ptr<float>(), bg,
-                                            out.data_ptr<float>(),
-                                            c10::cuda::getCurrentCUDAStream()));
+                                            out.data_ptr<float>(), on.stream));
   return out;
 }
 
@@ -541,7 +578,7 @@ torch::Tensor composite_backward(torch::Tensor grad_images, torch::Tensor pixel,
   check_i32(pixel, "pixel");
   check_i32(pair, "pair");
   check_f32(weight, "weight");
-  const c10::cuda::CUDAGuard guard(grad_images.device());
+  const OnDevice on(grad_images);
   const int64_t M = weight.size(0);
   const int D = static_cast<int>(grad_images.size(1));
   // 3 channels accumulate in rows of 4 (one vector atomic per entry), then drop the padding
@@ -550,8 +587,7 @@ torch::Tensor composite_backward(torch::Tensor grad_images, torch::Tensor pixel,
   VIRGI_CUDA_CHECK(launch_composite_backward(M, D, grad_images.data_ptr<float>(),
                                              pixel.data_ptr<int>(), pair.data_ptr<int>(),
                                              weight.data_ptr<float>(),
-                                             grad_colors.data_ptr<float>(),
-                                             c10::cuda::getCurrentCUDAStream()));
+                                             grad_colors.data_ptr<float>(), on.stream));
   return row == D ? grad_colors : grad_colors.narrow(1, 0, D).contiguous();
 }
 
@@ -566,44 +602,19 @@ torch::Tensor composite_backward_tiles(torch::Tensor grad_images, torch::Tensor 
   check_i32(plan, "plan");
   check_i32(ranges, "ranges");
   check_i32(list_pair, "list_pair");
-  TORCH_CHECK(meta.device().is_cpu() && meta.scalar_type() == torch::kInt64 && meta.numel() == 6,
-              "meta must be 6 cpu int64");
-  const c10::cuda::CUDAGuard guard(grad_images.device());
+  const Units u = units_of(plan, meta);
+  const OnDevice on(grad_images);
   const int D = static_cast<int>(grad_images.size(1));
   TORCH_CHECK(D == 1 || D == 3 || D == 4, "composite_backward_tiles handles 1, 3 or 4 channels");
-  auto m = meta.accessor<int64_t, 1>();
   auto grad_colors = torch::zeros({num_pairs, D}, grad_images.options());
   if (weight.numel() == 0) return grad_colors;
-  const int* pl = plan.data_ptr<int>();
   VIRGI_CUDA_CHECK(launch_composite_backward_tiles(
-      static_cast<int>(m[3]), D, pl + m[0], pl + m[1], pl + m[2], static_cast<int>(m[4]),
-      static_cast<int>(m[5]), ranges.data_ptr<int>(), list_pair.data_ptr<int>(),
-      pixel_offsets.data_ptr<int64_t>(), pair.data_ptr<int>(), weight.data_ptr<float>(),
-      grad_images.data_ptr<float>(), grad_colors.data_ptr<float>(),
-      c10::cuda::getCurrentCUDAStream()));
+      u.num_units, D, u.units, u.items, u.views, u.item_w, u.item_h, ranges.data_ptr<int>(),
+      list_pair.data_ptr<int>(), pixel_offsets.data_ptr<int64_t>(), pair.data_ptr<int>(),
+      weight.data_ptr<float>(), grad_images.data_ptr<float>(), grad_colors.data_ptr<float>(),
+      on.stream));
   return grad_colors;
 }
-
-namespace {
-
-struct Units {
-  const int* units;
-  const int* items;
-  const int* views;
-  int num_units, item_w, item_h;
-};
-
-Units units_of(const torch::Tensor& plan, const torch::Tensor& meta) {
-  TORCH_CHECK(plan.is_cuda() && plan.scalar_type() == torch::kInt32, "plan must be int32 on the GPU");
-  TORCH_CHECK(meta.device().is_cpu() && meta.scalar_type() == torch::kInt64 && meta.numel() == 6,
-              "meta must be 6 cpu int64");
-  auto m = meta.accessor<int64_t, 1>();
-  const int* pl = plan.data_ptr<int>();
-  return {pl + m[0], pl + m[1], pl + m[2], static_cast<int>(m[3]), static_cast<int>(m[4]),
-          static_cast<int>(m[5])};
-}
-
-}  // namespace
 
 // Deferred lists -> {pixel i32[M], pair i32[M], weight f32[M], pixel_offsets i64[P+1]}: the fill
 // pass of the two-pass path, from the state rasterize_contributions(deferred) returned.
@@ -611,8 +622,8 @@ std::vector<torch::Tensor> materialize_lists(torch::Tensor plan, torch::Tensor m
                                              torch::Tensor ranges, torch::Tensor sorted_vals,
                                              torch::Tensor rec0, torch::Tensor rec1,
                                              torch::Tensor px_count, torch::Tensor rank) {
-  const c10::cuda::CUDAGuard guard(px_count.device());
-  auto stream = c10::cuda::getCurrentCUDAStream();
+  const OnDevice on(px_count);
+  const cudaStream_t stream = on.stream;
   const Units u = units_of(plan, meta);
   const int64_t P = px_count.size(0);
   const auto i32 = px_count.options();
@@ -627,15 +638,12 @@ std::vector<torch::Tensor> materialize_lists(torch::Tensor plan, torch::Tensor m
   auto weight = torch::empty({M}, i32.dtype(torch::kFloat32));
   if (M > 0) {
     auto packed = torch::empty({M, 2}, i32);
-    const auto* r0 = reinterpret_cast<const float4*>(rec0.data_ptr<float>());
-    const auto* r1 = reinterpret_cast<const float4*>(rec1.data_ptr<float>());
     VIRGI_CUDA_CHECK(launch_raster(kFill, u.num_units, u.units, u.items, u.views, u.item_w, u.item_h,
-                                   ranges.data_ptr<int>(), sorted_vals.data_ptr<int>(), r0, r1,
-                                   nullptr, nullptr, offsets.data_ptr<int64_t>(),
-                                   reinterpret_cast<int2*>(packed.data_ptr<int>()), nullptr, 0,
+                                   ranges.data_ptr<int>(), sorted_vals.data_ptr<int>(),
+                                   float4_ptr(rec0), float4_ptr(rec1), nullptr, nullptr,
+                                   offsets.data_ptr<int64_t>(), int2_ptr(packed), nullptr, 0,
                                    stream));
-    VIRGI_CUDA_CHECK(launch_split(M, reinterpret_cast<const int2*>(packed.data_ptr<int>()),
-                                  rank.data_ptr<int>(), pair.data_ptr<int>(),
+    VIRGI_CUDA_CHECK(launch_split(M, int2_ptr(packed), rank.data_ptr<int>(), pair.data_ptr<int>(),
                                   weight.data_ptr<float>(), stream));
     VIRGI_CUDA_CHECK(launch_pixel_fill(P, offsets.data_ptr<int64_t>(), pixel.data_ptr<int>(), stream));
   }
@@ -655,27 +663,18 @@ torch::Tensor deferred_composite_forward(torch::Tensor colors, torch::Tensor bac
   check_i32(sorted_vals, "sorted_vals");
   TORCH_CHECK(colors.dim() == 2 && colors.size(1) >= 1 && colors.size(1) <= 8,
               "deferred composite takes [U, D] colours with D in 1..8");
-  const c10::cuda::CUDAGuard guard(colors.device());
+  const OnDevice on(colors);
   const Units u = units_of(plan, meta);
   const int D = static_cast<int>(colors.size(1));
-  const float* bg = nullptr;
-  torch::Tensor out;
-  if (background.numel() > 0) {
-    check_f32(background, "background");
-    TORCH_CHECK(background.numel() == D, "background must hold one value per channel");
-    bg = background.data_ptr<float>();
-    // pixels of no unit (outside their image) keep T = 1: the background
-    out = transmittance.unsqueeze(1) * background.reshape({1, D});
-  } else {
-    out = torch::zeros({transmittance.size(0), D}, colors.options());
-  }
+  const float* bg = background_ptr(background, D);
+  // pixels of no unit (outside their image) keep T = 1: the background
+  torch::Tensor out = bg ? transmittance.unsqueeze(1) * background.reshape({1, D})
+                         : torch::zeros({transmittance.size(0), D}, colors.options());
+  const Kept kept = kept_of(keep_list, keep_end);
   VIRGI_CUDA_CHECK(launch_deferred_forward(
       u.num_units, D, u.units, u.items, u.views, u.item_w, u.item_h, ranges.data_ptr<int>(),
-      sorted_vals.data_ptr<int>(), list_pair.data_ptr<int>(),
-      reinterpret_cast<const float4*>(rec0.data_ptr<float>()),
-      reinterpret_cast<const float4*>(rec1.data_ptr<float>()), colors.data_ptr<float>(), bg,
-      out.data_ptr<float>(), keep_list.numel() ? keep_list.data_ptr<int>() : nullptr,
-      keep_list.numel() ? keep_end.data_ptr<int>() : nullptr, c10::cuda::getCurrentCUDAStream()));
+      sorted_vals.data_ptr<int>(), list_pair.data_ptr<int>(), float4_ptr(rec0), float4_ptr(rec1),
+      colors.data_ptr<float>(), bg, out.data_ptr<float>(), kept.list, kept.end, on.stream));
   return out;
 }
 
@@ -688,19 +687,18 @@ torch::Tensor deferred_composite_backward(torch::Tensor grad_images, int64_t num
                                           torch::Tensor keep_end) {
   check_f32(grad_images, "grad_images");
   check_i32(list_pair, "list_pair");
-  const c10::cuda::CUDAGuard guard(grad_images.device());
+  const OnDevice on(grad_images);
   const Units u = units_of(plan, meta);
   const int D = static_cast<int>(grad_images.size(1));
   TORCH_CHECK(D >= 1 && D <= 8, "deferred composite takes D in 1..8");
   auto grad_colors = torch::zeros({num_pairs, D}, grad_images.options());
   if (num_pairs == 0) return grad_colors;
+  const Kept kept = kept_of(keep_list, keep_end);
   VIRGI_CUDA_CHECK(launch_deferred_backward(
       u.num_units, D, u.units, u.items, u.views, u.item_w, u.item_h, ranges.data_ptr<int>(),
-      sorted_vals.data_ptr<int>(), list_pair.data_ptr<int>(),
-      reinterpret_cast<const float4*>(rec0.data_ptr<float>()),
-      reinterpret_cast<const float4*>(rec1.data_ptr<float>()), grad_images.data_ptr<float>(),
-      grad_colors.data_ptr<float>(), keep_list.numel() ? keep_list.data_ptr<int>() : nullptr,
-      keep_list.numel() ? keep_end.data_ptr<int>() : nullptr, c10::cuda::getCurrentCUDAStream()));
+      sorted_vals.data_ptr<int>(), list_pair.data_ptr<int>(), float4_ptr(rec0), float4_ptr(rec1),
+      grad_images.data_ptr<float>(), grad_colors.data_ptr<float>(), kept.list, kept.end,
+      on.stream));
   return grad_colors;
 }
 
