@@ -9,7 +9,8 @@ from typing import Annotated
 import tyro
 from rich.console import Console
 
-from virgi_ns.errors import InputError, cli_entry
+from virgi_ns.cli import run_command
+from virgi_ns.errors import InputError
 from virgi_ns.io import load_splat, save_ply, save_spz
 
 
@@ -42,12 +43,8 @@ def run(args: Convert) -> str:
     return f"{args.dst}: {g.summary()}"
 
 
-def main() -> None:
-    print(run(tyro.cli(Convert)))
-
-
 def entrypoint() -> None:
-    cli_entry(main)
+    run_command(Convert, run)
 
 
 if __name__ == "__main__":

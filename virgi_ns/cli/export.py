@@ -13,11 +13,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional
 
-import tyro
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-from virgi_ns.errors import InputError, cli_entry
+from virgi_ns.cli import run_command
+from virgi_ns.errors import InputError
 
 
 @dataclass
@@ -112,12 +112,8 @@ def run(args: Export) -> str:
             f"{secs:.1f} s")
 
 
-def main() -> None:
-    print(run(tyro.cli(Export)))
-
-
 def entrypoint() -> None:
-    cli_entry(main)
+    run_command(Export, run)
 
 
 if __name__ == "__main__":

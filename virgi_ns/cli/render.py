@@ -17,7 +17,8 @@ import torch
 import tyro
 from rich.console import Console
 
-from virgi_ns.errors import InputError, atomic_path, cli_entry
+from virgi_ns.cli import run_command
+from virgi_ns.errors import InputError, atomic_path
 
 OUT_SUFFIXES = (".npy", ".png")
 
@@ -91,12 +92,8 @@ def run(args: Render) -> str:
     return f"{args.out}: {spec.width}x{spec.height} image of {len(g):,} Gaussians"
 
 
-def main() -> None:
-    print(run(tyro.cli(Render)))
-
-
 def entrypoint() -> None:
-    cli_entry(main)
+    run_command(Render, run)
 
 
 if __name__ == "__main__":
