@@ -58,8 +58,8 @@ RULES: Dict[str, RuleArgs] = {
     # rule split the fern into shifted and unshifted leaves). A thin frond's pixels mix its green
     # with the background; the further the shift, the further the rule on a mixed pixel lands from
     # the mix of the shifted frond and the background, which no edit of the scene can produce
-    # (bench/RESULTS.md, session 5: the magenta shift of 200 degrees capped even a per-Gaussian edit
-    # at 35.2 dB, the blue one at 36.7)
+    # (bench/RESULTS.md, "Choosing the fern and cup rules": a 200-degree shift capped even a
+    # per-Gaussian edit lower than this 120-degree one)
     "fern": RuleArgs(h0=60.0, h1=160.0, shift=120.0, s_min=0.12, v_min=0.1),
     # every warm tone -> green: the wooden shelf and the whole cup, beige and print (the cup's beige
     # and the sunlit shelf share hue; thresholds near zero leave no saturation or value edge
@@ -67,7 +67,7 @@ RULES: Dict[str, RuleArgs] = {
     # near-grey wall pixels the low thresholds take in barely move under a hue shift)
     "cup": RuleArgs(h0=0.0, h1=80.0, shift=120.0, s_min=0.02, v_min=0.02),
 }
-# the rules of the previous session (bench/RESULTS.md), measured again beside the new ones (--compare)
+# the earlier rules (bench/RESULTS.md), measured again beside the current ones (--compare)
 EARLIER_RULES: Dict[str, RuleArgs] = {
     # the can's deep blue only: the pale back and parts of the print fall on either side of s = 0.35
     "beercan": RuleArgs(h0=190.0, h1=250.0, shift=150.0, s_min=0.35, v_min=0.15),

@@ -65,7 +65,7 @@ class Args:
     repeats: int = 1
     """Train every method this many times (seeds first_seed, first_seed + 1, ...; the imported-geometry
     rows use that repeat's splatfacto run) and print the mean, spread and paired differences: single
-    runs of either method vary by ~0.4 dB on beercan."""
+    runs of either method vary by a few tenths of a dB on beercan (bench/RESULTS.md, "Training")."""
     first_seed: int = 42
     """Seed of the first repeat (one call can go on where another stopped; see --merge)."""
     merge: List[Path] = field(default_factory=list)

@@ -58,9 +58,9 @@ class EditConfig:
     """Knobs of one edit."""
 
     steps: int = 100
-    """Adam steps. ``virgi-bench accuracy-time`` on beercan (H200, bench/RESULTS.md, photo edit with
-    the original known): propagation and miss PSNR level off from 50-100 steps (45.7 / 34.0 dB at
-    100) and fall slowly beyond 100-150; 100 steps take 0.19 s."""
+    """Adam steps. Where ``virgi-bench accuracy-time`` finds the knee on beercan: propagation and miss
+    PSNR level off by then and fall slowly with more steps (bench/RESULTS.md, "Accuracy against
+    time")."""
     lr: float = 2e-2
     """Learning rate of both heads."""
     seg_width: int = 64
@@ -69,7 +69,7 @@ class EditConfig:
     """Initial output bias of the segmentation head (alpha starts at sigmoid of it)."""
     pixel_batches: int = 4
     """Split the view's pixels into this many random sets and use one per step (1: the whole
-    image every step); 4 is as accurate as 1 on beercan at a third of the step time."""
+    image every step); 4 is as accurate as 1 and cheaper per step (bench/RESULTS.md, "Edit")."""
     seed: int = 0
     """Seeds the segmentation head's initialisation and the pixel sets."""
     unchanged_tol: float = 3.0 / 255.0
@@ -79,15 +79,16 @@ class EditConfig:
     (noise then counts as a change: save edits as PNG)."""
     changed_share: float = 0.5
     """With an ``original`` image: the share of the loss carried by the changed pixels (the rest by
-    the unchanged ones), whatever their numbers; a small edit (2% of the view) would otherwise be
-    outvoted by the pixels asking for no change."""
+    the unchanged ones), whatever their numbers; a small edit would otherwise be outvoted by the
+    many pixels asking for no change."""
     changed_target: Literal["change", "edited"] = "edited"
     """What the changed pixels are fitted to when the unedited image is a photo (``original``):
     ``change``: the current render plus the change the user made (edited - original, clamped to
     [0, 1]), so the photo's detail the model never reproduced is not fitted as part of the edit;
-    ``edited``: the edited image itself (the default: "change" measured 2.3-2.5 dB worse on the
-    miss figure on beercan and fern, bench/RESULTS.md). The same thing for an edited render
-    (original = render); no effect with ``whole_image``."""
+    ``edited``: the edited image itself (the default: with ``change`` the photo's colour delta
+    lands on the render's base colour where the two differ, and the miss figure is worse on every
+    benchmark scene, bench/RESULTS.md, "What the changed pixels are fitted to"). The same thing
+    for an edited render (original = render); no effect with ``whole_image``."""
     whole_image: bool = False
     """Fit every pixel to the edited image (no original, no edited-render detection)."""
     map_init: bool = True
@@ -100,14 +101,12 @@ class EditConfig:
     to it. No effect when the changed pixels are unknown (``whole_image``, or an edited image that
     matches neither the original nor the render)."""
     map_init_min_share: float = 0.2
-    """The share of the view's pixels an edit must change for ``map_init``. The benchmark's edits
-    change 60% (cup, many colours), 32% (fern) and 8% (beer can) of the edited view. Measured on
-    one set of runs (bench/RESULTS.md, session 5), the cup's edit gained 2.7 dB of propagation PSNR
-    from the map, the fern's neither gained nor lost, and the beer can's lost 0.6: when the map
-    already gives the edit its colour, the segmentation head fits the edited view's pixels
-    literally and spreads less over the rest of the object (on the CPU test scene a 7x7-pixel
-    patch then recolours only its own spot). Session 6 confirmed the gated default on two more run
-    sets (without the map, cup's recolour figure failed on both)."""
+    """The share of the view's pixels an edit must change for ``map_init``: chosen between the
+    benchmark's edits, where the map helps the large, many-coloured one (cup), is neutral on the
+    middle one (fern) and hurts the small one (beer can), bench/RESULTS.md, "The colour-map start".
+    When the map already gives a small edit its colour, the segmentation head fits the edited view's
+    pixels literally and spreads less over the rest of the object (on the CPU test scene a 7x7-pixel
+    patch then recolours only its own spot)."""
     render_match_min: float = 0.5
     """Without an ``original``: when at least this share of the edited image's pixels equal the
     current render (within ``unchanged_tol``), the image is an edited render and only the other
