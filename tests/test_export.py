@@ -162,7 +162,7 @@ def test_frame_round_trip_with_the_colmap_axis_swap():
     A = A * torch.sign(torch.linalg.det(A))
     T = torch.cat([A, torch.randn(3, 1, generator=gen, dtype=torch.float64)], dim=1)
     frame = CaptureFrame.from_dataparser(T, 0.37)
-    # what the datamanager hands an import is the dataparser transform; nscams moves the splat
+    # what the datamanager hands an import is the dataparser transform; frames.transform_gaussians moves the splat
     fm, fs, fq = transform_gaussians(means, scales, quats, T, 0.37)
     bm, bs, bq = frame.gaussians_to_capture(fm, fs, fq)
     torch.testing.assert_close(bm, means, atol=1e-12, rtol=0)
