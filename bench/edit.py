@@ -259,9 +259,9 @@ def bench_scene(args: Args, scene: str) -> List[dict]:
 def bench_million(repeats: int, steps: Optional[int], n: int = 1_000_000, width: int = 1280, height: int = 720,
                   device: str = "cuda") -> dict:
     """Setup and step times of one edit on ``n`` random Gaussians filling a 1280x720 view."""
+    from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
     from virgi_ns.edit.engine import EditConfig, EditEngine
     from virgi_ns.edit.scene import FrozenScene
-    from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
     from virgi_ns.raster import Cameras
 
     dev = torch.device(device)

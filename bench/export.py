@@ -150,16 +150,16 @@ class _Scaled:
 def main(args: Args) -> None:
     warnings.filterwarnings("ignore", category=FutureWarning)
     from virgi_ns.cli.export import load_run
+    from virgi_ns.cli.render import render_image
     from virgi_ns.edit.engine import EditConfig, EditEngine
+    from virgi_ns.edit.recolor import RecolorRule, recolor
     from virgi_ns.edit.scene import FrozenScene
     from virgi_ns.edit.stack import EditStack
+    from virgi_ns.io import load_splat
+    from virgi_ns.io.camera_json import CameraSpec
+    from virgi_ns.nerfstudio.cameras import raster_cameras
     from virgi_ns.nerfstudio.export import BakeConfig, bake, bake_pipeline, write_splat
     from virgi_ns.nerfstudio.frames import CaptureFrame
-    from virgi_ns.io import load_splat
-    from virgi_ns.nerfstudio.cameras import raster_cameras
-    from virgi_ns.edit.recolor import RecolorRule, recolor
-    from virgi_ns.cli.render import render_image
-    from virgi_ns.io.camera_json import CameraSpec
 
     use_gsplat = args.gsplat and torch.cuda.is_available()
     args.out.mkdir(parents=True, exist_ok=True)

@@ -15,9 +15,9 @@ from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
+from virgi_ns.colour.field import ColorFieldConfig
 from virgi_ns.nerfstudio import compat  # noqa: F401  (checkpoint-loading work-arounds for torch >= 2.6)
 from virgi_ns.nerfstudio.datamanager import VirgiDataManagerConfig
-from virgi_ns.colour.field import ColorFieldConfig
 from virgi_ns.nerfstudio.model import VirgiModelConfig
 from virgi_ns.nerfstudio.pipeline import VirgiPipelineConfig
 

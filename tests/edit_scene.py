@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import torch
 
-from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField, view_directions
+from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.raster import Cameras
 
 BLUE, GREEN, YELLOW = 0, 1, 2

@@ -16,9 +16,9 @@ from PIL import Image
 
 from virgi_ns.data.bundle import BUNDLED_SCENE, BundleDataParserConfig, read_points_ply
 from virgi_ns.data.make_bundle import shrink_bundle
+from virgi_ns.edit.recolor import RecolorRule, rule_mask
 from virgi_ns.gaussians import Gaussians
 from virgi_ns.io import load_splat, save_ply
-from virgi_ns.edit.recolor import RecolorRule, rule_mask
 
 warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
 REPO = Path(__file__).resolve().parents[1]

@@ -14,11 +14,11 @@ import edit_scene as es  # noqa: E402
 
 from virgi_ns.edit.engine import EditConfig, EditEngine  # noqa: E402
 from virgi_ns.edit.pixels import SparseRender, pixel_batches  # noqa: E402
+from virgi_ns.edit.recolor import RecolorRule, recolor  # noqa: E402
 from virgi_ns.edit.scene import render_view  # noqa: E402
 from virgi_ns.edit.stack import Edit, EditStack  # noqa: E402
 from virgi_ns.errors import InputError  # noqa: E402
 from virgi_ns.raster import Request, composite  # noqa: E402
-from virgi_ns.edit.recolor import RecolorRule, recolor  # noqa: E402
 
 BLUE_TO_RED = RecolorRule(h0=190, h1=260, shift=135, s_min=0.3, v_min=0.1)
 EDIT_VIEW, HELD_OUT = 0, (1, 7)

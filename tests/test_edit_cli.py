@@ -16,8 +16,8 @@ from PIL import Image
 from rich.console import Console
 
 from virgi_ns.cli.edit import Apply, Disable, Enable, Import, List, Reset, Specular, Undo, run
-from virgi_ns.errors import InputError
 from virgi_ns.edit.recolor import RecolorRule, recolor
+from virgi_ns.errors import InputError
 
 from viewer_run import train_tiny
 from virgi_scene import make_scene

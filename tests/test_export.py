@@ -15,14 +15,14 @@ import pytest
 import torch
 
 from test_model_train import build, scene, train  # noqa: F401  (fixture re-exported)
-from virgi_ns.io.camera_json import CameraSpec
 from virgi_ns.cli.render import render_image
+from virgi_ns.colour.sh import sh_basis
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead
 from virgi_ns.errors import InputError
-from virgi_ns.nerfstudio.export import BakeConfig, bake_pipeline, fibonacci_sphere, fit_sh
 from virgi_ns.gaussians import SH_C0
+from virgi_ns.io.camera_json import CameraSpec
+from virgi_ns.nerfstudio.export import BakeConfig, bake_pipeline, fibonacci_sphere, fit_sh
 from virgi_ns.nerfstudio.frames import CaptureFrame, frame_of_model, rotmat_to_quat, transform_gaussians
-from virgi_ns.colour.sh import sh_basis
 from virgi_scene import Scene, axis_angle, lobe, rotated_copy
 
 warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
@@ -250,8 +250,8 @@ def test_export_with_an_edit_and_without_specular(fitted, rscene):
 
 def test_bake_without_cameras_uses_the_sphere_and_rejects_bad_strength(fitted, rscene, tmp_path):
     scene = rscene
-    from virgi_ns.nerfstudio.export import bake, export_model
     from virgi_ns.io import load_splat
+    from virgi_ns.nerfstudio.export import bake, export_model
 
     pipeline = fitted
     frame = CaptureFrame.from_pipeline(pipeline)

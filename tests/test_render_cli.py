@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import torch
 
-from virgi_ns.io.camera_json import CameraSpec, parse_camera, read_camera_json, write_camera_json
 from virgi_ns.cli.render import Render, run
+from virgi_ns.colour.sh import sh_colors, view_colors
 from virgi_ns.errors import InputError
 from virgi_ns.gaussians import Gaussians
-from virgi_ns.colour.sh import sh_colors, view_colors
+from virgi_ns.io.camera_json import CameraSpec, parse_camera, read_camera_json, write_camera_json
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_raster_reference import brute_force, look_at  # noqa: E402

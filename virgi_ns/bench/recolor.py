@@ -32,8 +32,8 @@ import torch
 import tyro
 from rich.console import Console
 
-from virgi_ns.errors import InputError, atomic_path, cli_entry
 from virgi_ns.edit.recolor import RecolorRule, recolor
+from virgi_ns.errors import InputError, atomic_path, cli_entry
 
 
 # ---------------------------------------------------------------------------- options

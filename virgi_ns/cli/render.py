@@ -41,8 +41,8 @@ class Render:
 
 def render_image(g, spec, backend: str = "auto", background=(0.0, 0.0, 0.0), device=None) -> np.ndarray:
     """HxWx3 float32 image of Gaussians ``g`` seen by camera ``spec`` (a CameraSpec)."""
-    from virgi_ns.raster import Request, composite, rasterize
     from virgi_ns.colour.sh import view_colors
+    from virgi_ns.raster import Request, composite, rasterize
 
     if device is None:
         device = torch.device("cuda" if backend != "reference" and torch.cuda.is_available() else "cpu")
@@ -65,8 +65,8 @@ def run(args: Render) -> str:
         raise InputError(f"output {args.out} must end in .npy or .png")
     if not all(np.isfinite(args.background)):
         raise InputError(f"--background must be finite numbers, got {args.background}")
-    from virgi_ns.io.camera_json import read_camera_json
     from virgi_ns.io import load_splat
+    from virgi_ns.io.camera_json import read_camera_json
 
     spec = read_camera_json(args.camera)
     if args.backend == "cuda" and not torch.cuda.is_available():

@@ -34,8 +34,9 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from virgi_ns.nerfstudio import compat  # noqa: F401  (checkpoint-loading work-arounds; imported by entry-point discovery)
 from virgi_ns.errors import InputError
+# the checkpoint-loading work-arounds, in place once entry-point discovery imports this dataparser
+from virgi_ns.nerfstudio import compat  # noqa: F401
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
