@@ -423,6 +423,55 @@ def test_changed_pixels_target_the_render_plus_the_change(world):
         EditEngine(S.scene, cam, edited, cfg=cfg, original=photo)
 
 
+def test_transfer_target_moves_the_render_by_the_change_in_logits(world):
+    """``changed_target="transfer"``: a changed pixel's target is the render moved by the user's
+    change as a logit shift (colours clamped to [0.02, 0.98]); the others keep the render."""
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    render = world["before"][EDIT_VIEW]["rgb"]
+    photo = (render * 0.9 + 0.05).clamp(0, 1)
+    edited, _ = recolor(photo, BLUE_TO_RED)
+    changed = (edited - photo).abs().amax(-1) > EditConfig().unchanged_tol
+    eng = EditEngine(S.scene, cam, edited, cfg=EditConfig(pixel_batches=1, changed_target="transfer"),
+                     original=photo)
+    assert eng.mode.endswith("render + logit change)")
+    lg = lambda x: torch.log(x.clamp(0.02, 0.98)) - torch.log1p(-x.clamp(0.02, 0.98))  # noqa: E731
+    expected = torch.where(changed[..., None], torch.sigmoid(lg(render) + lg(edited) - lg(photo)), render)
+    torch.testing.assert_close(eng.batches[0].target.reshape(render.shape), expected, atol=2e-5, rtol=0)
+
+
+def test_staged_recipe_segments_first_and_its_edit_renders_what_it_fitted(world):
+    """``recipe="staged"``: the segmentation is a classifier of the view's Gaussians, fixed while the
+    layer trains; the saved edit's head gives the same alpha at render time, high on the Gaussians
+    that mostly land on changed pixels and low on the others."""
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    cfg = EditConfig(recipe="staged", seg_samples=2048, seg_steps=150)
+    eng = EditEngine(S.scene, cam, world["edited"], EditStack(S.scene.fingerprint()), cfg)
+    seg_before = [p.detach().clone() for p in eng.seg.parameters()]
+    edit, _ = eng.fit()
+    assert edit.info["recipe"] == "staged" and edit.info["start"] == "colour map"
+    for a, b in zip(seg_before, eng.seg.parameters()):  # the layer's steps leave the segmentation alone
+        torch.testing.assert_close(a, b, atol=0, rtol=0)
+    alpha = edit.alpha(eng.feats, eng.h_diff)
+    torch.testing.assert_close(alpha, eng.alpha_fixed, atol=1e-6, rtol=0)
+    # an independent label: the share of each visible Gaussian's weight on the changed pixels
+    c = eng.contrib
+    changed = (world["edited"] - world["before"][EDIT_VIEW]["rgb"]).abs().amax(-1).reshape(-1) > 3 / 255
+    U = eng.gaussians.numel()
+    w = c.weight.detach()
+    mass = torch.zeros(U).index_add_(0, c.pair.long(), w)
+    share = torch.zeros(U).index_add_(0, c.pair.long(), w * changed[c.pixel.long()].float()) / mass.clamp_min(1e-12)
+    clear_in, clear_out = (share > 0.9) & (mass > 0.5), (share < 0.1) & (mass > 0.5)
+    assert float(alpha[clear_in].mean()) > 0.9 and float(alpha[clear_out].mean()) < 0.1
+    # a whole-image fit knows no changed pixels: the joint recipe runs instead
+    eng = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(recipe="staged", whole_image=True, steps=2))
+    assert eng.fit()[0].info["recipe"] == "joint"
+    for bad in ({"recipe": "both"}, {"seg_prior_share": 1.0}, {"seg_samples": 1}, {"seg_steps": -1}):
+        with pytest.raises(ValueError):
+            EditConfig(**bad)
+
+
 def test_a_small_edit_is_not_outvoted_by_the_unchanged_pixels(world):
     """A user recolours a 7x7 patch of the blue object (under 1% of the view). With the original
     known, the changed pixels carry half the loss (``changed_share``): the whole object turns red in

@@ -29,6 +29,13 @@ takes the current render's logits to the changed pixels' (least squares,
 colours (a hue shift of 120 degrees is a channel permutation, exactly such a map) starts where
 100 steps from the base layer do not reach.
 
+That is the ``joint`` recipe (the paper's: both heads on the pixel loss). The ``staged`` recipe
+(``EditConfig.recipe``) trains the segmentation first, as a classifier of the view's Gaussians
+labelled by where their weight lands (changed pixels or not), so a part of another colour inside a
+recoloured object is not outvoted by the object around it; it then fits the layer, from the colour
+map, with the segmentation fixed. ``changed_target="transfer"`` fits the changed pixels to the
+render moved by the user's change in logits, instead of to the edited photo's own pixels.
+
 The result is an :class:`~virgi_ns.edit.stack.Edit` for the :class:`EditStack`. The engine reads
 the model through a :class:`~virgi_ns.edit.scene.FrozenScene`; the view's pixels are split into
 sparse batches by :mod:`virgi_ns.edit.pixels`.
@@ -81,10 +88,13 @@ class EditConfig:
     """With an ``original`` image: the share of the loss carried by the changed pixels (the rest by
     the unchanged ones), whatever their numbers; a small edit would otherwise be outvoted by the
     many pixels asking for no change."""
-    changed_target: Literal["change", "edited"] = "edited"
+    changed_target: Literal["change", "transfer", "edited"] = "edited"
     """What the changed pixels are fitted to when the unedited image is a photo (``original``):
     ``change``: the current render plus the change the user made (edited - original, clamped to
     [0, 1]), so the photo's detail the model never reproduced is not fitted as part of the edit;
+    ``transfer``: the same change as a shift of logits, ``sigmoid(logit(render) + logit(edited) -
+    logit(original))`` (colours clamped to [0.02, 0.98]), which keeps the render's colour where the
+    change saturates;
     ``edited``: the edited image itself (the default: with ``change`` the photo's colour delta
     lands on the render's base colour where the two differ, and the miss figure is worse on every
     benchmark scene, bench/RESULTS.md, "What the changed pixels are fitted to"). The same thing
@@ -111,14 +121,41 @@ class EditConfig:
     """Without an ``original``: when at least this share of the edited image's pixels equal the
     current render (within ``unchanged_tol``), the image is an edited render and only the other
     pixels are fitted to it (as with an original); otherwise every pixel is."""
+    recipe: Literal["joint", "staged"] = "joint"
+    """How the two heads are fitted. ``joint`` (the paper's recipe): both heads trained together on
+    the pixel loss. ``staged``: the segmentation first, as a classifier of which Gaussians the edit
+    changed (each visible Gaussian labelled by the share of its pixel weight on changed pixels and
+    trusted in proportion to its weight and to how clear that share is; the two classes weigh the
+    same, so a part of another colour inside a recoloured object is not outvoted by the object),
+    then the copied layer, from the colour map of the changed pixels, on the pixel loss with the
+    segmentation fixed. Needs the changed pixels (a whole-image fit falls back to ``joint``)."""
+    seg_steps: int = 300
+    """``staged``: Adam steps of the segmentation classifier."""
+    seg_lr: float = 1e-2
+    """``staged``: learning rate of the segmentation classifier."""
+    seg_samples: int = 65536
+    """``staged``: Gaussians drawn (by their label weight, half from each class) to train the
+    classifier on; every step uses all of them."""
+    seg_prior_share: float = 0.2
+    """``staged``: the share of the negative class drawn from the whole scene, unlabelled (most of a
+    scene is not part of an edit): keeps the segmentation off what the edited view never showed
+    unless it resembles what the edit changed."""
 
     def __post_init__(self) -> None:
         self.check()
 
     def check(self) -> None:
         """Refuse values no edit can run with (also called by the engine: fields may be set later)."""
-        if self.changed_target not in ("change", "edited"):
-            raise ValueError(f"EditConfig.changed_target must be 'change' or 'edited', got {self.changed_target!r}")
+        if self.changed_target not in ("change", "transfer", "edited"):
+            raise ValueError(f"EditConfig.changed_target must be 'change', 'transfer' or 'edited', "
+                             f"got {self.changed_target!r}")
+        if self.recipe not in ("joint", "staged"):
+            raise ValueError(f"EditConfig.recipe must be 'joint' or 'staged', got {self.recipe!r}")
+        if self.seg_steps < 0 or self.seg_samples < 2:
+            raise ValueError(f"EditConfig: seg_steps must be >= 0 and seg_samples >= 2 "
+                             f"(got {self.seg_steps}, {self.seg_samples})")
+        if not 0.0 <= self.seg_prior_share < 1.0:
+            raise ValueError(f"EditConfig.seg_prior_share must be in [0, 1), got {self.seg_prior_share}")
         if self.steps < 0 or self.pixel_batches < 1:
             raise ValueError(f"EditConfig: steps must be >= 0 and pixel_batches >= 1 "
                              f"(got {self.steps}, {self.pixel_batches})")
@@ -143,6 +180,10 @@ class EditTiming:
 def _sync(dev: torch.device) -> None:
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
+
+
+def _logit(x: Tensor, eps: float = 0.02) -> Tensor:
+    return torch.logit(x.clamp(eps, 1.0 - eps))
 
 
 def logit_colour_map(source: Float[Tensor, "N 3"], target: Float[Tensor, "N 3"], seed: int = 0,
@@ -255,10 +296,13 @@ class EditEngine:
                 if not bool(changed.any()):
                     raise InputError(f"the edited image does not differ from the {ref}: nothing to edit")
                 self.mode = ("changed pixels (original given" +
-                             (", render + change)" if cfg.changed_target == "change" else ", edited image)")
+                             {"change": ", render + change)", "transfer": ", render + logit change)"}.get(
+                                 cfg.changed_target, ", edited image)")
                              if ref == "original" else "changed pixels (an edited render)")
                 if ref == "original" and cfg.changed_target == "change":
                     edited = (current + (edited - original)).clamp(0.0, 1.0)
+                elif ref == "original" and cfg.changed_target == "transfer":
+                    edited = torch.sigmoid(_logit(current) + _logit(edited) - _logit(original))
                 edited = torch.where(changed, edited, current)
                 self.changed_fraction = float(changed.float().mean())
         self.batches = pixel_batches(contrib, edited.reshape(-1, 3), bg, cfg.pixel_batches, cfg.seed,
@@ -267,7 +311,9 @@ class EditEngine:
         head = fld.diffuse_head
         weight, bias = head.weight.detach().float().clone(), head.bias.detach().float().clone()
         self.colour_map = None
-        if cfg.map_init and changed is not None and self.changed_fraction >= cfg.map_init_min_share:
+        self.recipe = cfg.recipe if changed is not None else "joint"
+        staged = self.recipe == "staged"
+        if changed is not None and (staged or (cfg.map_init and self.changed_fraction >= cfg.map_init_min_share)):
             m = changed.reshape(-1)
             self.colour_map = logit_colour_map(current.reshape(-1, 3)[m], edited.reshape(-1, 3)[m], cfg.seed)
             # (fitted on the current render, earlier edits and specular included, but applied to
@@ -280,13 +326,61 @@ class EditEngine:
             self.seg = SegmentationHead(self.feats.shape[1], self.h_diff.shape[1], cfg.seg_width,
                                         cfg.seg_init_bias).to(dev)
         self.seg_input = self.seg.inputs(self.feats, self.h_diff)
-        self.opt = torch.optim.Adam([self.weight, self.bias, *self.seg.parameters()], lr=cfg.lr,
-                                    fused=dev.type == "cuda")
+        self.alpha_fixed: Optional[Tensor] = None
+        if staged:
+            self._fit_segmentation(changed.reshape(-1))
+        trainable = [self.weight, self.bias] + ([] if staged else list(self.seg.parameters()))
+        self.opt = torch.optim.Adam(trainable, lr=cfg.lr, fused=dev.type == "cuda")
+
+    def _fit_segmentation(self, changed: Tensor) -> None:
+        """The ``staged`` recipe's first stage (EditConfig.recipe): the segmentation head trained as
+        a classifier of the view's Gaussians, then its alpha fixed for the layer's steps."""
+        cfg, c = self.cfg, self.contrib
+        dev = self.h_diff.device
+        U = self.gaussians.numel()
+        pair, w = c.pair.to(dev).long(), c.weight.detach().to(dev).float()
+        mass = torch.zeros(U, device=dev).index_add_(0, pair, w)
+        on_changed = torch.zeros(U, device=dev).index_add_(0, pair, w * changed[c.pixel.to(dev).long()].float())
+        share = on_changed / mass.clamp_min(1e-12)
+        trust = mass * (2.0 * share - 1.0).abs()
+        label = share > 0.5
+        pos_w, neg_w = trust * label, trust * ~label
+        for p in self.seg.parameters():
+            p.requires_grad_(False)
+        if float(pos_w.sum()) <= 0.0 or float(neg_w.sum()) <= 0.0:  # one class: a constant alpha
+            torch.nn.init.zeros_(self.seg.l2.weight)
+            torch.nn.init.constant_(self.seg.l2.bias, 8.0 if float(pos_w.sum()) > 0.0 else -8.0)
+            self.alpha_fixed = torch.sigmoid(self.seg.logits_of(self.seg_input))
+            return
+        half = cfg.seg_samples // 2
+        n_prior = int(round(half * cfg.seg_prior_share))
+        g = torch.Generator(device=dev).manual_seed(cfg.seed)
+        idx = torch.cat([torch.multinomial(pos_w, half, replacement=True, generator=g),
+                         torch.multinomial(neg_w, half - n_prior, replacement=True, generator=g)])
+        x, y = self.seg_input[idx], label[idx].float()[:, None]
+        if n_prior > 0:  # unlabelled Gaussians of the whole scene, as weak negatives
+            anywhere = torch.randint(0, self.scene.means.shape[0], (n_prior,), device=dev, generator=g)
+            f, _, h2 = self.scene.gaussian_features(anywhere)
+            x = torch.cat([x, self.seg.inputs(f, h2)])
+            y = torch.cat([y, torch.zeros(n_prior, 1, device=dev)])
+        torch.nn.init.constant_(self.seg.l2.bias, 0.0)
+        params = list(self.seg.parameters())
+        for p in params:
+            p.requires_grad_(True)
+        opt = torch.optim.Adam(params, lr=cfg.seg_lr, fused=dev.type == "cuda")
+        with torch.enable_grad():
+            for _ in range(cfg.seg_steps):
+                opt.zero_grad(set_to_none=True)
+                torch.nn.functional.binary_cross_entropy_with_logits(self.seg.logits_of(x), y).backward()
+                opt.step()
+        for p in params:
+            p.requires_grad_(False)
+        self.alpha_fixed = torch.sigmoid(self.seg.logits_of(self.seg_input))
 
     # ------------------------------------------------------------------ steps
     def colours(self) -> tuple[Tensor, Tensor]:
         """(C' [U,3], alpha [U,1]) of the view's Gaussians under the current heads."""
-        alpha = torch.sigmoid(self.seg.logits_of(self.seg_input))
+        alpha = self.alpha_fixed if self.alpha_fixed is not None else torch.sigmoid(self.seg.logits_of(self.seg_input))
         c_dp = torch.nn.functional.linear(self.h_diff, self.weight, self.bias)
         c_dd = alpha * c_dp + (1.0 - alpha) * self.c_d
         return torch.sigmoid(c_dd + self.k * self.c_s), alpha
@@ -325,7 +419,7 @@ class EditEngine:
         """The current heads as an :class:`Edit` (copies)."""
         times = ({"steps": timing.steps, "setup_s": timing.setup_s, "steps_s": timing.steps_s,
                   "loss": timing.final_loss} if timing is not None else {})
-        info = new_edit_info(k=self.k, changed_fraction=self.changed_fraction, fit=self.mode,
+        info = new_edit_info(k=self.k, changed_fraction=self.changed_fraction, fit=self.mode, recipe=self.recipe,
                              start="colour map" if self.colour_map is not None else "unedited layer", **times)
         return Edit(self.weight.detach().clone(), self.bias.detach().clone(), copy.deepcopy(self.seg).eval(),
                     self.source, self.fingerprint, info)
