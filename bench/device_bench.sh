@@ -4,8 +4,9 @@
 # STAGE picks the work: "train" (builds, then bench/train.py), "rest" (export, edit, demo geometry),
 # or any single one of export|edit|demo. Runs go under /tmp/runs (kept while the machine is warm);
 # tables, JSON, pictures and logs are packed into $OUT. Environment knobs: STEPS, COLOUR_STEPS,
-# DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE, EDIT_SCENES ("beercan fern cup"), EDIT_TIMEOUT,
-# EDIT_REPEATS, EDIT_ARGS (more bench/edit.py flags, e.g. --compare), TRAIN_ARGS (more bench/train.py flags), TRAIN_TIMEOUT.
+# DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE, EDIT_SCENES (rows of the evaluation set), SEED,
+# EDIT_TIMEOUT, EDIT_COLOUR_STEPS, EDIT_ARGS (more bench/edit.py flags, e.g. --variants), TRAIN_ARGS (more bench/train.py
+# flags), TRAIN_TIMEOUT.
 set -o pipefail
 export TORCH_EXTENSIONS_DIR=/tmp/torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
 export PYTHONPATH=/tmp/site:$PWD NERFSTUDIO_METHOD_CONFIGS="virgi=method_configs.virgi:virgi_method"
@@ -50,10 +51,12 @@ if stage train; then
 fi
 CFG=$RUNS/train/runs/beercan-virgi/virgi/run/config.yml
 if stage edit; then
-  el "edit bench"
-  timeout ${EDIT_TIMEOUT:-380} python3 bench/edit.py --data $PWD/.data --scenes ${EDIT_SCENES:-beercan} --train-out $RUNS/train --train-missing --geometry-steps $STEPS \
-    --colour-steps $COLOUR_STEPS --repeats ${EDIT_REPEATS:-5} --out $RUNS/edit ${EDIT_ARGS:-} > $OUT/edit.log 2>&1; el "edit rc=$?"
-  tail -n 30 $OUT/edit.log
+  # the evaluation set (bench/edit.py): EDIT_SCENES picks rows (default all), SEED a run set, EDIT_ARGS more flags
+  el "edit bench: ${EDIT_SCENES:-all scenes}, seed ${SEED:-42}"
+  timeout ${EDIT_TIMEOUT:-560} python3 bench/edit.py --data $PWD/.data ${EDIT_SCENES:+--scenes $EDIT_SCENES} \
+    --train-out $RUNS/edit_runs --seed ${SEED:-42} --geometry-steps $STEPS --colour-steps ${EDIT_COLOUR_STEPS:-1000} \
+    --out $RUNS/edit ${EDIT_ARGS:-} > $OUT/edit.log 2>&1; el "edit rc=$?"
+  tail -n 60 $OUT/edit.log
   (cd $RUNS/edit && tar czf $OUT/edit_results.tgz *.json *.png) 2>/dev/null
 fi
 if stage export; then

@@ -101,6 +101,11 @@ def quiet(cfg, out: Path, name: str) -> None:
     cfg.viewer.quit_on_train_completion = True
 
 
+def _sync() -> None:
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
 def train(cfg) -> tuple[object, float, Path, Dict[str, float]]:
     """Train; returns (trainer, seconds, checkpoint folder, breakdown). The breakdown sums the
     wall time of nerfstudio's train iterations by stage without extra synchronisation (the CPU runs
@@ -119,10 +124,10 @@ def train(cfg) -> tuple[object, float, Path, Dict[str, float]]:
         return out
 
     trainer.train_iteration = timed_iteration  # type: ignore[method-assign]
-    torch.cuda.synchronize()
+    _sync()
     t0 = time.perf_counter()
     trainer.train()
-    torch.cuda.synchronize()
+    _sync()
     total = time.perf_counter() - t0
     return trainer, total, Path(cfg.get_base_dir()) / "nerfstudio_models", breakdown(trainer, steps, total)
 

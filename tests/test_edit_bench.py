@@ -80,9 +80,7 @@ def test_bad_bench_arguments(pipeline, tmp_path):
         run_recolor(Recolor(tmp_path / "x.yml", edit_source="paint"), pipeline, _quiet())
 
 
-def test_edit_bench_compares_variants_on_the_same_run(pipeline, tmp_path, monkeypatch):
-    """``bench/edit.py --compare``: the engine defaults' row, then one row per fit variant and per
-    earlier rule, all measured on the one loaded run (CPU, tiny scene)."""
+def _bench_edit_module(monkeypatch):
     import importlib.util
     from pathlib import Path
 
@@ -90,49 +88,77 @@ def test_edit_bench_compares_variants_on_the_same_run(pipeline, tmp_path, monkey
     bench_edit = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, "bench_edit", bench_edit)  # dataclasses look their module up
     spec.loader.exec_module(bench_edit)
+    return bench_edit
+
+
+def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, tmp_path, monkeypatch):
+    """``bench/edit.py``: a scene of the set, run as a user would edit it (the photo the rule
+    recolours most), then one row per --variants entry on the same loaded run (CPU, tiny scene)."""
+    from virgi_ns.bench.evalset import EvalScene, edit_view
+
+    bench_edit = _bench_edit_module(monkeypatch)
     import virgi_ns.cli.edit as cli_edit
 
     loads = []
     monkeypatch.setattr(cli_edit, "load_run", lambda cfg: loads.append(cfg) or (None, pipeline))
-    monkeypatch.setitem(bench_edit.RULES, "tiny", BROAD)
-    earlier = RuleArgs(h0=0.0, h1=360.0, shift=60.0, s_min=0.3, v_min=0.05)
-    monkeypatch.setitem(bench_edit.EARLIER_RULES, "tiny", earlier)
+    (tmp_path / "data" / "tiny").mkdir(parents=True)
     cfg = tmp_path / "config.yml"
     cfg.write_text("unused")
-    args = bench_edit.Args(runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1, pictures=0, sweep=False,
-                           million=False, compare=True, variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05",
-                                     "other:steps=5", "tiny:rule=0/360/90/0.1/0.05"])
+    scene = EvalScene("tiny", "tiny", BROAD.rule(), "every saturated pixel")
+    args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1,
+                           pictures=1, variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05",
+                                                 "other:steps=5", "tiny:recipe=staged,seg_samples=512,seg_steps=20"])
     assert bench_edit.parse_variant("steps=20,pixel_batches=2") == {"steps": 20, "pixel_batches": 2}
     assert bench_edit.parse_variant("rule=10/20/30/0.1/0.2")["rule"] == RuleArgs(10, 20, 30, 0.1, 0.2).rule()
-    for bad in ("steps", "colour=3", "steps=many", "rule=1/2/3", "changed_target=chnage", "whole_image=ture"):
+    for bad in ("steps", "colour=3", "steps=many", "rule=1/2/3", "changed_target=chnage", "whole_image=ture",
+                "recipe=both"):
         with pytest.raises(InputError, match="--variants"):
             bench_edit.parse_variant(bad)
-    rows = bench_edit.bench_scene(args, "tiny")
-    assert loads == [cfg]
     assert bench_edit.variant_scene("fern:rule=1/2/3/0.1/0.1") == ("fern", "rule=1/2/3/0.1/0.1")
     assert bench_edit.variant_scene("steps=3") == (None, "steps=3")
     bench_edit.check_variant("tiny:steps=3", ["tiny"])
     for bad in ("fern:steps=3", "tiny:", "tiny:steps=x"):
         with pytest.raises(InputError, match="--variants"):
             bench_edit.check_variant(bad, ["tiny"])
-    assert rows[0]["timing_cold"]["start"] in ("colour map", "unedited layer")
-    assert 0 < rows[0]["timing_cold"]["changed_fraction"] <= 1
+    rows = bench_edit.bench_scene(args, scene, {})
+    assert loads == [cfg]
+    # the edited photo is the training photo the rule recolours most
+    train = pipeline.datamanager.train_dataset
+    photos = [train.get_image_float32(i)[..., :3] for i in range(len(train))]
+    assert rows[0]["edit_view"] == edit_view(photos, scene.rule)
+    from virgi_ns.edit.recolor import rule_mask
+
+    counts = [int(rule_mask(p, scene.rule).sum()) for p in photos]
+    assert counts[rows[0]["edit_view"]] == max(counts)
     # 'other:' entries belong to another scene; 'tiny:' ones to this one, named without the prefix
-    assert [r["variant"] for r in rows] == ["engine defaults", *bench_edit.VARIANTS, "earlier rule",
-                                            "pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05",
-                                            "rule=0/360/90/0.1/0.05"]
-    assert rows[-1]["rule"]["shift"] == 90.0
-    assert rows[5]["rule"]["s_min"] == 0.2 and rows[4]["rule"] == rows[0]["rule"]
-    assert "targets" in rows[0] and rows[0]["perfect_edit_recolour_psnr"] > 0
-    assert rows[3]["rule"] == earlier.rule().to_dict() and rows[0]["rule"] == BROAD.rule().to_dict()
-    assert [r["timing_cold"]["steps"] for r in rows] == [20, 20, 20, 20, 20, 10, 20]
-    assert rows[4]["timing_cold"]["pixel_batches"] == 2
+    assert [r["variant"] for r in rows] == ["engine defaults", "pixel_batches=2",
+                                            "steps=10,lr=0.05,rule=0/360/60/0.2/0.05",
+                                            "recipe=staged,seg_samples=512,seg_steps=20"]
+    assert rows[2]["rule"]["s_min"] == 0.2 and rows[1]["rule"] == rows[0]["rule"] == BROAD.rule().to_dict()
+    assert [r["timing_warm"]["steps"] for r in rows] == [20, 20, 10, 20]
+    assert rows[1]["timing_warm"]["pixel_batches"] == 2
+    assert set(rows[0]["targets"]) == {"propagation>=35", "miss>=30", "leak>=30",
+                                       "recolour within 0.5 dB of unedited", "edit <= 0.25 s warm"}
     for r in rows:
-        for k in ("propagation_psnr", "miss_psnr", "leak_psnr", "recolour_psnr"):
+        for k in ("propagation_psnr", "miss_psnr", "leak_psnr", "recolour_psnr", "edit_fit_changed_psnr",
+                  "alpha_in_mask", "edit_view_alpha_in_mask"):
             assert math.isfinite(r[k]), (r["variant"], k)
+        assert 0.0 <= r["alpha_in_mask"] <= 1.0 and 0.0 <= r["alpha_out_mask"] <= 1.0
     # the variants are different fits: their figures differ from the defaults'
     assert len({round(r["propagation_psnr"], 4) for r in rows}) == len(rows)
-    bench_edit.print_table(rows, "cpu")
+    assert (args.out / "tiny_view0.png").is_file() and (args.out / "tiny_edit.png").is_file()
+    # the worst case row takes the engine defaults' rows only
+    w = bench_edit.worst_case(rows + [{**rows[0], "variant": "x", "miss_psnr": -1.0}])
+    assert w["miss_psnr"] == rows[0]["miss_psnr"] and w["rows"] == 1
+    bench_edit.print_tables(rows, "cpu")
+    # --merge: two calls' results as one table
+    for name in ("a", "b"):
+        (tmp_path / f"{name}.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": rows},
+                                                          default=float))
+    m = bench_edit.merged([tmp_path / "a.json", tmp_path / "b.json"])
+    assert len(m["scenes"]) == 2 * len(rows) and m["worst_case"]["rows"] == 2
+    with pytest.raises(InputError, match="--merge"):
+        bench_edit.merged([tmp_path / "missing.json"])
 
 
 def test_benchmark_settings_are_split_and_typed_strictly():

@@ -121,6 +121,23 @@ def psnr(a: torch.Tensor, b: torch.Tensor, mask: Optional[torch.Tensor] = None) 
     return float(-10.0 * torch.log10(d.mean().clamp_min(1e-12)))
 
 
+def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> float:
+    """Mean of ``x`` over ``mask`` (NaN for an empty mask)."""
+    return float(x[mask].float().mean()) if bool(mask.any()) else math.nan
+
+
+def _read_image(path: Path, dev) -> torch.Tensor:
+    from PIL import Image
+
+    return torch.from_numpy(np.array(Image.open(path).convert("RGB"))).float().div(255.0).to(dev)
+
+
+def _read_labels(path: Path, dev) -> torch.Tensor:
+    from PIL import Image
+
+    return torch.from_numpy(np.array(Image.open(path))).long().to(dev)
+
+
 def _mean(xs: list[float]) -> float:
     xs = [x for x in xs if not math.isnan(x)]
     return float(sum(xs) / len(xs)) if xs else math.nan
@@ -140,12 +157,19 @@ class Bench:
     base: list[torch.Tensor]
     fingerprint: str
     edit_base: torch.Tensor  # the edit view's unedited render
+    truths: Optional[list] = None
+    """Per held-out view, the photo of the recoloured scene when it is known (synthetic scenes)."""
+    label_maps: Optional[list] = None
+    """Per held-out view, each pixel's object label (index into ``label_names``), when known."""
+    label_names: tuple = ()
     # per-Gaussian-rule figures by (rule, held-out view): they depend on neither the edit nor its
     # settings, so a sweep measures them once
     _reference: dict = field(default_factory=dict, repr=False)
 
     @staticmethod
-    def load(pipeline, edit_view: int, max_views: int = 0) -> "Bench":
+    def load(pipeline, edit_view: int, max_views: int = 0, capture: Optional[Path] = None) -> "Bench":
+        """``capture``: a synthetic capture's folder (:mod:`virgi_ns.bench.synthetic`), whose truth
+        photos and pixel labels are then read for the held-out views."""
         from virgi_ns.edit.scene import FrozenScene, render_view
         from virgi_ns.nerfstudio.cameras import raster_cameras
 
@@ -168,8 +192,15 @@ class Bench:
             photos.append(ev.get_image_float32(i)[..., :3].to(dev))
             base.append(render_view(scene, cams, 0)["rgb"].clamp(0, 1))
         ecam = raster_cameras(train.cameras[edit_view : edit_view + 1]).to(dev)
-        return Bench(pipeline, scene, ecam, train.get_image_float32(edit_view)[..., :3].to(dev), views, photos,
-                     base, scene.fingerprint(), render_view(scene, ecam, 0)["rgb"].clamp(0, 1))
+        b = Bench(pipeline, scene, ecam, train.get_image_float32(edit_view)[..., :3].to(dev), views, photos,
+                  base, scene.fingerprint(), render_view(scene, ecam, 0)["rgb"].clamp(0, 1))
+        if capture is not None and (capture / "truth").is_dir():  # truth and labels by image name
+            names = [Path(ev.image_filenames[i]).name for i in idx]
+            b.truths = [_read_image(capture / "truth" / n, dev) for n in names]
+            if (capture / "labels").is_dir() and (capture / "scene.json").is_file():
+                b.label_names = tuple(json.loads((capture / "scene.json").read_text())["labels"])
+                b.label_maps = [_read_labels(capture / "labels" / n, dev) for n in names]
+        return b
 
     def edited_image(self, rule: RecolorRule, source: str) -> torch.Tensor:
         if source == "photo":
@@ -228,8 +259,25 @@ class Bench:
                                     "per_gaussian_rule_leak_psnr": psnr(ref, truth, ~mask)}
         return self._reference[key]
 
-    def measure(self, edit, rule: RecolorRule, lpips: bool = True, keep: int = 0) -> tuple[dict, list]:
-        """Per-view and mean figures for ``edit``; the first ``keep`` views' pictures too."""
+    def _truth_figures(self, i: int, after: torch.Tensor, alpha: torch.Tensor) -> dict:
+        """Against the known recoloured scene (synthetic captures): PSNR overall, on the pixels the
+        recolour changes and elsewhere; the segmentation's mean alpha on each object's pixels."""
+        if self.truths is None:
+            return {}
+        truth, photo = self.truths[i], self.photos[i]
+        changed = (truth - photo).abs().amax(-1) > 3.0 / 255.0
+        out = {"truth_psnr": psnr(after, truth), "truth_in_psnr": psnr(after, truth, changed),
+               "truth_out_psnr": psnr(after, truth, ~changed)}
+        if self.label_maps is not None:
+            for k, name in enumerate(self.label_names):
+                out[f"alpha[{name}]"] = _masked_mean(alpha, self.label_maps[i] == k)
+        return out
+
+    def measure(self, edit, rule: RecolorRule, lpips: bool = True, keep: int = 0,
+                edited: Optional[torch.Tensor] = None) -> tuple[dict, list]:
+        """Per-view and mean figures for ``edit``; the first ``keep`` views' pictures too. With the
+        ``edited`` image the edit was fitted to, also how closely the edited view itself reaches it
+        on the pixels the edit changed (the fit, apart from its propagation)."""
         from virgi_ns.edit.scene import render_view
         from virgi_ns.edit.stack import EditStack
         from virgi_ns.metrics import image_metrics
@@ -255,19 +303,29 @@ class Bench:
                 "leak_psnr": psnr(after, truth_render, ~mask),
                 "mask_fraction": float(mask.float().mean()),
                 **self._per_gaussian_rule(i, rule, truth_render, mask),
+                # the edit's segmentation (composited alpha) where the rule recolours and elsewhere
+                "alpha_in_mask": _masked_mean(out["segmentation"][..., 0], mask),
+                "alpha_out_mask": _masked_mean(out["segmentation"][..., 0], ~mask),
+                **self._truth_figures(i, after, out["segmentation"][..., 0]),
             })
             if i < keep:
                 seg = out["segmentation"].clamp(0, 1).expand(-1, -1, 3)
-                pics.append(torch.cat([base, after, truth_render, seg], dim=1).cpu())
+                truth = truth_render if self.truths is None else self.truths[i]
+                pics.append(torch.cat([base, after, truth, seg], dim=1).cpu())
         mean = {k: _mean([r[k] for r in rows]) for k in rows[0]} if rows else {}
         # the same figures on the edited view itself, against the rule on its render (the edit was fitted
         # to the rule on the photo): far above the held-out figures, the edit carries badly to other
         # views; close to them, the fit itself is the limit
-        after = render_view(self.scene, self.edit_camera, 0, stack)["rgb"].clamp(0, 1)
+        ev = render_view(self.scene, self.edit_camera, 0, stack)
+        after = ev["rgb"].clamp(0, 1)
         truth_render, mask = recolor(self.edit_base, rule)
         mean.update({"edit_view_propagation_psnr": psnr(after, truth_render),
                      "edit_view_miss_psnr": psnr(after, truth_render, mask),
-                     "edit_view_leak_psnr": psnr(after, truth_render, ~mask)})
+                     "edit_view_leak_psnr": psnr(after, truth_render, ~mask),
+                     "edit_view_alpha_in_mask": _masked_mean(ev["segmentation"][..., 0], mask)})
+        if edited is not None:
+            changed = (edited - self.edit_photo).abs().amax(-1) > 3.0 / 255.0
+            mean["edit_fit_changed_psnr"] = psnr(after, edited, changed)
         return {"mean": mean, "views": rows}, pics
 
 
