@@ -216,6 +216,12 @@ def test_original_image_limits_the_fit_to_changed_pixels(saved, tmp_path):
         run(_apply(saved, original=orig, map_init=False), _quiet(), pl)
         st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
         assert st.entries[0].edit.info["start"] == "unedited layer"
+        assert st.entries[0].edit.info["recipe"] == "joint"
+        run(Reset(saved["config"]), _quiet(), pl)
+        msg = run(_apply(saved, original=orig, recipe="staged", changed_target="transfer"), _quiet(), pl)
+        assert "render + logit change)" in msg, msg
+        st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
+        assert st.entries[0].edit.info["recipe"] == "staged" and st.entries[0].edit.info["start"] == "colour map"
         small = tmp_path / "small.png"
         Image.fromarray(np.zeros((4, 5, 3), np.uint8)).save(small)
         _refused(saved, _apply(saved, original=small), "--original is 5x4.*--resize")

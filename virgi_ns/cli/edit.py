@@ -57,10 +57,16 @@ class Apply:
     the edit left unchanged keep the scene's current colours instead of being fitted to the image."""
     whole_image: bool = False
     """Fit every pixel of the edited image, also those equal to the original."""
-    changed_target: Literal["change", "edited"] = "edited"
+    changed_target: Literal["change", "transfer", "edited"] = "edited"
     """With an original photo: fit the changed pixels to the edited image's own pixels (``edited``,
-    the default) or to the render plus your change (``change``: helps when the photo is uniformly
-    brighter or darker than the render). No effect with --whole-image or for an edited render."""
+    the default), to the render plus your change (``change``: helps when the photo is uniformly
+    brighter or darker than the render) or to the render moved by your change in logits
+    (``transfer``: helps when the edit covers most of the view). No effect with --whole-image or for
+    an edited render."""
+    recipe: Literal["joint", "staged"] = "joint"
+    """``joint``: the segmentation and the new colour are fitted together (the paper's recipe);
+    ``staged``: the segmentation first, from which Gaussians your change covers, so parts of another
+    colour inside a recoloured object keep theirs."""
     map_init: bool = True
     """For an edit that changes at least a fifth of the view, start from the colour map (in logit
     space) that best takes the render to your changed pixels; --no-map-init starts from the
@@ -321,6 +327,7 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
         cfg.steps = args.steps
     cfg.whole_image = args.whole_image
     cfg.changed_target = args.changed_target
+    cfg.recipe = args.recipe
     cfg.map_init = args.map_init
     with torch.no_grad():
         engine = EditEngine(scene, cams, torch.from_numpy(image), stack.to(model.device), cfg, source,
