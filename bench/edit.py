@@ -176,15 +176,19 @@ def _sync() -> None:
 
 
 def targets(m: dict, edit_s: float, synthetic: bool) -> Dict[str, bool]:
+    """Issue 16's targets. The recolour figure is judged against the truth where it is known (the
+    synthetic scenes, whose reconstruction is far above a real capture's, so that a rule on a photo
+    is no longer the measure) and against the unedited PSNR on the real captures."""
     out = {
         "propagation>=35": m["propagation_psnr"] >= TARGETS["propagation"],
         "miss>=30": m["miss_psnr"] >= TARGETS["miss"],
         "leak>=30": m["leak_psnr"] >= TARGETS["leak"],
-        "recolour within 0.5 dB of unedited": m["recolour_psnr"] - m["unedited_psnr"] >= TARGETS["recolour_gap"],
-        "edit <= 0.25 s warm": edit_s <= TARGETS["edit_s"],
     }
     if synthetic:
         out["truth>=35"] = m.get("truth_psnr", math.nan) >= TARGETS["truth"]
+    else:
+        out["recolour within 0.5 dB of unedited"] = m["recolour_psnr"] - m["unedited_psnr"] >= TARGETS["recolour_gap"]
+    out["edit <= 0.25 s warm"] = edit_s <= TARGETS["edit_s"]
     return out
 
 
@@ -371,6 +375,8 @@ def merged(paths: List[Path]) -> dict:
             raise InputError(f"--merge: cannot read {p}: {e}") from None
         if "scenes" not in r:
             raise InputError(f"--merge: {p} is not a bench/edit.py result")
+        for row in r["scenes"]:  # judged again: the targets may have been refined since the call
+            row["targets"] = targets(row, row["timing_warm"]["total_s"], row["synthetic"])
         rows += r["scenes"]
         devices.append(r.get("device"))
         commits.append(r.get("commit"))
