@@ -146,8 +146,10 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             times["eval_render_s"] = time.perf_counter() - t0
 
             train_images = [as_float(im).to(dev) for im in dm.train_images()]
+            # the rule runs on the CPU copies: a photo and a rule select the same pixels on any device
+            # (on a GPU, float rounding at the thresholds can flip a pixel)
             if cfg.edit_view is None:
-                counts = [int(rule_mask(im, rule).sum()) for im in train_images]
+                counts = [int(rule_mask(im.cpu(), rule).sum()) for im in train_images]
                 edit_view = int(np.argmax(counts))
             else:
                 edit_view = cfg.edit_view
@@ -157,7 +159,7 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                 source_image = render_view(frozen, train_cams.to(dev), edit_view)["rgb"].clamp(0, 1)
             else:
                 source_image = train_images[edit_view]
-            edited_photo, edit_mask = recolor(source_image, rule)
+            edited_photo, edit_mask = (x.to(dev) for x in recolor(source_image.cpu(), rule))
             if not bool(edit_mask.any()):
                 raise InputError(f"the recolour rule selects no pixel of training view {edit_view}")
             edit_cfg = EditConfig(seed=cfg.seed)
