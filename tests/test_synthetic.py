@@ -23,6 +23,13 @@ def _read(path):
     return torch.from_numpy(np.array(Image.open(path).convert("RGB"))).float() / 255.0
 
 
+def _view(root, i: int):
+    """(photo, truth, per-pixel labels) of view ``i``."""
+    name = f"frame_{i:03d}.png"
+    label = torch.from_numpy(np.array(Image.open(root / "labels" / name))).long()
+    return _read(root / "images" / name), _read(root / "truth" / name), label
+
+
 @pytest.fixture(scope="module")
 def vase(tmp_path_factory):
     root = tmp_path_factory.mktemp("syn") / "dark_vase"
@@ -56,15 +63,13 @@ def test_truth_differs_from_the_photo_only_on_the_target(vase):
     target = info["labels"].index("vase")
     changed_total = 0
     for i in range(VIEWS):
-        name = f"frame_{i:03d}.png"
-        photo, truth = _read(root / "images" / name), _read(root / "truth" / name)
-        label = torch.from_numpy(np.array(Image.open(root / "labels" / name))).long()
+        photo, truth, label = _view(root, i)
         changed = (photo - truth).abs().amax(-1) > 1.5 / 255.0
         changed_total += int(changed.sum())
         # where no target Gaussian lands the two photos are the same image; a changed pixel has the
         # target among its Gaussians (its label is the target, or it borders a target pixel)
         near = torch.nn.functional.max_pool2d((label == target).float()[None, None], 3, 1, 1)[0, 0] > 0
-        assert not bool((changed & ~near).any()), name
+        assert not bool((changed & ~near).any()), i
     assert changed_total > 0.5 * info["target_fraction"] * VIEWS * W * H
 
 
@@ -77,15 +82,13 @@ def test_rule_on_a_photo_is_the_truth_on_clean_target_pixels(vase):
     target = info["labels"].index("vase")
     checked = 0
     for i in range(VIEWS):
-        name = f"frame_{i:03d}.png"
-        photo, truth = _read(root / "images" / name), _read(root / "truth" / name)
-        label = torch.from_numpy(np.array(Image.open(root / "labels" / name))).long()
+        photo, truth, label = _view(root, i)
         inner = -torch.nn.functional.max_pool2d(-(label == target).float()[None, None], 3, 1, 1)[0, 0] > 0
         ruled, selected = recolor(photo, rule)
         sel = inner & selected
         checked += int(sel.sum())
         if sel.any():
-            assert float((ruled - truth).abs().amax(-1)[sel].max()) <= 3.0 / 255.0, name
+            assert float((ruled - truth).abs().amax(-1)[sel].max()) <= 3.0 / 255.0, i
     assert checked > 20
 
 
