@@ -145,9 +145,10 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                 progress.update(t_ev, completed=i + 1)
             times["eval_render_s"] = time.perf_counter() - t0
 
-            train_images = [as_float(im).to(dev) for im in dm.train_images()]
-            # the rule runs on the CPU copies: a photo and a rule select the same pixels on any device
-            # (on a GPU, float rounding at the thresholds can flip a pixel)
+            # photos become floats on the CPU and the rule runs on CPU copies: a photo and a rule then
+            # select the same pixels on any device (a GPU divides by 255 as a multiplication by its
+            # reciprocal, which can flip a pixel at a threshold)
+            train_images = [as_float(im.cpu()).to(dev) for im in dm.train_images()]
             if cfg.edit_view is None:
                 counts = [int(rule_mask(im.cpu(), rule).sum()) for im in train_images]
                 edit_view = int(np.argmax(counts))
