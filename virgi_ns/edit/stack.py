@@ -206,6 +206,9 @@ class EditStack:
         self.entries: list[StackEntry] = []
         self._k = float(specular_strength)
         self.device: torch.device | None = None
+        self.revision = 0
+        """Counts the changes (edits added, undone, enabled or disabled, moved; ``k`` set): a cache of
+        colours rendered through the stack is current while the stack object and this number are."""
 
     # ------------------------------------------------------------ persistence
     @staticmethod
@@ -276,6 +279,7 @@ class EditStack:
         if not (k >= 0.0 and k < float("inf")):
             raise InputError(f"specular strength must be a finite number >= 0, got {k}")
         self._k = float(k)
+        self.changed()
         self._write_manifest()
 
     def add(self, edit: Edit) -> int:
@@ -285,6 +289,7 @@ class EditStack:
         if self.directory is not None:
             edit.save(self.directory / name)
         self.entries.append(StackEntry(edit.to(self.device) if self.device is not None else edit, name, True))
+        self.changed()
         try:
             self._write_manifest()
         except BaseException:
@@ -309,6 +314,7 @@ class EditStack:
     def set_enabled(self, number: int, enabled: bool) -> None:
         """Enable or disable edit ``number`` (1-based, as :meth:`rows` lists them)."""
         self.entries[self._index(number)].enabled = bool(enabled)
+        self.changed()
         self._write_manifest()
 
     def undo(self) -> Edit:
@@ -316,6 +322,7 @@ class EditStack:
         if not self.entries:
             raise InputError("nothing to undo: the edit stack is empty")
         last = self.entries.pop()
+        self.changed()
         self._write_manifest()
         if self.directory is not None:
             (self.directory / last.file).unlink(missing_ok=True)
@@ -327,6 +334,7 @@ class EditStack:
         files = [e.file for e in self.entries]
         self.entries.clear()
         self._k = 1.0
+        self.changed()
         self._write_manifest()
         if self.directory is not None:
             for f in files:
@@ -343,7 +351,13 @@ class EditStack:
         self.device = torch.device(device)
         for e in self.entries:
             e.edit = e.edit.to(self.device)
+        self.changed()
         return self
+
+    def changed(self) -> None:
+        """Note a change of what the stack renders. Every operation here calls it; code that changes
+        an edit's tensors in place (a live refit) must call it too."""
+        self.revision += 1
 
     # ------------------------------------------------------------- rendering
     @property

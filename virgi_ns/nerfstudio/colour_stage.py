@@ -219,6 +219,8 @@ class ColourStage:
         def colour_start(step: int) -> None:
             if step == self.colour_start:
                 self.start_colour_stage()
+            if step >= self.colour_start and self.gate_ready():
+                self.drop_specular_gate()  # the field is about to change: its cached colours would be stale
 
         cbs.append(TrainingCallback([TrainingCallbackLocation.BEFORE_TRAIN_ITERATION], colour_start))
         if trainer is not None:

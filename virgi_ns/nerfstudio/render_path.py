@@ -20,7 +20,7 @@ from torch import Tensor
 
 from virgi_ns.colour.field import view_directions
 from virgi_ns.nerfstudio.cameras import raster_cameras
-from virgi_ns.raster import Cameras, Contributions, Request, composite, composite_depth
+from virgi_ns.raster import Cameras, Contributions, Request, composite
 
 
 class RenderPath:
@@ -48,11 +48,13 @@ class RenderPath:
         return None if st is None or st.is_identity else st
 
     def _edited_diffuse_cache(self, stack) -> Tensor:
-        """``c_d''`` of every Gaussian through ``stack``, recomputed when its enabled edits change."""
-        key = tuple((id(e.edit), e.enabled) for e in stack.entries)
-        if self._edited_cache is None or self._edited_cache[0] != key:
-            self._edited_cache = (key, stack.diffuse_all(self.field, self.means.detach()))
-        return self._edited_cache[1]
+        """``c_d''`` of every Gaussian through ``stack``, recomputed whenever the stack has changed
+        since (:attr:`EditStack.revision`) or another stack is set. The cache holds the stack
+        itself, so the identity it is compared by cannot pass to a new object."""
+        cached = self._edited_cache
+        if cached is None or cached[0] is not stack or cached[1] != stack.revision:
+            self._edited_cache = (stack, stack.revision, stack.diffuse_all(self.field, self.means.detach()))
+        return self._edited_cache[2]
 
     # ------------------------------------------------------------------ colours
     def pair_colours(self, contrib: Contributions, cams: Cameras, gated: bool = False,
@@ -134,6 +136,13 @@ class RenderPath:
     def gate_ready(self) -> bool:
         return self.spec_magnitude.numel() == self.num_points and self.diffuse_cache.shape[0] == self.num_points
 
+    def drop_specular_gate(self) -> None:
+        """Forget the gate and the cached diffuse colours (the field changes; renders take the full
+        path until :meth:`build_specular_gate` runs again)."""
+        self.spec_magnitude = self.spec_magnitude.new_zeros(0)
+        self.diffuse_cache = self.diffuse_cache.new_zeros(0, 3)
+        self._edited_cache = None
+
     @property
     def spec_gate(self) -> Tensor:
         return self.spec_magnitude > self.config.gate_threshold
@@ -165,6 +174,7 @@ class RenderPath:
             mag.fill_(float("inf"))
         self.spec_magnitude = mag
         self.diffuse_cache = cache
+        self._edited_cache = None  # edited colours were computed from the previous field
         kept = float(self.spec_gate.float().mean()) if self.num_points else 0.0
         CONSOLE.log(f"virgi: specular gate keeps {kept:.1%} of {self.num_points:,} Gaussians")
         return {"kept_fraction": kept}
@@ -183,22 +193,27 @@ class RenderPath:
         with_seg = self.edit_stack is not None and len(self.edit_stack) > 0
         names = ("rgb", "diffuse", "specular", "depth", "accumulation", "segmentation")
         parts: Dict[str, List[Tensor]] = {k: [] for k in names}
+        # one composite per band for every output: rgb | diffuse | depth | segmentation channels
+        # (the background only behind the two colours), so the lists are walked once
+        zero = bg.new_zeros(1)
+        bg_all = torch.cat([bg, bg, zero] + ([zero] if with_seg else []))
         for y0 in range(0, H, rows):
             h = min(rows, H - y0)
             req = Request(torch.zeros(1, dtype=torch.long), 0, y0, W, h)
             contrib = self._raster(cams, req)
             cols = self.pair_colours(contrib, cams, gated=gated, segmentation=with_seg)
-            rgb = composite(cols["rgb"], contrib, bg)[0]
+            channels = [cols["rgb"], cols["diffuse"], contrib.pair_depth[:, None].to(cols["rgb"])]
             if with_seg:
-                parts["segmentation"].append(composite(cols["segmentation"], contrib)[0])
-            else:
-                parts["segmentation"].append(rgb.new_zeros(h, W, 1))
-            diff = composite(cols["diffuse"], contrib, bg)[0]
+                channels.append(cols["segmentation"].to(cols["rgb"]))
+            img = composite(torch.cat(channels, dim=-1), contrib, bg_all)[0]
+            rgb, diff, z_sum = img[..., 0:3], img[..., 3:6], img[..., 6:7]
+            acc = contrib.accumulation()[0, ..., None].to(rgb)
             parts["rgb"].append(rgb)
             parts["diffuse"].append(diff)
             parts["specular"].append(rgb - diff)
-            parts["depth"].append(composite_depth(contrib)[0].to(rgb))
-            parts["accumulation"].append(contrib.accumulation()[0, ..., None].to(rgb))
+            parts["depth"].append(torch.where(acc > 1e-10, z_sum / acc.clamp_min(1e-10), torch.zeros_like(z_sum)))
+            parts["accumulation"].append(acc)
+            parts["segmentation"].append(img[..., 7:8] if with_seg else rgb.new_zeros(h, W, 1))
         out: Dict[str, Tensor] = {k: torch.cat(v, dim=0) for k, v in parts.items()}
         out["rgb"] = out["rgb"].clamp(0, 1)
         out["diffuse"] = out["diffuse"].clamp(0, 1)
