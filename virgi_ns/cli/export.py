@@ -54,7 +54,6 @@ def _validate(args: Export) -> None:
 def load_run(config_path: Path):
     """``eval_setup`` of a VIRGi run, with its problems as :class:`InputError`."""
     import yaml
-    from nerfstudio.utils.eval_utils import eval_setup
 
     from virgi_ns.nerfstudio.model import VirgiModel
 
@@ -71,10 +70,30 @@ def load_run(config_path: Path):
     if not ckpt_dir.is_dir() or not any(ckpt_dir.glob("step-*.ckpt")):
         raise InputError(f"{config_path}: no checkpoint (step-*.ckpt) in {ckpt_dir} (nerfstudio looks where the "
                          "run was trained, relative to the current directory)")
-    _, pipeline, _, _ = eval_setup(config_path, test_mode="inference")
+    pipeline = _setup_inference(cfg, ckpt_dir)
     if not isinstance(pipeline.model, VirgiModel):
         raise InputError(f"{config_path}: not a virgi run")
     return cfg, pipeline
+
+
+def _setup_inference(cfg, ckpt_dir: Path):
+    """The pipeline of ``cfg`` with its latest checkpoint, built for inference (no training images
+    are read). What nerfstudio's ``eval_setup`` does, without importing every method nerfstudio
+    knows, which a fresh process would otherwise pay for on every command."""
+    import torch
+
+    import virgi_ns.nerfstudio.compat  # noqa: F401  (checkpoints load with torch's safe unpickling)
+
+    steps = sorted(int(p.stem.split("-")[1]) for p in ckpt_dir.glob("step-*.ckpt") if p.stem.split("-")[1].isdigit())
+    if not steps:
+        raise InputError(f"no checkpoint (step-*.ckpt) in {ckpt_dir}")
+    cfg.load_dir = ckpt_dir
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    pipeline = cfg.pipeline.setup(device=device, test_mode="inference")
+    pipeline.eval()
+    state = torch.load(ckpt_dir / f"step-{steps[-1]:09d}.ckpt", map_location="cpu")
+    pipeline.load_pipeline(state["pipeline"], state["step"])
+    return pipeline
 
 
 def run(args: Export) -> str:

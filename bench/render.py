@@ -1,0 +1,302 @@
+"""Benchmark: what a render costs and what the specular gate buys, per scene, and how long the CLIs
+take in a fresh process.
+
+For each real capture of the evaluation set (trained as ``bench/edit.py`` trains it; a run under
+``--train-out`` is reused), at the held-out views' own resolution:
+
+  splat SH3 / SH0   gsplat's rasterization of the same Gaussians as splatfacto calls it (RGB+ED):
+                    with degree-3 SH (splatfacto's render cost) and with one colour per Gaussian
+                    (a plain SH-0 splat, the cost of a matte scene)
+  virgi full        the model's render without the gate (MLP_spec for every visible Gaussian)
+  virgi gated       the model's render (what the viewer shows) at each ``--thresholds`` value:
+                    kept share, FPS, and PSNR of the gated render against the full one
+  matte             the gate keeping no Gaussian (a scene the gate calls matte), against SH0
+
+Rules chosen before measuring, with their reasons: FPS is the median over ``--repeats`` renders of
+every held-out view after one warm-up render each (a viewer re-renders the same views); the
+threshold sweep is fixed (0, 1/1024, 1/512, 1/255 = the default, 2/255, 4/255, 8/255), and the
+default stays where it is unless it misses 45 dB gated vs full on some scene.
+
+``--cli`` also times, on the first scene, ``virgi-edit list / apply / undo``, ``virgi-export`` and
+``virgi-render`` as fresh processes (wall time, what a person waits), with the edit's own setup and
+step times from its summary line.
+
+    python bench/render.py --data ../shared/data --out bench_out/render --cli
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import statistics
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+import torch
+import tyro
+from rich.console import Console
+from rich.table import Table
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from edit import Args as EditArgs  # noqa: E402  (bench/edit.py: the same trained runs)
+from edit import run_config  # noqa: E402
+
+from virgi_ns.bench.evalset import COLOUR_STEPS, GEOMETRY_STEPS, capture_folder, edit_view, find  # noqa: E402
+from virgi_ns.errors import atomic_path, cli_entry  # noqa: E402
+
+console = Console(width=200)
+THRESHOLDS = (0.0, 1 / 1024, 1 / 512, 1 / 255, 2 / 255, 4 / 255, 8 / 255)
+
+
+@dataclass
+class Args:
+    scenes: List[str] = field(default_factory=lambda: ["beercan", "fern", "cup"])
+    data: Path = Path(__file__).resolve().parents[2] / "shared" / "data"
+    out: Path = Path("bench_out/render")
+    train_out: Path = Path("bench_out/edit_runs")
+    seed: int = 42
+    geometry_steps: int = GEOMETRY_STEPS
+    colour_steps: int = COLOUR_STEPS
+    thresholds: List[float] = field(default_factory=lambda: list(THRESHOLDS))
+    repeats: int = 5
+    views: int = 4
+    """Held-out views measured per scene (the first ones)."""
+    cli: bool = False
+    """Also time the CLIs in fresh processes on the first scene."""
+
+
+def _sync() -> None:
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
+
+
+def _fps(fn, repeats: int) -> float:
+    fn()
+    times = []
+    for _ in range(repeats):
+        _sync()
+        t = time.perf_counter()
+        fn()
+        _sync()
+        times.append(time.perf_counter() - t)
+    return 1.0 / statistics.median(times)
+
+
+def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(((a.float() - b.float()) ** 2).mean())
+    return 10 * math.log10(1.0 / mse) if mse > 0 else float("inf")
+
+
+def splat_fps(model, cam, sh_degree: Optional[int], repeats: int) -> float:
+    """gsplat's rasterization of the model's Gaussians as splatfacto calls it."""
+    from gsplat.rendering import rasterization
+
+    from virgi_ns.nerfstudio.cameras import raster_cameras
+
+    rc = raster_cameras(cam).to(model.device)
+    means, quats = model.means.detach(), model.quats.detach()
+    scales, opac = torch.exp(model.scales.detach()), torch.sigmoid(model.opacities.detach()).reshape(-1)
+    n = means.shape[0]
+    colours = torch.rand(n, 16, 3, device=means.device) if sh_degree == 3 else torch.rand(n, 3, device=means.device)
+    W, H = int(rc.widths[0]), int(rc.heights[0])
+    bg = model.background_color.to(model.device)
+
+    def once():
+        img, alpha, _ = rasterization(means, quats, scales, opac, colours, rc.viewmats, rc.Ks, W, H,
+                                      sh_degree=sh_degree, render_mode="RGB+ED", packed=False,
+                                      rasterize_mode="classic", absgrad=False, sparse_grad=False)
+        return img[..., :3] + (1 - alpha) * bg
+
+    return _fps(once, repeats)
+
+
+def bench_scene(args: Args, scene, cfg_path: Path) -> dict:
+    from virgi_ns.cli.export import load_run
+
+    _, pipeline = load_run(cfg_path)
+    model = pipeline.model
+    dm = pipeline.datamanager
+    dm.cached_eval  # noqa: B018 - undistorts and fixes the eval cameras' intrinsics
+    cams = [dm.eval_dataset.cameras[i : i + 1].to(model.device) for i in range(min(args.views, len(dm.eval_dataset)))]
+    if not model.gate_ready():
+        model.build_specular_gate(dm.train_raster_cameras())
+    default = model.config.gate_threshold
+    row: dict = {"scene": scene.name, "gaussians": int(model.num_points),
+                 "size": [int(cams[0].width), int(cams[0].height)], "default_threshold": default}
+
+    def mean_fps(fn) -> float:
+        return statistics.mean(_fps(lambda c=c: fn(c), args.repeats) for c in cams)
+
+    on_gpu = model.device.type == "cuda"  # gsplat has no CPU path: the splat columns stay empty on a CPU
+    row["splat_sh3_fps"] = statistics.mean(splat_fps(model, c, 3, args.repeats) for c in cams) if on_gpu else math.nan
+    row["splat_sh0_fps"] = statistics.mean(splat_fps(model, c, None, args.repeats) for c in cams) if on_gpu else math.nan
+    fulls = [model.render_camera(c, gated=False)["rgb"] for c in cams]
+    row["full_fps"] = mean_fps(lambda c: model.render_camera(c, gated=False))
+    sweep = []
+    for t in list(args.thresholds) + [float("inf")]:
+        model.config.gate_threshold = t
+        kept = float(model.spec_gate.float().mean())
+        psnr = min(_psnr(model.render_camera(c, gated=True)["rgb"], f) for c, f in zip(cams, fulls))
+        fps = mean_fps(lambda c: model.get_outputs_for_camera(c))
+        sweep.append({"threshold": t, "kept": kept, "fps": fps, "psnr_vs_full": psnr})
+        console.log(f"{scene.name}: threshold {t:.5f} keeps {kept:.1%}: {fps:.1f} FPS, {psnr:.1f} dB vs full")
+    model.config.gate_threshold = default
+    row["sweep"] = sweep[:-1]
+    row["matte"] = sweep[-1]
+    at = next(s for s in sweep if s["threshold"] == default) if default in args.thresholds else None
+    if at is not None:
+        row.update(gated_fps=at["fps"], kept=at["kept"], psnr_gated_vs_full=at["psnr_vs_full"])
+    del pipeline, model
+    torch.cuda.empty_cache()
+    return row
+
+
+# ---------------------------------------------------------------------------- CLIs
+def _wall(cmd: List[str], env: dict) -> tuple[float, str]:
+    t = time.perf_counter()
+    p = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - t
+    if p.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({p.returncode}): {p.stderr[-2000:]}")
+    return wall, p.stdout.strip()
+
+
+def bench_cli(scene, cfg_path: Path, data: Path, out: Path) -> dict:
+    """Fresh-process walls of the CLIs on one trained run."""
+    from PIL import Image
+
+    from virgi_ns.cli.export import load_run
+    from virgi_ns.edit.recolor import recolor
+    from virgi_ns.io.camera_json import CameraSpec, write_camera_json
+
+    _, pipeline = load_run(cfg_path)
+    dm = pipeline.datamanager
+    names = [Path(p).name for p in dm.train_dataset.image_filenames]
+    photos = [np.asarray(Image.open(p).convert("RGB")) for p in dm.train_dataset.image_filenames[:12]]
+    view = edit_view([torch.from_numpy(p).float() / 255 for p in photos], scene.rule)
+    edited, _ = recolor(torch.from_numpy(photos[view]).float() / 255, scene.rule)
+    image = out / "cli_edited.png"
+    Image.fromarray((edited.numpy() * 255 + 0.5).astype(np.uint8)).save(image)
+    cam = pipeline.datamanager.train_dataset.cameras[view]
+    from virgi_ns.nerfstudio.cameras import raster_cameras
+
+    rc = raster_cameras(cam.reshape((1,)))
+    K, vm = rc.Ks[0].double().numpy(), rc.viewmats[0].double().numpy()
+    spec = CameraSpec(int(rc.widths[0]), int(rc.heights[0]), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
+                      float(K[1, 2]), vm)
+    write_camera_json(out / "cli_camera.json", spec)
+    del pipeline
+    env = dict(os.environ)
+    py = [sys.executable, "-m"]
+    cfg = str(cfg_path)
+    walls: Dict[str, float] = {}
+    walls["list"], _ = _wall(py + ["virgi_ns.cli.edit", "list", "--load-config", cfg], env)
+    walls["apply"], line = _wall(py + ["virgi_ns.cli.edit", "apply", "--load-config", cfg, "--image", str(image),
+                                       "--image-name", names[view]], env)
+    m = re.search(r"setup ([0-9.]+) s \+ steps ([0-9.]+) s", line)
+    edit_setup, edit_steps = (float(m.group(1)), float(m.group(2))) if m else (float("nan"), float("nan"))
+    walls["export"], _ = _wall(py + ["virgi_ns.cli.export", "--load-config", cfg, "--out", str(out / "cli.ply")], env)
+    walls["render"], _ = _wall(py + ["virgi_ns.cli.render", str(out / "cli.ply"), "--camera",
+                                     str(out / "cli_camera.json"), "--out", str(out / "cli_render.png")], env)
+    walls["undo"], _ = _wall(py + ["virgi_ns.cli.edit", "undo", "--load-config", cfg], env)
+    t = time.perf_counter()
+    subprocess.run([sys.executable, "-c", "import torch, nerfstudio.pipelines.base_pipeline"], check=True)
+    walls["python_torch_nerfstudio_import"] = time.perf_counter() - t
+    return {"scene": scene.name, "walls_s": walls, "edit_setup_s": edit_setup, "edit_steps_s": edit_steps}
+
+
+# --------------------------------------------------------------------------- report
+def print_tables(rows: List[dict], cli: Optional[dict], device: str) -> None:
+    t = Table(title=f"render at the held-out views' size ({device})")
+    for c in ("scene", "Gaussians", "size", "splat SH3 FPS", "splat SH0 FPS", "virgi full FPS", "virgi gated FPS",
+              "x vs SH3", "kept", "gated vs full dB", "matte FPS", "matte x vs SH0"):
+        t.add_column(c)
+    for r in rows:
+        t.add_row(r["scene"], f"{r['gaussians']:,}", "x".join(map(str, r["size"])), f"{r['splat_sh3_fps']:.0f}",
+                  f"{r['splat_sh0_fps']:.0f}", f"{r['full_fps']:.0f}", f"{r.get('gated_fps', float('nan')):.0f}",
+                  f"{r.get('gated_fps', float('nan')) / r['splat_sh3_fps']:.2f}", f"{r.get('kept', float('nan')):.1%}",
+                  f"{r.get('psnr_gated_vs_full', float('nan')):.1f}", f"{r['matte']['fps']:.0f}",
+                  f"{r['matte']['fps'] / r['splat_sh0_fps']:.2f}")
+    console.print(t)
+    s = Table(title="gate threshold sweep: kept share, FPS, PSNR gated vs full")
+    s.add_column("threshold")
+    for r in rows:
+        s.add_column(r["scene"])
+    for i, th in enumerate(rows[0]["sweep"] if rows else []):
+        s.add_row(f"{th['threshold']:.5f}", *(f"{r['sweep'][i]['kept']:.0%} {r['sweep'][i]['fps']:.0f} FPS "
+                                              f"{r['sweep'][i]['psnr_vs_full']:.1f} dB" for r in rows))
+    console.print(s)
+    if cli is not None:
+        c = Table(title=f"CLIs in a fresh process, wall seconds ({cli['scene']})")
+        for k in cli["walls_s"]:
+            c.add_column(k)
+        c.add_column("edit setup + steps")
+        c.add_row(*(f"{v:.2f}" for v in cli["walls_s"].values()), f"{cli['edit_setup_s']:.2f} + {cli['edit_steps_s']:.2f}")
+        console.print(c)
+
+
+def plot(rows: List[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for r in rows:
+        xs = [s["fps"] for s in r["sweep"]]
+        ys = [min(s["psnr_vs_full"], 80.0) for s in r["sweep"]]
+        ax.plot(xs, ys, "o-", label=r["scene"])
+        d = next((s for s in r["sweep"] if s["threshold"] == r["default_threshold"]), None)
+        if d is not None:
+            ax.plot([d["fps"]], [min(d["psnr_vs_full"], 80.0)], "k*", ms=12)
+        ax.axvline(r["splat_sh3_fps"], ls=":", color=ax.lines[-1].get_color())
+    ax.axhline(45.0, color="grey", ls="--", lw=0.8)
+    ax.set_xlabel("FPS (dotted: gsplat SH3 on the same Gaussians)")
+    ax.set_ylabel("PSNR gated vs full (dB, capped at 80)")
+    ax.set_title("specular gate: accuracy against speed (star: default)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main(args: Args) -> None:
+    args.out.mkdir(parents=True, exist_ok=True)
+    device = torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu"
+    edit_args = EditArgs(data=args.data, train_out=args.train_out, seed=args.seed,
+                         geometry_steps=args.geometry_steps, colour_steps=args.colour_steps)
+    rows, cli = [], None
+    for scene in find(args.scenes):
+        folder = capture_folder(scene, args.data, args.train_out / "synthetic", "cuda" if torch.cuda.is_available()
+                                else "cpu", console)
+        cfg_path = run_config(edit_args, scene, folder)
+        rows.append(bench_scene(args, scene, cfg_path))
+        if args.cli and cli is None:
+            cli = bench_cli(scene, cfg_path, args.data, args.out)
+        _write(args.out / "results.json", {"device": device, "args": _jsonable(vars(args)), "rows": rows, "cli": cli})
+    print_tables(rows, cli, device)
+    if rows:
+        plot(rows, args.out / "gate_sweep.png")
+
+
+def _jsonable(d: dict) -> dict:
+    return {k: (str(v) if isinstance(v, Path) else v) for k, v in d.items()}
+
+
+def _write(path: Path, result: dict) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(result, indent=1, default=str))
+
+
+def entrypoint() -> None:
+    cli_entry(lambda: main(tyro.cli(Args)))
+
+
+if __name__ == "__main__":
+    entrypoint()
