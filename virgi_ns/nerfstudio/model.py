@@ -59,6 +59,9 @@ class VirgiModelConfig(SplatfactoModelConfig):
     lambda_spec_end: float = 0.05
     raster_backend: Literal["auto", "reference", "cuda"] = "auto"
     """Rasterizer for the colour stage and rendering."""
+    whole_view_renderer: Literal["gsplat", "contributions"] = "gsplat"
+    """Whole-view renders on a GPU (viewer, evaluation): gsplat's forward rasterizer with one colour
+    per Gaussian, or our contribution lists (``raster_backend``). CPU renders always take the lists."""
     specular_gating: bool = True
     """Render MLP_spec only for Gaussians whose measured specular effect exceeds gate_threshold."""
     gate_threshold: float = 1.0 / 255.0
