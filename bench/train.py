@@ -41,6 +41,8 @@ from virgi_ns.metrics import offline_splatfacto_lpips
 console = Console()
 BRIGHT = 0.95
 """Photo pixels with a channel at or above this count as near-saturated in the error split."""
+WARMUP_STEPS = 20
+"""Geometry steps left out of ``geometry_step_ms`` (the first ones compile and allocate)."""
 
 
 @dataclass
@@ -85,6 +87,10 @@ def dataparser_for(scene: str, root: Path):
                                       downscale_factor=1)
     from virgi_ns.data.llff import LLFFDataParserConfig
 
+    if (path / "transforms.json").is_file():  # nerfstudio's own format (e.g. tests/virgi_scene.py's capture)
+        from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+
+        return NerfstudioDataParserConfig(data=path, eval_mode="interval", eval_interval=8, load_3D_points=False)
     images = "images_8" if (path / "images_8").is_dir() else "images"
     return LLFFDataParserConfig(data=path, images_dir=images, llffhold=8)
 
@@ -106,13 +112,15 @@ def _sync() -> None:
         torch.cuda.synchronize()
 
 
-def train(cfg) -> tuple[object, float, Path, Dict[str, float]]:
-    """Train; returns (trainer, seconds, checkpoint folder, breakdown). The breakdown sums the
-    wall time of nerfstudio's train iterations by stage without extra synchronisation (the CPU runs
-    at most a few steps ahead of the GPU, and every 10th step logs a loss, which synchronises), and
-    names the time spent outside the iterations (checkpoint writing, the trainer's own set-up)."""
-    cfg.save_config()  # config.yml beside the checkpoint, so bench/export.py and bench/edit.py can load the run
-    trainer = cfg.setup(local_rank=0, world_size=1)
+def train(cfg, local_rank: int = 0, world_size: int = 1) -> tuple[object, float, Path, Dict[str, float]]:
+    """Train (as process ``local_rank`` of ``world_size``); returns (trainer, seconds, checkpoint
+    folder, breakdown). The breakdown sums the wall time of nerfstudio's train iterations by stage
+    without extra synchronisation (the CPU runs at most a few steps ahead of the GPU, and every
+    10th step logs a loss, which synchronises), and names the time spent outside the iterations
+    (checkpoint writing, the trainer's own set-up)."""
+    if local_rank == 0:  # config.yml beside the checkpoint, so bench/export.py and bench/edit.py can load the run
+        cfg.save_config()
+    trainer = cfg.setup(local_rank=local_rank, world_size=world_size)
     trainer.setup()
     steps: List[tuple[int, float]] = []
     inner = trainer.train_iteration
@@ -145,6 +153,8 @@ def breakdown(trainer, steps: List[tuple[int, float]], total: float) -> Dict[str
         geo = [s for i, s in steps if i < c0]
         col = [s for i, s in steps if c0 < i < last]
         res["geometry_steps_s"] = sum(geo)
+        settled = geo[WARMUP_STEPS:] or geo  # past the first steps' compilation and allocations
+        res["geometry_step_ms"] = 1e3 * sum(settled) / max(len(settled), 1)
         res["first_colour_step_s"] = sum(s for i, s in steps if i == c0)
         res["colour_steps_s"] = sum(col)
         res["colour_step_ms"] = 1e3 * sum(col) / max(len(col), 1)
@@ -185,20 +195,20 @@ def evaluate(pipeline, repeats: int, picture: Optional[Path]) -> Dict[str, float
         px += se.numel()
         px_bright += float(bright.sum())
         for _ in range(repeats):
-            torch.cuda.synchronize()
+            _sync()
             t = time.perf_counter()
             model.get_outputs_for_camera(cam)
-            torch.cuda.synchronize()
+            _sync()
             render_s += time.perf_counter() - t
             frames += 1
         if is_virgi and model.gate_ready():
-            torch.cuda.synchronize()
+            _sync()
             t = time.perf_counter()
             full = model.render_camera(cam, gated=False)
-            torch.cuda.synchronize()
+            _sync()
             t2 = time.perf_counter()
             gated = model.render_camera(cam, gated=True)
-            torch.cuda.synchronize()
+            _sync()
             full_s += t2 - t
             gated_s += time.perf_counter() - t2
             mse = float(((full["rgb"] - gated["rgb"]) ** 2).mean())

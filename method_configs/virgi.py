@@ -4,6 +4,7 @@
 frozen, then 10k colour-field steps on multi-view tile batches.
 ``virgi-vanilla``: the paper's baseline through the same code: one view-dependent colour MLP
 (``color_field.decoupled=False``) and single-view batches.
+Both train on several GPUs with ``--machine.num-devices N`` (virgi's trainer; see the README).
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
-from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from virgi_ns.colour.field import ColorFieldConfig
@@ -20,6 +20,7 @@ from virgi_ns.nerfstudio import compat  # noqa: F401  (checkpoint-loading work-a
 from virgi_ns.nerfstudio.datamanager import VirgiDataManagerConfig
 from virgi_ns.nerfstudio.model import VirgiModelConfig
 from virgi_ns.nerfstudio.pipeline import VirgiPipelineConfig
+from virgi_ns.nerfstudio.trainer import VirgiTrainerConfig
 
 GEOMETRY_STEPS = 30000
 COLOUR_STEPS = 10000
@@ -31,14 +32,14 @@ def virgi_trainer_config(
     batch_mode: str = "multiview",
     geometry_steps: int = GEOMETRY_STEPS,
     colour_steps: int = COLOUR_STEPS,
-) -> TrainerConfig:
+) -> VirgiTrainerConfig:
     """The full training recipe; the two registered methods differ only in the switches."""
     total = geometry_steps + colour_steps
 
     def adam(lr: float) -> AdamOptimizerConfig:
         return AdamOptimizerConfig(lr=lr, eps=1e-15)
 
-    return TrainerConfig(
+    return VirgiTrainerConfig(
         method_name=name,
         steps_per_eval_image=500,
         steps_per_eval_batch=0,

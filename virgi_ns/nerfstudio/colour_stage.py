@@ -25,6 +25,7 @@ from torch import Tensor
 
 from virgi_ns.colour.field import view_directions
 from virgi_ns.gaussians import SH_C0
+from virgi_ns.nerfstudio import distributed
 from virgi_ns.nerfstudio.datamanager import TileBatch
 from virgi_ns.raster import Cameras, composite
 
@@ -48,7 +49,9 @@ class ColourStage:
         if self.config.colour_init == "geometry_sh" and self._train_cameras_fn is not None:
             cams = self._train_cameras_fn()  # loads the training images, as the first colour step would
         with self._timed("warm_start_s"):
-            return self.init_colour_field(self.config.colour_init_steps, cams=cams)
+            res = self.init_colour_field(self.config.colour_init_steps, cams=cams)
+        distributed.broadcast_state(self.field)  # each process drew its own mini-batches and cameras
+        return res
 
     @contextmanager
     def _timed(self, name: str):
@@ -281,9 +284,16 @@ class ColourStage:
         if outputs.get("tiles"):
             valid = batch["valid"]
             gt = batch["image"][..., :3]
-            l1 = (outputs["rgb"] - gt).abs()[valid].mean()
+            err = (outputs["rgb"] - gt).abs()[valid]
             c_s = outputs["c_s"]
-            spec = (c_s**2).sum(-1).mean() if c_s.numel() else l1.new_zeros(())
+            share = batch.get("loss_norm")
+            if share is None:
+                l1 = err.mean()
+                spec = (c_s**2).sum(-1).mean() if c_s.numel() else l1.new_zeros(())
+            else:  # several processes: this one's part of the means over all of them
+                share = share.to(err)
+                l1 = err.mean(-1).sum() / share[0]  # share: (valid pixels, pairs) over all / processes
+                spec = (c_s**2).sum() / share[1]
             return {"rgb_l1": l1, "spec_reg": self.lambda_spec() * spec}
         return super().get_loss_dict(outputs, batch, metrics_dict)
 

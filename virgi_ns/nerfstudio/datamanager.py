@@ -134,6 +134,15 @@ def sample_tiles(
     return Request.tiles(vv, x0, y0, tile_size)
 
 
+def views_of_process(request: Request, rank: int, world: int) -> Request:
+    """The tiles of ``request`` on every ``world``-th of its distinct views, from the ``rank``-th:
+    the processes' shares of one batch. Split by view, so a (view, Gaussian) pair falls in one
+    share only and the shares' pair counts add up to the batch's."""
+    uniq = request.views.unique()
+    mine = torch.isin(request.views, uniq[rank::world])
+    return Request(request.views[mine], request.x0[mine], request.y0[mine], request.width, request.height)
+
+
 def _stack_images(cached: list[dict]) -> Tensor:
     """Stack the cached images [V,H_max,W_max,C] (zero padded) and make each cache entry a view
     into the stack, so the images are held once (each original is released as it is copied; a
@@ -162,6 +171,7 @@ class VirgiDataManager(FullImageDatamanager):
         self._raster_cams: Cameras | None = None
         self._image_stack: Tensor | None = None
         self._generator = torch.Generator().manual_seed(0)
+        self._rank, self._world, self._shared_tiles = 0, 1, False  # see split_over_processes
         # the frame an imported capture-frame splat must be moved into, for the model; nerfstudio's
         # COLMAP parser already folds its world-axis swap into dataparser_transform
         T = self.train_dataparser_outputs.dataparser_transform.float()
@@ -169,6 +179,30 @@ class VirgiDataManager(FullImageDatamanager):
         meta = self.train_dataset.metadata
         meta["virgi_capture_transform"] = capture
         meta["virgi_capture_scale"] = float(self.train_dataparser_outputs.dataparser_scale)
+
+    def split_over_processes(self, rank: int, world: int, shared_tiles: bool) -> None:
+        """Draw this process's share of each step's batch, ``rank`` of ``world``. Geometry: every
+        process walks the same seeded camera order and takes its own consecutive views of each
+        step (:meth:`next_train_views`). Colour: with ``shared_tiles`` every process draws the
+        same batch of ``pixel_budget`` pixels and keeps the tiles of its views
+        (:func:`views_of_process`); otherwise each draws ``pixel_budget / world`` pixels of its
+        own, from a generator seeded with its rank (rank 0 draws what one process would)."""
+        self._rank, self._world, self._shared_tiles = rank, world, shared_tiles
+        if not shared_tiles:
+            self._generator = torch.Generator().manual_seed(rank)
+
+    def next_train_views(self, step: int, count: int) -> list[tuple]:
+        """This process's (camera, batch) pairs of one geometry step of ``count`` views."""
+        per = max(1, count // self._world)
+        views = []
+        for k in range(count):
+            if k // per == self._rank:
+                views.append(self.next_train(step))
+            else:  # another process's view: only advance the camera order
+                self.train_unseen_cameras.pop(0)
+                if not self.train_unseen_cameras:
+                    self.train_unseen_cameras = self.sample_train_cameras()
+        return views
 
     # ------------------------------------------------------------------ colour stage
     def train_raster_cameras(self) -> Cameras:
@@ -198,8 +232,13 @@ class VirgiDataManager(FullImageDatamanager):
             pool = (opacities.reshape(-1) >= self.config.min_anchor_opacity).nonzero().flatten()
             if len(pool) == 0:
                 pool = torch.arange(means.shape[0], device=means.device)
+            budget = self.config.pixel_budget
+            if not self._shared_tiles:
+                budget //= self._world
             req = sample_tiles(means, pool, cams, self.config.tile_size, self.config.views_per_anchor,
-                               self.config.pixel_budget, self.config.batch_mode, self._generator)
+                               budget, self.config.batch_mode, self._generator)
+            if self._shared_tiles and self._world > 1:
+                req = views_of_process(req, self._rank, self._world)
         valid = req.valid_mask(cams)
         gt = _gather_tiles(self.train_image_stack(), req, valid)
         if gt.dtype == torch.uint8:

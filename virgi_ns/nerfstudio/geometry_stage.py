@@ -22,6 +22,7 @@ from torch import Tensor
 
 from virgi_ns.errors import InputError
 from virgi_ns.gaussians import SH_C0, Gaussians
+from virgi_ns.nerfstudio import distributed
 from virgi_ns.nerfstudio.cameras import raster_cameras
 from virgi_ns.nerfstudio.frames import transform_gaussians
 from virgi_ns.raster import Request, composite, composite_depth
@@ -105,6 +106,7 @@ class GeometryStage:
         hi = torch.quantile(keep.float(), 1 - q, dim=0)
         pad = 0.1 * (hi - lo).clamp_min(1e-3)
         self.field.aabb.copy_(torch.stack([lo - pad, hi + pad]).to(self.field.aabb))
+        distributed.broadcast_tensor(self.field.aabb)  # the subsample above is this process's own draw
 
     @staticmethod
     def _sync_frozen(module: "GeometryStage", _keys) -> None:
@@ -131,7 +133,8 @@ class GeometryStage:
     def step_post_backward(self, step: int) -> None:
         if self.geometry_frozen or not self._use_gsplat() or not hasattr(self, "info"):
             return
-        super().step_post_backward(step)
+        strategy_step(self.strategy, self.gauss_params, self.optimizers, self.strategy_state, step,
+                      list(self._view_infos) or [self.info])
 
     def _reference_geometry_outputs(self, camera: NSCameras) -> Dict[str, Union[Tensor, List]]:
         """CPU geometry stage: whole image through the differentiable reference, degree-0 colours."""
@@ -149,4 +152,32 @@ class GeometryStage:
         return {"rgb": rgb, "depth": depth, "accumulation": acc, "background": bg}
 
 
-__all__ = ["GeometryStage"]
+def strategy_step(strategy, params, optimizers, state: dict, step: int, infos: List[dict]) -> None:
+    """gsplat's densification step after a geometry step over ``infos`` (gsplat's outputs of the
+    views whose mean loss was back-propagated): each view's image-plane gradients enter the
+    statistics scaled back by the number of views, as gsplat scales a batch of cameras; the
+    last view's call refines. With one view this is splatfacto's own call."""
+    if len(infos) > 1 and step < strategy.refine_stop_iter:
+        for info in infos:
+            info["n_cameras"] = len(infos)
+        for info in infos[:-1]:
+            strategy._update_state(params, state, info, packed=False)
+    strategy.step_post_backward(params=params, optimizers=optimizers, state=state, step=step, info=infos[-1],
+                                packed=False)
+
+
+def mean_over_views(dicts: List[Dict]) -> Dict:
+    """The losses (or metrics) of a geometry step over several views: key by key, the mean of
+    numbers and tensors (other values: the first view's)."""
+    if len(dicts) == 1:
+        return dicts[0]
+    out = {}
+    for key, value in dicts[0].items():
+        if isinstance(value, (Tensor, int, float)) and not isinstance(value, bool):
+            out[key] = sum(d[key] for d in dicts) / len(dicts)
+        else:
+            out[key] = value
+    return out
+
+
+__all__ = ["GeometryStage", "mean_over_views", "strategy_step"]

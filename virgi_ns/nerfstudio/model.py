@@ -16,6 +16,7 @@ a GPU.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Type, Union
@@ -30,6 +31,7 @@ from torch.nn import Parameter
 
 from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
 from virgi_ns.errors import InputError
+from virgi_ns.nerfstudio import distributed
 from virgi_ns.nerfstudio.colour_stage import ColourStage
 from virgi_ns.nerfstudio.datamanager import TileBatch
 from virgi_ns.nerfstudio.geometry_stage import GeometryStage
@@ -80,6 +82,9 @@ class VirgiModelConfig(SplatfactoModelConfig):
     """Adam steps of the warm start (the field's own learning rates)."""
     colour_init_batch: int = 16384
     """Gaussians per warm-start step (drawn uniformly, weighted by opacity in the loss)."""
+    geometry_views_per_step: int = 1
+    """Training views per geometry step, over all processes: the loss is their mean, and gsplat's
+    densification statistics count each of them as one view."""
 
 
 class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
@@ -113,7 +118,9 @@ class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
             raise InputError("virgi does not support --pipeline.model.use-bilateral-grid")
         from gsplat.strategy import DefaultStrategy
 
-        self.strategy = DefaultStrategy(
+        views = max(1, cfg.geometry_views_per_step)
+        strategy = distributed.ReducedDefaultStrategy if distributed.world_size() > 1 else DefaultStrategy
+        self.strategy = strategy(
             prune_opa=cfg.cull_alpha_thresh,
             grow_grad2d=cfg.densify_grad_thresh,
             grow_scale3d=cfg.densify_size_thresh,
@@ -125,12 +132,14 @@ class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
             refine_stop_iter=cfg.stop_split_at,
             reset_every=cfg.reset_alpha_every * cfg.refine_every,
             refine_every=cfg.refine_every,
-            pause_refine_after_reset=self.num_train_data + cfg.refine_every,
+            pause_refine_after_reset=math.ceil(self.num_train_data / views) + cfg.refine_every,  # an epoch of views
             absgrad=cfg.use_absgrad,
             revised_opacity=False,
-            verbose=True,
+            verbose=distributed.is_main(),
         )
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)
+        # gsplat's outputs of this process's views in the current geometry step (see step_post_backward)
+        self._view_infos: deque = deque(maxlen=max(1, views // distributed.world_size()))
 
         self.field = DecoupledColorField(cfg.color_field, self._scene_aabb())
         self.register_buffer("frozen", torch.tensor(False))  # in checkpoints
@@ -172,7 +181,10 @@ class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
             return {}
         if not self.geometry_frozen:
             if self._use_gsplat():
-                return super().get_outputs(camera)
+                out = super().get_outputs(camera)
+                if self.training:
+                    self._view_infos.append(self.info)
+                return out
             return self._reference_geometry_outputs(camera)
         return self.render_camera(camera, gated=self.config.specular_gating and not self.training)
 

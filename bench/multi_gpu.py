@@ -1,0 +1,216 @@
+"""Benchmark (GPUs): ``ns-train virgi`` on N GPUs against one, through nerfstudio's own launcher.
+
+For each seed, the recipe with ``--steps`` geometry + ``--colour-steps`` colour steps on one GPU,
+then on each N of ``--worlds`` with the default 'scale' batch: each process draws a one-GPU batch,
+so a step sees N times the views and the run takes 1/N of the steps (the same views seen).
+
+Columns: steps/s of each stage (geometry steps after the first 20; colour steps but the first,
+which holds the warm start, and the last, which measures the specular gate), each stage's speed-up
+in views (pixels) per second over one GPU (N x the ratio of steps/s, same per-process batch),
+held-out PSNR / SSIM (every 8th view), Gaussians, train time. A summary per N over the seeds:
+the mean speed-ups and the PSNR difference to one GPU, paired by seed. Writes ``results.json``.
+
+    NCCL_NVLS_ENABLE=0 python bench/multi_gpu.py --data .data --out /tmp/runs/multi \\
+        --steps 7000 --colour-steps 1000 --seeds 42 43
+
+On a CPU (``--device cpu``) the processes join over gloo: a check that the script runs, with
+``--settings`` making the recipe tiny (as tests/test_multi_gpu_bench.py runs it).
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+import os
+import random
+import statistics
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Literal
+
+import numpy as np
+import torch
+import tyro
+from rich.console import Console
+from rich.table import Table
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from train import apply_settings, dataparser_for, evaluate, quiet, train  # noqa: E402  (bench/train.py)
+
+from virgi_ns.errors import InputError, atomic_path, cli_entry  # noqa: E402
+
+# NVLink multicast stays off (the GPU machines' rule: it can take the host's GPUs out of service)
+for _name, _value in (("NCCL_NVLS_ENABLE", "0"), ("TORCH_SYMM_MEM_DISABLE_MULTICAST", "1"),
+                      ("NVSHMEM_DISABLE_NVLS", "1")):
+    os.environ.setdefault(_name, _value)
+
+console = Console()
+RESULT = "bench_rank0.json"
+
+
+@dataclass
+class Args:
+    data: Path = Path(__file__).resolve().parents[2] / "shared" / "data"
+    """Folder holding the scene folders (COLMAP, LLFF or nerfstudio's transforms.json)."""
+    out: Path = Path("bench_out/multi_gpu")
+    scene: str = "beercan"
+    steps: int = 7000
+    """Geometry steps on one GPU (N GPUs: steps / N)."""
+    colour_steps: int = 1000
+    """Colour steps on one GPU (N GPUs: colour_steps / N)."""
+    worlds: List[int] = field(default_factory=lambda: [1, 2])
+    """Process counts to train with (1 is the reference)."""
+    seeds: List[int] = field(default_factory=lambda: [42])
+    device: Literal["cuda", "cpu"] = "cuda"
+    settings: str = ""
+    """More config settings, 'a.b.c=value,...' (dotted TrainerConfig paths, as bench/train.py's)."""
+
+
+def run_config(args: Args, world: int, seed: int):
+    from method_configs.virgi import virgi_trainer_config
+
+    cfg = virgi_trainer_config("virgi", geometry_steps=args.steps, colour_steps=args.colour_steps)
+    cfg.pipeline.datamanager.dataparser = dataparser_for(args.scene, args.data)
+    cfg.machine.seed = seed
+    cfg.machine.num_devices = world
+    cfg.machine.device_type = args.device
+    if args.settings:
+        apply_settings(cfg, args.settings)
+    quiet(cfg, args.out, f"{args.scene}-n{world}-s{seed}")
+    return cfg
+
+
+def steps_per_s(ms) -> float:
+    """Steps per second from the mean step in milliseconds (NaN where no step was timed)."""
+    return 1e3 / ms if ms is not None and ms > 0 else float("nan")
+
+
+def worker(local_rank: int, world_size: int, config, global_rank: int = 0) -> None:
+    """One process of a run, as nerfstudio's ``train_loop`` (seeded by rank), timed as
+    bench/train.py times it; rank 0 evaluates and writes its figures beside the run."""
+    seed = config.machine.seed + global_rank
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+    trainer, secs, _, parts = train(config, local_rank, world_size)
+    if global_rank == 0:
+        res = evaluate(trainer.pipeline, 1 if config.machine.device_type == "cuda" else 0, None)
+        cfg = trainer.config  # as the processes trained it (the batch rule applied)
+        row = {"world": world_size, "seed": config.machine.seed, "train_s": secs,
+               "geometry_steps": cfg.pipeline.model.geometry_steps,
+               "colour_steps": cfg.max_num_iterations - cfg.pipeline.model.geometry_steps,
+               "views_per_geometry_step": cfg.pipeline.model.geometry_views_per_step,
+               "pixels_per_colour_step": cfg.pipeline.datamanager.pixel_budget,
+               "geometry_steps_per_s": steps_per_s(parts.get("geometry_step_ms")),
+               "colour_steps_per_s": steps_per_s(parts.get("colour_step_ms")),
+               **res, "train_breakdown": parts}
+        with atomic_path(Path(config.get_base_dir()) / RESULT) as tmp:
+            tmp.write_text(json.dumps(row, indent=2))
+
+
+def _cpu_worker(rank: int, world: int, config) -> None:
+    worker(rank, world, config, rank)
+
+
+def run(args: Args, world: int, seed: int) -> Dict[str, object]:
+    cfg = run_config(args, world, seed)
+    if world == 1:
+        worker(0, 1, cfg)
+    elif args.device == "cuda":
+        from nerfstudio.scripts.train import launch
+
+        launch(worker, num_devices_per_machine=world, device_type="cuda", config=cfg)
+    else:
+        from virgi_ns.nerfstudio.distributed import run_processes
+
+        run_processes(_cpu_worker, world, cfg)
+    gc.collect()
+    if torch.cuda.is_available():
+        torch.cuda.empty_cache()
+    path = Path(cfg.get_base_dir()) / RESULT
+    if not path.is_file():
+        raise InputError(f"the run with {world} processes wrote no results ({path})")
+    return json.loads(path.read_text())
+
+
+def speedups(rows: List[Dict[str, object]]) -> None:
+    """Each row's speed-up per stage over the one-process row of its seed: views (pixels) per second."""
+    ref = {r["seed"]: r for r in rows if r["world"] == 1}
+    for r in rows:
+        one = ref.get(r["seed"])
+        for stage in ("geometry", "colour"):
+            key = f"{stage}_steps_per_s"
+            r[f"{stage}_speedup"] = (r["world"] * r[key] / one[key]) if one else float("nan")
+        r["psnr_minus_one_gpu"] = r["psnr"] - one["psnr"] if one else float("nan")
+
+
+def summary(rows: List[Dict[str, object]]) -> List[Dict[str, object]]:
+    out = []
+    for world in sorted({r["world"] for r in rows}):
+        rs = [r for r in rows if r["world"] == world]
+        psnr = [r["psnr"] for r in rs]
+        diff = [r["psnr_minus_one_gpu"] for r in rs]
+        out.append({"world": world, "runs": len(rs), "psnr_mean": statistics.fmean(psnr),
+                    "psnr_std": statistics.stdev(psnr) if len(psnr) > 1 else float("nan"),
+                    "psnr_minus_one_gpu_mean": statistics.fmean(diff),
+                    "psnr_minus_one_gpu_range": [min(diff), max(diff)],
+                    "geometry_speedup": statistics.fmean(r["geometry_speedup"] for r in rs),
+                    "colour_speedup": statistics.fmean(r["colour_speedup"] for r in rs)})
+    return out
+
+
+def print_tables(rows: List[Dict[str, object]], summ: List[Dict[str, object]], device: str) -> None:
+    t = Table(title=f"virgi on N processes vs one ({device}; speed-up: views or pixels per second)")
+    cols = [("world", "N"), ("seed", "seed"), ("geometry_steps", "geo steps"), ("colour_steps", "colour steps"),
+            ("geometry_steps_per_s", "geo steps/s"), ("colour_steps_per_s", "colour steps/s"),
+            ("geometry_speedup", "geo speed-up"), ("colour_speedup", "colour speed-up"), ("psnr", "PSNR"),
+            ("ssim", "SSIM"), ("gaussians", "Gaussians"), ("train_s", "train s")]
+    for _, name in cols:
+        t.add_column(name, justify="right")
+    for r in rows:
+        t.add_row(*(f"{r[k]:.3f}" if isinstance(r[k], float) else str(r[k]) for k, _ in cols))
+    console.print(t)
+    s = Table(title="per N over the seeds")
+    for name in ("N", "runs", "PSNR", "PSNR - 1 GPU (range)", "geo speed-up", "colour speed-up"):
+        s.add_column(name, justify="right")
+    for r in summ:
+        lo, hi = r["psnr_minus_one_gpu_range"]
+        s.add_row(str(r["world"]), str(r["runs"]), f"{r['psnr_mean']:.2f} +- {r['psnr_std']:.2f}",
+                  f"{r['psnr_minus_one_gpu_mean']:+.2f} ({lo:+.2f}..{hi:+.2f})", f"{r['geometry_speedup']:.2f}x",
+                  f"{r['colour_speedup']:.2f}x")
+    console.print(s)
+
+
+def main(args: Args) -> None:
+    if 1 not in args.worlds:
+        raise InputError("--worlds must hold 1: the other runs are measured against it")
+    if args.device == "cuda":
+        if torch.cuda.device_count() < max(args.worlds):
+            raise InputError(f"--worlds {max(args.worlds)} needs that many GPUs; {torch.cuda.device_count()} visible")
+        from gsplat.cuda._backend import _C  # noqa: F401  (built before any timing)
+
+        device = f"{torch.cuda.device_count()} x {torch.cuda.get_device_name(0)}"
+    else:
+        device = "CPU (gloo)"
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows: List[Dict[str, object]] = []
+    for seed in args.seeds:
+        for world in sorted(args.worlds):
+            rows.append(run(args, world, seed))
+            console.log({k: v for k, v in rows[-1].items() if k != "train_breakdown"})
+            with atomic_path(args.out / "results.json") as tmp:  # after every run: a cut-off call keeps them
+                tmp.write_text(json.dumps({"device": device, "args": str(args), "rows": rows}, indent=2))
+    speedups(rows)
+    summ = summary(rows)
+    print_tables(rows, summ, device)
+    with atomic_path(args.out / "results.json") as tmp:
+        tmp.write_text(json.dumps({"device": device, "args": str(args), "rows": rows, "summary": summ}, indent=2))
+
+
+def entrypoint() -> None:
+    cli_entry(lambda: main(tyro.cli(Args)))
+
+
+if __name__ == "__main__":
+    entrypoint()
