@@ -97,7 +97,7 @@ class Pick:
     the picked pixel's and still be selected."""
     mode: Literal["hue", "colour"] = "hue"
     """``hue``: new hue and saturation, each pixel keeps its value (shading and highlights stay);
-    ``colour``: the colour itself, shaded as the pixel is."""
+    ``colour``: the surface takes the colour itself, shaded as it was, its highlights on it."""
     steps: Optional[int] = None
     """Optimisation steps (default: the engine's)."""
 

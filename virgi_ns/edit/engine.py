@@ -253,7 +253,8 @@ class EditEngine:
         t0 = time.perf_counter()
         self._setup_view()
         if edited is not None:
-            self._set_target(edited.to(dev, torch.float32), None if original is None else original.to(dev, torch.float32),
+            self._set_target(edited.to(dev, torch.float32),
+                             None if original is None else original.to(dev, torch.float32),
                              None if changed is None else changed.to(dev), warm=False)
         _sync(dev)
         self.setup_s = time.perf_counter() - t0

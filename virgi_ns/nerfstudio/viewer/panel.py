@@ -112,7 +112,8 @@ class VirgiPanel(PanelActions, PickActions, ViewerElement[None], ViewerControl):
                                            "pixel's")
         self.pick_recolour = ViewerDropdown("Recolour mode", "hue", ["hue", "colour"],
                                             cb_hook=lambda e: self._on_pick_params(),
-                                            hint="hue: keep shading and highlights; colour: the colour itself, shaded")
+                                            hint="hue: keep shading and highlights; colour: the surface takes the "
+                                                 "colour, shaded, highlights on it")
 
     # ----------------------------------------------------------------- nerfstudio hooks
     def _create_gui_handle(self, viser_server: "ViserServer") -> None:
