@@ -80,6 +80,23 @@ def test_demo_pipeline_on_a_tiny_capture(tmp_path):
     src = load_splat(scene / "geometry.ply")
     assert len(g) == len(src) and g.sh_degree == 3
     torch.testing.assert_close(g.means, src.means, atol=1e-4, rtol=1e-4)
+    # the trained run: a nerfstudio run directory that the virgi commands (and ns-viewer) load,
+    # and the printed pick lands on the object the rule recoloured
+    from virgi_ns.cli.edit import load_run
+    from virgi_ns.demo.run import next_commands
+
+    run_cfg = out / "run" / "config.yml"
+    assert saved["run"]["config"] == str(run_cfg) and list((out / "run" / "nerfstudio_models").glob("step-*.ckpt"))
+    _, pipeline = load_run(run_cfg)
+    pick = saved["run"]["pick"]
+    cam = pipeline.datamanager.train_dataset.cameras[pick["camera_index"] : pick["camera_index"] + 1]
+    with torch.no_grad():
+        acc = pipeline.model.get_outputs_for_camera(cam)["accumulation"][..., 0]
+    x, y = pick["pixel"]
+    assert pick["camera_index"] == saved["edit_view"]["index"] and float(acc[y, x]) > 0.5
+    commands = next_commands(saved, out)
+    assert [c.split()[0] for c in commands] == ["ns-viewer", "virgi-edit", "virgi-export"]
+    assert f"--camera-index {pick['camera_index']} --pixel {x} {y}" in commands[1]
 
 
 def test_bad_scene_exits_2_and_writes_nothing(tmp_path, monkeypatch, capsys):

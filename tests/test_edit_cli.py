@@ -15,7 +15,7 @@ import torch
 from PIL import Image
 from rich.console import Console
 
-from virgi_ns.cli.edit import Apply, Disable, Enable, Import, List, Reset, Specular, Undo, run
+from virgi_ns.cli.edit import Apply, Disable, Enable, Import, List, Pick, Reset, Specular, Undo, run
 from virgi_ns.edit.recolor import RecolorRule, recolor
 from virgi_ns.errors import InputError
 
@@ -227,6 +227,92 @@ def test_original_image_limits_the_fit_to_changed_pixels(saved, tmp_path):
         _refused(saved, _apply(saved, original=small), "--original is 5x4.*--resize")
     finally:
         run(Reset(saved["config"]), _quiet(), pl)
+
+
+def _objects(pipeline, index: int):
+    """(render, the matte red sphere's pixels, the glossy blue sphere's pixels) of training view ``index``."""
+    cam = pipeline.datamanager.train_dataset.cameras[index : index + 1]
+    with torch.no_grad():
+        out = pipeline.model.get_outputs_for_camera(cam)
+    rgb, acc = out["rgb"].cpu(), out["accumulation"][..., 0].cpu()
+    solid = acc > 0.95
+    return rgb, solid & (rgb[..., 0] > rgb[..., 2] + 0.2), solid & (rgb[..., 2] > rgb[..., 0] + 0.2)
+
+
+def _central(mask: torch.Tensor) -> tuple[int, int]:
+    ys, xs = torch.nonzero(mask, as_tuple=True)
+    i = int(((ys - ys.float().mean()) ** 2 + (xs - xs.float().mean()) ** 2).argmin())
+    return int(xs[i]), int(ys[i])
+
+
+def _pick(saved, **kw) -> Pick:
+    args = {"load_config": saved["config"], "pixel": _central(_objects(saved["pipeline"], 0)[1]),
+            "colour": "#20c040", "camera_index": 0, "steps": 40}
+    args.update(kw)
+    return Pick(**args)
+
+
+def test_pick_recolours_the_clicked_sphere_only_and_saves_what_it_selected(saved):
+    """A pick on the red sphere in view 0 turns it green in another view and leaves the blue one;
+    the edited image and the selection lie beside the edit; undo removes all three."""
+    from virgi_ns.edit.stack import EditStack
+
+    pl = saved["pipeline"]
+    model = pl.model
+    before, red, blue = _objects(pl, 3)
+    assert int(red.sum()) > 20 and int(blue.sum()) > 20
+    try:
+        msg = run(_pick(saved), _quiet(), pl)
+        assert msg.startswith("edit 1 saved") and "hue -> #20c040" in msg, msg
+        assert _listing(saved["config"]) == ["edit_0001.pt", "edit_0001_edited.png", "edit_0001_selection.png",
+                                             "stack.json"]
+        sel = np.asarray(Image.open(saved["config"].parent / "edits" / "edit_0001_selection.png")) > 127
+        _, red0, blue0 = _objects(pl, 0)
+        assert sel[red0.numpy()].mean() > 0.9 and not sel[blue0.numpy()].any()
+        model.set_edit_stack(EditStack.open(saved["config"].parent, model.fingerprint()))
+        after, _, _ = _objects(pl, 3)
+        green = torch.tensor([0.125, 0.75, 0.25])
+        gap_before = float((before[red] - green).abs().mean())
+        assert float((after[red] - green).abs().mean()) < 0.6 * gap_before
+        assert float(after[red][:, 1].mean()) > float(after[red][:, 0].mean())  # green over red now
+        assert float((after - before)[blue].abs().mean()) < 0.03
+        run(Undo(saved["config"]), _quiet(), pl)
+        assert _listing(saved["config"]) == ["stack.json"]
+    finally:
+        model.set_edit_stack(None)
+        if (saved["config"].parent / "edits" / "stack.json").is_file():
+            run(Reset(saved["config"]), _quiet(), pl)
+
+
+def test_bad_picks_are_one_line_with_nothing_saved(saved):
+    pl = saved["pipeline"]
+    rgb, _, _ = _objects(pl, 0)
+    h, w = rgb.shape[:2]
+    _refused(saved, _pick(saved, pixel=(w, 3)), rf"outside the {w}x{h} image")
+    _refused(saved, _pick(saved, pixel=(2, -1)), "outside")
+    _refused(saved, _pick(saved, pixel=(0, 0)), "background")
+    for bad in ("green", "#12345", "#zz0000", ""):
+        _refused(saved, _pick(saved, colour=bad), "#RRGGBB")
+    for t in (-0.1, 1.5):
+        _refused(saved, _pick(saved, tolerance=t), r"tolerance must be in \[0, 1\]")
+    _refused(saved, _pick(saved, mode="tint"), "recolour mode")
+    _refused(saved, _pick(saved, steps=0), "--steps must be >= 1")
+    _refused(saved, _pick(saved, camera_index=None), "exactly one of")
+
+
+def test_a_bad_pick_from_the_command_line_exits_2(saved):
+    """Through the module's entry point (what the ``virgi-edit`` script runs): one line, exit 2; the
+    colour and the tolerance are checked before the run is loaded."""
+    listing = _listing(saved["config"])
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    for extra, want in ((["--colour", "reddish"], "cannot read the colour 'reddish'"),
+                        (["--colour", "#d02020", "--tolerance", "2"], "tolerance must be in [0, 1]")):
+        p = subprocess.run([sys.executable, "-m", "virgi_ns.cli.edit", "pick", "--load-config", str(saved["config"]),
+                            "--camera-index", "0", "--pixel", "5", "5"] + extra,
+                           capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
+        assert p.returncode == 2, p.stderr
+        assert p.stderr.strip().count("\n") == 0 and want in p.stderr, p.stderr
+    assert _listing(saved["config"]) == listing
 
 
 if __name__ == "__main__":

@@ -191,3 +191,63 @@ def test_panel_save_upload_apply_undo(run, tmp_path):
     np.testing.assert_allclose(render(model, cam), before, atol=1e-5)
     panel.set_display("segmentation")
     assert panel.status_is_error and "needs an edit" in panel.status
+
+
+def test_panel_pick_live_commit_replace_undo(run, tmp_path):
+    """Pick mode without a browser: a click (``pick_at``) shows a live edit, nothing written; a pause
+    commits it with its pictures; a colour change after the release replaces that edit; undo
+    restores the render; a click on the background is a status-line error with nothing saved."""
+    _, pipeline = run
+    model = pipeline.model
+    model.set_edit_stack(None)
+    panel = VirgiPanel(model, run_dir=tmp_path)
+    panel.commit_after_s = 0.05
+    cam = pipeline.datamanager.train_dataset.cameras[0:1]
+    out = model.get_outputs_for_camera(cam)
+    before = out["rgb"].detach().cpu().numpy()
+    acc = out["accumulation"][..., 0].detach().cpu().numpy()
+    red = (acc > 0.95) & (before[..., 0] > before[..., 2] + 0.2)
+    blue = (acc > 0.95) & (before[..., 2] > before[..., 0] + 0.2)
+    assert red.sum() > 20 and blue.sum() > 20
+    ys, xs = np.nonzero(red)
+    k = int(((ys - ys.mean()) ** 2 + (xs - xs.mean()) ** 2).argmin())
+    edits = tmp_path / "edits"
+
+    def files() -> list[str]:
+        return sorted(p.name for p in edits.iterdir()) if edits.is_dir() else []
+
+    # the background: an error in the status line, nothing saved, the panel keeps working
+    panel.pick_at(cam, 0, 0)
+    panel.wait_pick()
+    assert panel.status_is_error and "background" in panel.status and model.live_edit is None
+    assert files() in ([], ["stack.json"])
+
+    panel.pick_colour.value = (32, 192, 64)
+    panel.commit_after_s = 60.0  # hold the release: the live edit first
+    panel.pick_at(cam, int(xs[k]), int(ys[k]), wait=True)
+    assert not panel.status_is_error, panel.status
+    assert model.live_edit is not None and len(model.edit_stack) == 0 and "edit_0001.pt" not in files()
+    live = render(model, cam)
+    assert live[red][:, 1].mean() > before[red][:, 1].mean() + 0.1  # turning green while "dragged"
+    panel.commit_after_s = 0.05
+    panel.wait_pick(commit=True)
+    assert model.live_edit is None and len(model.edit_stack) == 1, panel.status
+    assert files() == ["edit_0001.pt", "edit_0001_edited.png", "edit_0001_selection.png", "stack.json"]
+    after = render(model, cam)
+    assert after[red][:, 1].mean() > after[red][:, 0].mean()  # green over red now
+    assert np.abs(after - before)[blue].mean() < 0.03  # the other sphere stays
+    # a change of the same pick after its release replaces its edit
+    panel.pick_colour.value = (40, 60, 220)
+    panel._on_pick_params()
+    panel.wait_pick(commit=True)
+    assert len(model.edit_stack) == 1 and model.edit_stack.entries[0].edit.info["pick"]["colour"] == "#283cdc"
+    assert files() == ["edit_0002.pt", "edit_0002_edited.png", "edit_0002_selection.png", "stack.json"]
+    panel.undo()
+    assert files() == ["stack.json"] and len(model.edit_stack) == 0
+    np.testing.assert_allclose(render(model, cam), before, atol=1e-5)
+    # bad settings are refused in the status line
+    panel.tolerance.value = 1.5
+    panel.pick_at(cam, int(xs[k]), int(ys[k]))
+    panel.wait_pick()
+    assert panel.status_is_error and "tolerance" in panel.status and files() == ["stack.json"]
+    panel.set_pick_mode(False)

@@ -1,7 +1,8 @@
 """The viewer panel in a real browser: ``ns-viewer --load-config`` on a tiny trained run (CPU),
 headless Chromium driven by selenium. Save a view, edit the downloaded PNG, upload it, apply,
 and see the render turn towards the edit; a text upload shows an error and the viewer keeps
-rendering and serving.
+rendering and serving. Pick mode: click the red sphere with a green colour set, see it turn green
+and the blue one stay, undo; a click on the background is an error and the viewer keeps serving.
 
 The set-up installs Debian's ``chromium`` + ``chromium-driver`` and selenium when they are
 missing; the test skips (saying why) only where they cannot be installed."""
@@ -227,3 +228,129 @@ def test_save_upload_apply_in_the_browser(viewer, browser, tmp_path):
     assert len(px) > 0.5 * len(after) and np.abs(px - EDIT_RGB).mean() < 0.5 * np.abs(before - EDIT_RGB).mean()
     button("Save this view").click()
     _wait("a second saved view", lambda: len(list(downloads.glob("view_*.png"))) == 2)
+
+
+def _checkbox(driver, label: str):
+    from selenium.webdriver.common.by import By
+
+    return driver.find_element(By.XPATH, f"//*[normalize-space(text())='{label}']/ancestor::*"
+                                         f"[.//input[@type='checkbox']][1]//input[@type='checkbox']")
+
+
+def _text_input(driver, label: str):
+    from selenium.webdriver.common.by import By
+
+    return driver.find_element(By.XPATH, f"//*[normalize-space(text())='{label}']/ancestor::*"
+                                         f"[.//input[not(@type='checkbox')]][1]//input[not(@type='checkbox')]")
+
+
+def _set_input(driver, element, text: str) -> None:
+    """Set a React-controlled input to ``text`` at once (typing would send every partial colour)."""
+    driver.execute_script(
+        "const set = Object.getOwnPropertyDescriptor(HTMLInputElement.prototype, 'value').set;"
+        "set.call(arguments[0], arguments[1]);"
+        "arguments[0].dispatchEvent(new Event('input', {bubbles: true}));"
+        "arguments[0].dispatchEvent(new Event('change', {bubbles: true}));"
+        "arguments[0].blur();", element, text)
+
+
+def _press(driver, element) -> None:
+    """Click a panel element from script: a pointer click scrolls the page to it, and the render
+    region is then no longer where the canvas's rectangle says in the screenshot."""
+    driver.execute_script("arguments[0].click()", element)
+
+
+def _click_render(driver, shot_xy: tuple[int, int]) -> None:
+    """Click the canvas at a screenshot pixel (device pixels, page coordinates)."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+
+    driver.execute_script("window.scrollTo(0, 0)")
+    dpr = float(driver.execute_script("return window.devicePixelRatio"))
+    canvas = driver.find_element(By.TAG_NAME, "canvas")
+    r = canvas.rect
+    dx = shot_xy[0] / dpr - (r["x"] + r["width"] / 2)
+    dy = shot_xy[1] / dpr - (r["y"] + r["height"] / 2)
+    ActionChains(driver).move_to_element_with_offset(canvas, int(dx), int(dy)).click().perform()
+
+
+def test_pick_in_the_browser(viewer, browser, tmp_path):
+    from selenium.webdriver.common.by import By
+
+    url, run_dir, _ = viewer
+    driver, _ = browser
+    driver.get(url)
+
+    def body() -> str:
+        return driver.find_element(By.TAG_NAME, "body").text
+
+    def button(label: str):
+        return driver.find_element(By.XPATH, f"//button[normalize-space()='{label}']")
+
+    _wait("the VIRGi panel", lambda: "Pick mode" in body() and "Connected" in body(), 90)
+    if list((run_dir / "edits").glob("edit_*.pt")):  # another test's edits: start from the unedited run
+        _press(driver, button("Reset"))
+        _wait("the reset", lambda: "reset: removed" in body(), 60)
+    seen: dict = {}
+
+    def spheres(name: str):
+        """(screenshot, region offset, region, red sphere mask, blue sphere mask) once both show."""
+        driver.execute_script("window.scrollTo(0, 0)")
+        dpr = float(driver.execute_script("return window.devicePixelRatio"))
+        shot = _screenshot(driver, tmp_path / name)
+        region = _render_region(driver, shot)
+        c = driver.find_element(By.TAG_NAME, "canvas").rect
+        red = (region[..., 0] > region[..., 2] + 0.2) & (region.max(-1) > 0.2)
+        blue = (region[..., 2] > region[..., 0] + 0.2) & (region.max(-1) > 0.2)
+        ok = red.sum() > 300 and blue.sum() > 300
+        seen.update(region=region.shape, red=int(red.sum()), blue=int(blue.sum()))
+        return (region, (int(c["x"] * dpr), int(c["y"] * dpr)), red, blue) if ok else None
+
+    _wait("both spheres rendered", lambda: spheres("p0.png"), 90, 0.5)
+    time.sleep(2.0)  # the full-resolution frame
+    got = spheres("p0.png")
+    assert got is not None, seen
+    region0, (ox, oy), red, blue = got
+    green = np.array([0.125, 0.75, 0.25], dtype=np.float32)
+
+    # Pick mode on, the colour set, a click on the middle of the red sphere
+    _press(driver, _checkbox(driver, "Pick mode"))
+    _wait("Pick mode", lambda: "click on the render" in body(), 30)
+    _set_input(driver, _text_input(driver, "New colour"), "#20c040")
+    ys, xs = np.nonzero(red)
+    k = int(((ys - ys.mean()) ** 2 + (xs - xs.mean()) ** 2).argmin())
+    _click_render(driver, (ox + int(xs[k]), oy + int(ys[k])))
+    _wait("the pick", lambda: "pick at" in body() or "Error" in body(), 120)
+    assert "Error" not in body(), body()
+    _wait("the commit", lambda: "committed from the pick" in body() or "Error" in body(), 180)
+    assert "Error" not in body(), body()
+    assert list((run_dir / "edits").glob("edit_*_selection.png"))
+
+    def turned():
+        region = _render_region(driver, _screenshot(driver, tmp_path / "p1.png"))
+        if region.shape != region0.shape:
+            return None
+        was = np.abs(region0[red] - green).mean()
+        ok = np.abs(region[red] - green).mean() < 0.6 * was
+        return (region,) if ok else None
+
+    (region1,) = _wait("the red sphere to turn green", turned, 60, 0.5)
+    assert np.abs(region1[blue] - region0[blue]).mean() < 0.05  # the other sphere stays
+
+    # a click on the background: one line in the panel, nothing saved, the viewer keeps serving
+    n_files = len(list((run_dir / "edits").iterdir()))
+    _click_render(driver, (ox + 3, oy + 3))
+    _wait("the background error", lambda: "background" in body(), 60)
+    assert len(list((run_dir / "edits").iterdir())) == n_files
+    _press(driver, _checkbox(driver, "Pick mode"))
+    _wait("Pick mode off", lambda: "Pick mode off" in body(), 30)
+
+    # undo restores the render
+    _press(driver, button("Undo"))
+
+    def restored():
+        region = _render_region(driver, _screenshot(driver, tmp_path / "p2.png"))
+        ok = region.shape == region0.shape and np.abs(region[red] - region0[red]).mean() < 0.03
+        return (region,) if ok else None
+
+    _wait("the render to come back", restored, 60, 0.5)

@@ -11,7 +11,7 @@ import torch
 
 from method_configs.virgi import virgi_trainer_config
 from virgi_ns.colour.field import ColorFieldConfig
-from virgi_ns.nerfstudio.pipeline import train_step, training_state
+from virgi_ns.nerfstudio.pipeline import save_run, train_step, training_state
 
 from virgi_scene import Scene, use_scene
 
@@ -47,13 +47,5 @@ def train_tiny(scene: Scene, steps: int = 30, output_dir: Path | None = None, se
         train_step(pipeline, optimizers, cbs, step)
     pipeline.eval()
     if output_dir is not None:
-        base = cfg.get_base_dir()
-        base.mkdir(parents=True, exist_ok=True)
-        cfg.save_config()
-        ckpt_dir = cfg.get_checkpoint_dir()
-        ckpt_dir.mkdir(parents=True, exist_ok=True)
-        torch.save({"step": steps - 1, "pipeline": pipeline.state_dict(),
-                    "optimizers": {k: v.state_dict() for k, v in optimizers.optimizers.items()},
-                    "schedulers": {k: v.state_dict() for k, v in optimizers.schedulers.items()},
-                    "scalers": {}}, ckpt_dir / f"step-{steps - 1:09d}.ckpt")
+        save_run(cfg, pipeline, optimizers, steps - 1)
     return cfg, pipeline

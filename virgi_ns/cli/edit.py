@@ -1,6 +1,7 @@
 """``virgi-edit``: recolour a trained VIRGi run from one edited image, and manage its edit stack.
 
     virgi-edit apply --load-config CFG --image EDITED.png (--camera-index I | --image-name NAME | --camera-json CAM.json)
+    virgi-edit pick --load-config CFG (--camera-index I | ...) --pixel X Y --colour '#RRGGBB' [--tolerance T] [--mode hue|colour]
     virgi-edit list --load-config CFG
     virgi-edit undo --load-config CFG
     virgi-edit reset --load-config CFG
@@ -8,8 +9,9 @@
     virgi-edit specular --load-config CFG K      (0 removes highlights, 1.5 strengthens them)
     virgi-edit import --load-config CFG --edit-file EDIT.pt
 
-Edits live in ``<run>/edits`` (beside ``config.yml``); the run itself is never written. ``apply``
-and ``import`` load the run and refuse edits of another base run; the other commands work on the
+Edits live in ``<run>/edits`` (beside ``config.yml``); the run itself is never written; ``pick``
+saves the edited image it made and its selection beside the edit. ``apply``, ``pick`` and
+``import`` load the run and refuse edits of another base run; the other commands work on the
 edit files alone. Bad input is one line on stderr, exit 2, nothing saved.
 """
 
@@ -74,6 +76,33 @@ class Apply:
 
 
 @dataclass
+class Pick:
+    """Select what pixel X Y of a camera's view shows, recolour it to COLOUR and add that edit to the
+    stack (the edited image and the selection are saved beside it)."""
+
+    load_config: Path
+    """The run's config.yml."""
+    pixel: tuple[int, int]
+    """X Y: the pixel to pick (column, row; 0, 0 is the top-left) of the camera's render."""
+    colour: str
+    """The new colour, #RRGGBB."""
+    camera_index: Optional[int] = None
+    """Camera: index among the run's training images."""
+    image_name: Optional[str] = None
+    """Camera: the training (or evaluation) image of this file name (with or without extension)."""
+    camera_json: Optional[Path] = None
+    """Camera: a CAM.json as the viewer's 'Save this view' and virgi-render use."""
+    tolerance: float = 0.2
+    """0..1: how far (x 90 degrees) a pixel's diffuse colour and colour-field features may point from
+    the picked pixel's and still be selected."""
+    mode: Literal["hue", "colour"] = "hue"
+    """``hue``: new hue and saturation, each pixel keeps its value (shading and highlights stay);
+    ``colour``: the surface takes the colour itself, shaded as it was, its highlights on it."""
+    steps: Optional[int] = None
+    """Optimisation steps (default: the engine's)."""
+
+
+@dataclass
 class List:
     """List the edits of a run."""
 
@@ -128,6 +157,7 @@ class Import:
 
 Command = Union[
     Annotated[Apply, tyro.conf.subcommand("apply")],
+    Annotated[Pick, tyro.conf.subcommand("pick")],
     Annotated[List, tyro.conf.subcommand("list")],
     Annotated[Undo, tyro.conf.subcommand("undo")],
     Annotated[Reset, tyro.conf.subcommand("reset")],
@@ -195,7 +225,7 @@ def _find_image(pipeline, name: str):
     return None
 
 
-def resolve_camera(pipeline, args: Apply):
+def resolve_camera(pipeline, args: Union[Apply, Pick]):
     """(raster Cameras of one view, a description) for the chosen camera of ``args``."""
     from virgi_ns.nerfstudio.cameras import raster_cameras
 
@@ -291,32 +321,40 @@ def load_run(config: Path):
     return _load(Path(config))
 
 
-def apply(args: Apply, console: Console, pipeline=None) -> str:
-    """Fit and save one edit; returns the summary line. ``pipeline``: an already loaded run."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+def open_view(args: Union[Apply, Pick], console: Console, pipeline=None):
+    """(pipeline, the run's edit stack on the model's device, the camera on it, its description):
+    what ``apply`` and ``pick`` edit. ``pipeline``: an already loaded run."""
+    from virgi_ns.edit.stack import EditStack
 
-    from virgi_ns.edit.engine import EditConfig, EditEngine
-    from virgi_ns.edit.scene import FrozenScene
-    from virgi_ns.edit.stack import EditSource, EditStack
-
-    if args.steps is not None and args.steps < 1:
-        raise InputError(f"--steps must be >= 1, got {args.steps}")
-    if args.pixel_batches is not None and args.pixel_batches < 1:
-        raise InputError(f"--pixel-batches must be >= 1, got {args.pixel_batches}")
-    if not Path(args.load_config).is_file():
-        raise InputError(f"no such config: {args.load_config}")
-    image, notes = load_edited_image(args.image)
     if pipeline is None:
         with console.status(f"loading {args.load_config}"):
             _, pipeline = load_run(args.load_config)
     model = pipeline.model
     stack = EditStack.open(Path(args.load_config).parent, model.fingerprint())
     cams, where = resolve_camera(pipeline, args)
+    return pipeline, stack.to(model.device), cams.to(model.device), where
+
+
+def apply(args: Apply, console: Console, pipeline=None) -> str:
+    """Fit and save one edit; returns the summary line. ``pipeline``: an already loaded run."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from virgi_ns.edit.engine import EditConfig, EditEngine
+    from virgi_ns.edit.scene import FrozenScene
+    from virgi_ns.edit.stack import EditSource
+
+    _check_steps(args.steps)
+    if args.pixel_batches is not None and args.pixel_batches < 1:
+        raise InputError(f"--pixel-batches must be >= 1, got {args.pixel_batches}")
+    if not Path(args.load_config).is_file():
+        raise InputError(f"no such config: {args.load_config}")
+    image, notes = load_edited_image(args.image)
+    pipeline, stack, cams, where = open_view(args, console, pipeline)
+    model = pipeline.model
     W, H = int(cams.widths[0]), int(cams.heights[0])
     image, more = fit_size(image, W, H, args.resize, Path(args.image).name)
     for n in notes + more:
         console.print(f"note: {n}")
-    cams = cams.to(model.device)
     original = None if args.whole_image else original_image(pipeline, args, image.shape, console)
     scene = FrozenScene.from_model(model)
     source = EditSource(str(Path(args.image).resolve()), cams.Ks[0].cpu(), cams.viewmats[0].cpu(), W, H, where)
@@ -330,7 +368,7 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
     cfg.recipe = args.recipe
     cfg.map_init = args.map_init
     with torch.no_grad():
-        engine = EditEngine(scene, cams, torch.from_numpy(image), stack.to(model.device), cfg, source,
+        engine = EditEngine(scene, cams, torch.from_numpy(image), stack, cfg, source,
                             original=None if original is None else torch.from_numpy(original))
     with Progress(TextColumn("fitting the edit"), BarColumn(), TextColumn("{task.completed}/{task.total} steps"),
                   TimeElapsedColumn(), console=console, transient=True) as bar:
@@ -342,11 +380,45 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
             f"{engine.mode}, {engine.changed_fraction:.0%} of the view)")
 
 
+def _check_steps(steps: Optional[int]) -> None:
+    if steps is not None and steps < 1:
+        raise InputError(f"--steps must be >= 1, got {steps}")
+
+
+def pick(args: Pick, console: Console, pipeline=None) -> str:
+    """Pick, recolour, fit and save one edit with its edited image and selection; returns the
+    summary line. Every argument is checked before the run is loaded, the pixel before any fit."""
+    from virgi_ns.edit.pick import PickSession, check_tolerance, commit, parse_colour, pick_config
+    from virgi_ns.edit.scene import FrozenScene
+    from virgi_ns.edit.stack import EditSource
+
+    colour = parse_colour(args.colour)
+    tolerance = check_tolerance(args.tolerance)
+    _check_steps(args.steps)
+    if not Path(args.load_config).is_file():
+        raise InputError(f"no such config: {args.load_config}")
+    pipeline, stack, cams, where = open_view(args, console, pipeline)
+    model = pipeline.model
+    W, H = int(cams.widths[0]), int(cams.heights[0])
+    x, y = args.pixel
+    source = EditSource("", cams.Ks[0].cpu(), cams.viewmats[0].cpu(), W, H, f"{where}, pixel {x} {y}")
+    with torch.no_grad(), console.status("fitting the pick"):
+        session = PickSession(FrozenScene.from_model(model), cams, x, y, stack, pick_config(model.device), source)
+        edit = session.update(colour, tolerance, args.mode, args.steps)
+    number = commit(stack, session, edit)
+    st = session.settings
+    return (f"edit {number} saved to {stack.directory / stack.entries[-1].file} (pick at {x} {y} of {where}: "
+            f"{st['selected']:.0%} of the view selected, {args.mode} -> {st['colour']}; edited image and selection "
+            f"beside it: {Path(stack.entries[-1].file).stem}_edited.png, _selection.png)")
+
+
 def run(cmd: object, console: Optional[Console] = None, pipeline=None) -> str:
     """Run one parsed command; returns the line to print."""
     console = console or Console(stderr=True)
     if isinstance(cmd, Apply):
         return apply(cmd, console, pipeline)
+    if isinstance(cmd, Pick):
+        return pick(cmd, console, pipeline)
     if isinstance(cmd, Import):
         from virgi_ns.edit.stack import EditStack
 

@@ -11,7 +11,10 @@
    :class:`~virgi_ns.edit.engine.EditEngine` fits the edit.
 4. **Outputs**: ``grid.png`` (held-out views: photo, render, recoloured render, segmentation,
    diffuse, specular), ``metrics.json`` (reconstruction, recolour and propagation PSNR, edit
-   time, stage times) and ``edited_scene.ply`` (the edited scene baked to SH, capture frame).
+   time, stage times) and ``edited_scene.ply`` (the edited scene baked to SH, capture frame);
+5. **The run**: ``run/config.yml`` and its checkpoint (the trained colour field, unedited), which
+   ``ns-viewer --load-config`` and every ``virgi-*`` command open; a new demo replaces it (and the
+   edits made on it). The demo prints the next commands, a pick of the edited object among them.
 
 ``python -m virgi_ns.demo --help`` lists the knobs; ``--full`` rebuilds the capture at full
 resolution from the shared COLMAP data and is meant for a GPU.

@@ -18,7 +18,7 @@ class DemoConfig:
     """VIRGi on the bundled capture: train, recolour from one view, write pictures and numbers."""
 
     out: Path = Path("demo_out")
-    """Output folder (grid.png, metrics.json, edited_scene.ply)."""
+    """Output folder (grid.png, metrics.json, edited_scene.ply, the trained run in run/)."""
     scene: Path = BUNDLED_SCENE
     """A nerfstudio-format capture (transforms.json); the bundled beercan by default."""
     geometry: Optional[Path] = None

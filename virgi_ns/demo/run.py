@@ -1,6 +1,6 @@
 """The demo end to end: train on the capture, recolour it from one training view, measure the
-held-out views, bake the edited scene, and write ``grid.png``, ``metrics.json`` and
-``edited_scene.ply`` (see :mod:`virgi_ns.demo`)."""
+held-out views, bake the edited scene, and write ``grid.png``, ``metrics.json``,
+``edited_scene.ply`` and the trained run ``run/`` (see :mod:`virgi_ns.demo`)."""
 
 from __future__ import annotations
 
@@ -111,8 +111,8 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                 if not console.is_terminal and (done % max(1, n // 10) == 0 or done == n):
                     console.log(f"{stage} step {done}/{n} {info}")  # a log file gets lines, not a bar
 
-            train(pipeline, tc, total, on_step, before_colour,
-                  after_init=lambda: marks.__setitem__("init_done", time.perf_counter()))
+            optimizers = train(pipeline, tc, total, on_step, before_colour,
+                               after_init=lambda: marks.__setitem__("init_done", time.perf_counter()))
             end = time.perf_counter()
             times["geometry_s"] = marks.get("geometry_done", end) - marks["start"]
             times["contribution_cache_s"] = marks.get("cache_done", end) - marks.get("geometry_done", end)
@@ -236,6 +236,15 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             save_ply(exported, cfg.out / "edited_scene.ply")
             metrics["exported"] = {"file": "edited_scene.ply", "gaussians": len(exported),
                                    "sh_degree": exported.sh_degree}
+        if tmp_dir is None:  # (a --full capture lives in a temporary folder: its run could not reopen)
+            from virgi_ns.nerfstudio.pipeline import save_run
+
+            run_dir = cfg.out / "run"
+            if (run_dir / "config.yml").is_file():  # an earlier demo's run: its edits belong to it
+                shutil.rmtree(run_dir)
+            save_run(tc, pipeline, optimizers, total - 1, run_dir)
+            metrics["run"] = {"config": str(run_dir / "config.yml"),
+                              "pick": {"camera_index": edit_view, "pixel": list(inner_pixel(edit_mask.cpu()))}}
         with atomic_path(cfg.out / "metrics.json") as tmp:
             tmp.write_text(json.dumps(metrics, indent=1) + "\n")
         return metrics
@@ -244,11 +253,41 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             shutil.rmtree(tmp_dir, ignore_errors=True)
 
 
+def inner_pixel(mask: torch.Tensor, margin: int = 3) -> tuple[int, int]:
+    """(x, y) of a pixel well inside ``mask`` [H,W] (at least ``margin`` pixels from its edge where
+    it can be): the one nearest the centroid of its inner part."""
+    inner = mask
+    for _ in range(margin):
+        eroded = -torch.nn.functional.max_pool2d(-inner[None, None].float(), 3, 1, 1)[0, 0] > 0
+        if not bool(eroded.any()):
+            break
+        inner = eroded
+    ys, xs = torch.nonzero(inner, as_tuple=True)
+    i = int(((ys - ys.float().mean()) ** 2 + (xs - xs.float().mean()) ** 2).argmin())
+    return int(xs[i]), int(ys[i])
+
+
+def next_commands(metrics: Dict[str, object], out: Path) -> list[str]:
+    """What to type next on the saved run: open it in the viewer, pick the edited object, export."""
+    if "run" not in metrics:
+        return []
+    config, pick = metrics["run"]["config"], metrics["run"]["pick"]
+    x, y = pick["pixel"]
+    return [f"ns-viewer --load-config {config}",
+            f"virgi-edit pick --load-config {config} --camera-index {pick['camera_index']} --pixel {x} {y} "
+            "--colour '#d02020'",
+            f"virgi-export --load-config {config} --out {out / 'recoloured.ply'}"]
+
+
 def main(cfg: DemoConfig) -> None:
     console = Console()
     metrics = run(cfg, console)
     console.print(summary_table(metrics))
-    console.print(f"wrote {cfg.out}/grid.png, metrics.json" + (", edited_scene.ply" if "exported" in metrics else ""))
+    console.print(f"wrote {cfg.out}/grid.png, metrics.json" + (", edited_scene.ply" if "exported" in metrics else "")
+                  + (f" and the run {cfg.out}/run" if "run" in metrics else ""))
+    commands = next_commands(metrics, cfg.out)
+    if commands:
+        console.print("next, on that run:\n  " + "\n  ".join(commands), markup=False)
 
 
 def entrypoint() -> None:

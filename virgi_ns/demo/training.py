@@ -76,8 +76,9 @@ def geometry_steps(cfg: DemoConfig) -> int:
 
 
 def train(pipeline, tc, steps: int, on_step: Callable[[int, Dict[str, float]], None],
-          before_colour: Callable[[], None], after_init: Callable[[], None] = lambda: None) -> None:
-    """nerfstudio's training loop (callbacks, optimizers, schedulers), without checkpoints or viewer."""
+          before_colour: Callable[[], None], after_init: Callable[[], None] = lambda: None):
+    """nerfstudio's training loop (callbacks, optimizers, schedulers), without checkpoints or viewer;
+    returns the optimizers (for the saved run's checkpoint)."""
     from virgi_ns.nerfstudio.pipeline import train_step, training_state
 
     opt, cbs = training_state(tc, pipeline)
@@ -94,6 +95,7 @@ def train(pipeline, tc, steps: int, on_step: Callable[[int, Dict[str, float]], N
         on_step(step, {k: float(torch.as_tensor(v).detach()) for k, v in metrics.items() if k == "psnr"})
     if not prepared:
         model.freeze_geometry()
+    return opt
 
 
 __all__ = ["colour_steps", "geometry_steps", "train", "trainer_config"]

@@ -214,17 +214,23 @@ def logit_colour_map(source: Float[Tensor, "N 3"], target: Float[Tensor, "N 3"],
 class EditEngine:
     """Fits one edit of ``scene`` from ``edited`` [H,W,3] (float, [0,1]) seen by ``camera`` (one
     view). The stack's current edits and specular strength are the starting point; see the
-    module docstring. Usage: ``edit, timing = EditEngine(...).fit()``."""
+    module docstring. Usage: ``edit, timing = EditEngine(...).fit()``.
+
+    ``changed`` [H,W] (bool): the pixels the edit changed, when the caller knows them (a pick's
+    selection); they are then not detected from ``original`` or the render. ``edited=None`` sets up
+    the view only (its contributions, features and render, :attr:`current`): :meth:`retarget` then
+    gives the target, and again for every new target of the same view (a live drag)."""
 
     def __init__(
         self,
         scene: FrozenScene,
         camera: Cameras,
-        edited: Float[Tensor, "H W 3"],
+        edited: Optional[Float[Tensor, "H W 3"]],
         stack: Optional[EditStack] = None,
         cfg: Optional[EditConfig] = None,
         source: Optional[EditSource] = None,
         original: Optional[Float[Tensor, "H W 3"]] = None,
+        changed: Optional[Tensor] = None,
     ) -> None:
         self.scene = scene
         self.cfg = cfg or EditConfig()
@@ -232,6 +238,29 @@ class EditEngine:
         if len(camera) != 1:
             raise ValueError(f"EditEngine: one camera expected, got {len(camera)}")
         W, H = int(camera.widths[0]), int(camera.heights[0])
+        if edited is not None:
+            self._check_images(edited, original, changed, W, H)
+        self.cfg.check()
+        self.camera = camera
+        self.source = source or EditSource("", camera.Ks[0], camera.viewmats[0], W, H, "")
+        self.changed_fraction = 1.0
+        self.mode = "whole image"  # what the loss fits (set by _set_target)
+        self.fingerprint = stack.fingerprint if stack is not None else scene.fingerprint()
+        self.batches: list[PixelBatch] = []
+        self._changed: Optional[Tensor] = None
+        dev = scene.device
+        _sync(dev)
+        t0 = time.perf_counter()
+        self._setup_view()
+        if edited is not None:
+            self._set_target(edited.to(dev, torch.float32),
+                             None if original is None else original.to(dev, torch.float32),
+                             None if changed is None else changed.to(dev), warm=False)
+        _sync(dev)
+        self.setup_s = time.perf_counter() - t0
+
+    @staticmethod
+    def _check_images(edited: Tensor, original: Optional[Tensor], changed: Optional[Tensor], W: int, H: int) -> None:
         if edited.ndim != 3 or edited.shape[-1] != 3:
             raise InputError(f"the edited image must be H x W x 3, got shape {tuple(edited.shape)}")
         if tuple(edited.shape[:2]) != (H, W):
@@ -239,23 +268,15 @@ class EditEngine:
                              f"{W}x{H}")
         if original is not None and tuple(original.shape) != tuple(edited.shape):
             raise InputError(f"the original image is {tuple(original.shape)}, the edited one {tuple(edited.shape)}")
-        self.cfg.check()
-        self.camera = camera
-        self.source = source or EditSource("", camera.Ks[0], camera.viewmats[0], W, H, "")
-        self.changed_fraction = 1.0
-        self.mode = "whole image"  # what the loss fits (set by _setup)
-        self.fingerprint = stack.fingerprint if stack is not None else scene.fingerprint()
-        dev = scene.device
-        _sync(dev)
-        t0 = time.perf_counter()
-        self._setup(edited.to(dev, torch.float32), None if original is None else original.to(dev, torch.float32))
-        _sync(dev)
-        self.setup_s = time.perf_counter() - t0
+        if changed is not None and (tuple(changed.shape) != (H, W) or changed.dtype != torch.bool):
+            raise ValueError(f"EditEngine: changed must be a bool [{H}, {W}] mask, got {changed.dtype} "
+                             f"{tuple(changed.shape)}")
 
     # ------------------------------------------------------------------ setup
     @torch.no_grad()
-    def _setup(self, edited: Tensor, original: Optional[Tensor]) -> None:
-        sc, cfg = self.scene, self.cfg
+    def _setup_view(self) -> None:
+        """The view's contributions, the visible Gaussians' features and colours, and its render."""
+        sc = self.scene
         dev = sc.device
         cams = self.camera.to(dev, torch.float32)
         contrib = sc.contributions(cams, Request.whole_images(cams))
@@ -274,67 +295,121 @@ class EditEngine:
         dirs = view_directions(means, cams.camera_centers()[0].to(means).expand_as(means))
         self.c_s = fld.specular(self.feats, dirs, h1, h2).float()
         self.k = self.stack.specular_strength if self.stack is not None else 1.0
-        bg = sc.background.to(dev, torch.float32).reshape(3)
-        changed, self.mode = None, "whole image"
-        if not cfg.whole_image:
-            # the untouched pixels equal the image the user started from: the original, or the render
-            current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), contrib, bg)[0]
-
-            def off(ref: Tensor) -> Tensor:
-                return (edited - ref).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
-
-            off_render, ref = off(current), "current render"
-            if original is not None:
-                off_orig = off(original)
-                if float(off_orig.float().mean()) <= float(off_render.float().mean()):
-                    changed, ref = off_orig, "original"
-                else:  # e.g. a render edited for a training view
-                    changed = off_render
-            elif 1.0 - float(off_render.float().mean()) >= cfg.render_match_min:
-                changed = off_render
-            if changed is not None:  # untouched pixels: the current render is their target
-                if not bool(changed.any()):
-                    raise InputError(f"the edited image does not differ from the {ref}: nothing to edit")
-                self.mode = ("changed pixels (original given" +
-                             {"change": ", render + change)", "transfer": ", render + logit change)"}.get(
-                                 cfg.changed_target, ", edited image)")
-                             if ref == "original" else "changed pixels (an edited render)")
-                if ref == "original" and cfg.changed_target == "change":
-                    edited = (current + (edited - original)).clamp(0.0, 1.0)
-                elif ref == "original" and cfg.changed_target == "transfer":
-                    edited = torch.sigmoid(_logit(current) + _logit(edited) - _logit(original))
-                edited = torch.where(changed, edited, current)
-                self.changed_fraction = float(changed.float().mean())
-        self.batches = pixel_batches(contrib, edited.reshape(-1, 3), bg, cfg.pixel_batches, cfg.seed,
-                                      None if changed is None else changed.reshape(-1), cfg.changed_share)
-        # trainable copies (from the colour map of the changed pixels, see EditConfig.map_init)
+        self.background = sc.background.to(dev, torch.float32).reshape(3)
+        # the view's render through the stack [H,W,3]: what unchanged pixels keep
+        self.current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), contrib, self.background)[0]
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(self.cfg.seed)
+            self.seg = SegmentationHead(self.feats.shape[1], self.h_diff.shape[1], self.cfg.seg_width,
+                                        self.cfg.seg_init_bias).to(dev)
+        self.seg_input = self.seg.inputs(self.feats, self.h_diff)
         head = fld.diffuse_head
-        weight, bias = head.weight.detach().float().clone(), head.bias.detach().float().clone()
-        self.colour_map = None
+        self.weight = head.weight.detach().float().clone().requires_grad_(True)
+        self.bias = head.bias.detach().float().clone().requires_grad_(True)
+        self.alpha_fixed: Optional[Tensor] = None
+        self.colour_map: Optional[Tensor] = None
+        self.recipe = self.cfg.recipe
+
+    def _changed_pixels(self, edited: Tensor, original: Optional[Tensor]) -> tuple[Optional[Tensor], str]:
+        """(changed [H,W,1] or None for a whole-image fit, what they were found against)."""
+        cfg, current = self.cfg, self.current
+
+        def off(ref: Tensor) -> Tensor:
+            return (edited - ref).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
+
+        off_render = off(current)
+        if original is not None:
+            off_orig = off(original)
+            if float(off_orig.float().mean()) <= float(off_render.float().mean()):
+                return off_orig, "original"
+            return off_render, "current render"  # e.g. a render edited for a training view
+        if 1.0 - float(off_render.float().mean()) >= cfg.render_match_min:
+            return off_render, "current render"
+        return None, "current render"
+
+    @torch.no_grad()
+    def _set_target(self, edited: Tensor, original: Optional[Tensor], given: Optional[Tensor], warm: bool,
+                    seg_steps: Optional[int] = None) -> None:
+        """The loss's target from ``edited`` (see the module docstring), the pixel batches, and the
+        heads' start: fresh, or (``warm``) from the current fit (:meth:`retarget`)."""
+        cfg, current = self.cfg, self.current
+        changed, ref = (given[..., None], "selection") if given is not None else (None, "")
+        if changed is None and not cfg.whole_image:
+            changed, ref = self._changed_pixels(edited, original)
+        self.mode = "whole image"
+        self.changed_fraction = 1.0
+        if changed is not None:  # untouched pixels: the current render is their target
+            if not bool(changed.any()):
+                raise InputError("the selection is empty: nothing to edit" if ref == "selection" else
+                                 f"the edited image does not differ from the {ref}: nothing to edit")
+            self.mode = {"original": "changed pixels (original given" + {
+                "change": ", render + change)", "transfer": ", render + logit change)"}.get(
+                    cfg.changed_target, ", edited image)"),
+                "selection": "changed pixels (a selection)"}.get(ref, "changed pixels (an edited render)")
+            if ref == "original" and cfg.changed_target == "change":
+                edited = (current + (edited - original)).clamp(0.0, 1.0)
+            elif ref == "original" and cfg.changed_target == "transfer":
+                edited = torch.sigmoid(_logit(current) + _logit(edited) - _logit(original))
+            edited = torch.where(changed, edited, current)
+            self.changed_fraction = float(changed.float().mean())
+        flat = None if changed is None else changed.reshape(-1)
+        same = warm and self.batches and (flat is None) == (self._changed is None) and (
+            flat is None or torch.equal(flat, self._changed))
+        if same:  # the same pixel sets and weights: only the targets move
+            for b in self.batches:
+                b.target = edited.reshape(-1, 3) if b.pixels is None else edited.reshape(-1, 3)[b.pixels]
+        else:
+            self.batches = pixel_batches(self.contrib, edited.reshape(-1, 3), self.background, cfg.pixel_batches,
+                                         cfg.seed, flat, cfg.changed_share)
         self.recipe = cfg.recipe if changed is not None else "joint"
         staged = self.recipe == "staged"
+        # the copied layer: from the colour map of the changed pixels (EditConfig.map_init), else
+        # the base layer (a fresh fit) or where the last fit left it (warm)
+        self.colour_map = None
+        head = self.scene.field.diffuse_head
         if changed is not None and (staged or (cfg.map_init and self.changed_fraction >= cfg.map_init_min_share)):
-            m = changed.reshape(-1)
-            self.colour_map = logit_colour_map(current.reshape(-1, 3)[m], edited.reshape(-1, 3)[m], cfg.seed)
+            self.colour_map = logit_colour_map(current.reshape(-1, 3)[flat], edited.reshape(-1, 3)[flat], cfg.seed)
             # (fitted on the current render, earlier edits and specular included, but applied to
             # the base layer: with a stack, c_d' starts at M c_d_base + t; only a starting point)
-            weight, bias = self.colour_map[:, :3] @ weight, self.colour_map[:, :3] @ bias + self.colour_map[:, 3]
-        self.weight = weight.requires_grad_(True)
-        self.bias = bias.requires_grad_(True)
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(cfg.seed)
-            self.seg = SegmentationHead(self.feats.shape[1], self.h_diff.shape[1], cfg.seg_width,
-                                        cfg.seg_init_bias).to(dev)
-        self.seg_input = self.seg.inputs(self.feats, self.h_diff)
-        self.alpha_fixed: Optional[Tensor] = None
-        if staged:
-            self._fit_segmentation(changed.reshape(-1))
+            M, t = self.colour_map[:, :3], self.colour_map[:, 3]
+            self.weight.copy_(M @ head.weight.detach().float())
+            self.bias.copy_(M @ head.bias.detach().float() + t)
+        elif not warm:
+            self.weight.copy_(head.weight.detach().float())
+            self.bias.copy_(head.bias.detach().float())
+        if staged and not (same and self.alpha_fixed is not None):
+            self._fit_segmentation(flat, warm=warm and self.alpha_fixed is not None,
+                                   steps=cfg.seg_steps if seg_steps is None else seg_steps)
+        elif not staged and self.alpha_fixed is not None:  # back to the joint recipe: alpha trains again
+            self.alpha_fixed = None
+            for p in self.seg.parameters():
+                p.requires_grad_(True)
+        self._changed = flat
         trainable = [self.weight, self.bias] + ([] if staged else list(self.seg.parameters()))
-        self.opt = torch.optim.Adam(trainable, lr=cfg.lr, fused=dev.type == "cuda")
+        self.opt = torch.optim.Adam(trainable, lr=cfg.lr, fused=self.scene.device.type == "cuda")
 
-    def _fit_segmentation(self, changed: Tensor) -> None:
+    def retarget(self, edited: Float[Tensor, "H W 3"], changed: Optional[Tensor] = None,
+                 original: Optional[Float[Tensor, "H W 3"]] = None, seg_steps: Optional[int] = None) -> None:
+        """A new target for the same view, warm-started from the current fit (the live drag of a pick):
+        the view's contributions and features are kept; the pixel batches too when the changed
+        pixels are the same, and so is a staged segmentation, which otherwise trains on from where it
+        is (``seg_steps``: how long; default the config's); the layer starts from the new target's
+        colour map where a fresh fit would (staged, or a large edit), else where the last fit left
+        it; Adam starts afresh. :meth:`fit` then runs the steps."""
+        W, H = int(self.camera.widths[0]), int(self.camera.heights[0])
+        self._check_images(edited, original, changed, W, H)
+        dev = self.scene.device
+        _sync(dev)
+        t0 = time.perf_counter()
+        self._set_target(edited.to(dev, torch.float32), None if original is None else original.to(dev, torch.float32),
+                         None if changed is None else changed.to(dev), warm=True, seg_steps=seg_steps)
+        _sync(dev)
+        self.setup_s = time.perf_counter() - t0
+
+    def _fit_segmentation(self, changed: Tensor, warm: bool = False, steps: Optional[int] = None) -> None:
         """The ``staged`` recipe's first stage (EditConfig.recipe): the segmentation head trained as
-        a classifier of the view's Gaussians, then its alpha fixed for the layer's steps."""
+        a classifier of the view's Gaussians, then its alpha fixed for the layer's steps; ``warm``:
+        on from the head's current state (:meth:`retarget`) instead of from its fresh start."""
         cfg, c = self.cfg, self.contrib
         dev = self.h_diff.device
         U = self.gaussians.numel()
@@ -363,13 +438,14 @@ class EditEngine:
             f, _, h2 = self.scene.gaussian_features(anywhere)
             x = torch.cat([x, self.seg.inputs(f, h2)])
             y = torch.cat([y, torch.zeros(n_prior, 1, device=dev)])
-        torch.nn.init.constant_(self.seg.l2.bias, 0.0)
+        if not warm:
+            torch.nn.init.constant_(self.seg.l2.bias, 0.0)
         params = list(self.seg.parameters())
         for p in params:
             p.requires_grad_(True)
         opt = torch.optim.Adam(params, lr=cfg.seg_lr, fused=dev.type == "cuda")
         with torch.enable_grad():
-            for _ in range(cfg.seg_steps):
+            for _ in range(cfg.seg_steps if steps is None else steps):
                 opt.zero_grad(set_to_none=True)
                 torch.nn.functional.binary_cross_entropy_with_logits(self.seg.logits_of(x), y).backward()
                 opt.step()

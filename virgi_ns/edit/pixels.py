@@ -48,6 +48,7 @@ class PixelBatch:
     background: Tensor  # [p, 3] T * bg
     target: Tensor  # [p, 3]
     weight: Optional[Tensor] = None  # [p] per-pixel loss weights summing to 1 (None: the plain mean)
+    pixels: Optional[Tensor] = None  # [p] the view's pixels in this batch (None: all, in order)
 
 
 def _group_weights(changed: Optional[Tensor], share: float) -> Optional[Tensor]:
@@ -113,7 +114,7 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
         At = _csr(cols[t_order], rows[t_order], vals[t_order], (U, p_b))
         pixels = order[int(starts[b]) : int(starts[b]) + p_b]
         out.append(PixelBatch(A, At, T[pixels, None] * bg[None, :], target[pixels],
-                               None if changed is None else _group_weights(changed[pixels], share)))
+                               None if changed is None else _group_weights(changed[pixels], share), pixels))
     return out
 
 

@@ -139,6 +139,12 @@ class Edit:
     def alpha(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N 1"]:
         return self.seg(feats, h_diff).to(h_diff.dtype)
 
+    def over(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"], c_d: Float[Tensor, "N 3"]
+             ) -> Float[Tensor, "N 3"]:
+        """``alpha c_d' + (1 - alpha) c_d``: this edit composed over the diffuse colour ``c_d``."""
+        a = self.alpha(feats, h_diff).to(c_d.dtype)
+        return a * self.diffuse(h_diff).to(c_d.dtype) + (1.0 - a) * c_d
+
     # ---- files
     def to_payload(self) -> dict:
         return {
@@ -257,7 +263,8 @@ class EditStack:
         with atomic_path(self.directory / MANIFEST) as tmp:
             tmp.write_text(json.dumps(m, indent=1))
 
-    def _next_file(self) -> str:
+    def next_file(self) -> str:
+        """The file name the next added edit gets (``edit_NNNN.pt``); its pictures may share the stem."""
         used = {e.file for e in self.entries}
         i = len(self.entries) + 1
         while True:
@@ -285,7 +292,7 @@ class EditStack:
     def add(self, edit: Edit) -> int:
         """Append an edit (saved to its own file first, then the manifest); returns its 1-based number."""
         self._check(edit, "the edit")
-        name = self._next_file()
+        name = self.next_file()
         if self.directory is not None:
             edit.save(self.directory / name)
         self.entries.append(StackEntry(edit.to(self.device) if self.device is not None else edit, name, True))
@@ -294,10 +301,35 @@ class EditStack:
             self._write_manifest()
         except BaseException:
             self.entries.pop()
-            if self.directory is not None:
-                (self.directory / name).unlink(missing_ok=True)
+            self._remove_files(name)
             raise
         return len(self.entries)
+
+    def replace(self, number: int, edit: Edit) -> None:
+        """Put ``edit`` in the place of edit ``number`` (a pick adjusted after its release): the new
+        file is written first, then the manifest; the old file and its pictures go last."""
+        self._check(edit, "the edit")
+        i = self._index(number)
+        old = self.entries[i]
+        name = self.next_file()
+        if self.directory is not None:
+            edit.save(self.directory / name)
+        self.entries[i] = StackEntry(edit.to(self.device) if self.device is not None else edit, name, old.enabled)
+        try:
+            self._write_manifest()
+        except BaseException:
+            self.entries[i] = old
+            self._remove_files(name)
+            raise
+        self._remove_files(old.file)
+
+    def _remove_files(self, file: str) -> None:
+        """An edit's file and the pictures saved beside it (``<stem>_*.png``, a pick's)."""
+        if self.directory is None:
+            return
+        (self.directory / file).unlink(missing_ok=True)
+        for p in self.directory.glob(f"{Path(file).stem}_*.png"):
+            p.unlink(missing_ok=True)
 
     def import_file(self, path: str | Path) -> int:
         """Add an edit file made elsewhere (refused when made for another base run)."""
@@ -324,8 +356,7 @@ class EditStack:
         last = self.entries.pop()
         self.changed()
         self._write_manifest()
-        if self.directory is not None:
-            (self.directory / last.file).unlink(missing_ok=True)
+        self._remove_files(last.file)
         return last.edit
 
     def reset(self) -> int:
@@ -336,9 +367,8 @@ class EditStack:
         self._k = 1.0
         self.changed()
         self._write_manifest()
-        if self.directory is not None:
-            for f in files:
-                (self.directory / f).unlink(missing_ok=True)
+        for f in files:
+            self._remove_files(f)
         return n
 
     def rows(self) -> list[dict]:
@@ -374,8 +404,7 @@ class EditStack:
         """``c_d''``: the base ``c_d`` (pre-sigmoid) with every enabled edit composed in order."""
         out = c_d
         for edit in self.active:
-            a = edit.alpha(feats, h_diff).to(c_d.dtype)
-            out = a * edit.diffuse(h_diff).to(c_d.dtype) + (1.0 - a) * out
+            out = edit.over(feats, h_diff, out)
         return out
 
     def colour(self, c_d_edited: Tensor, c_s: Tensor) -> Tensor:

@@ -156,6 +156,7 @@ class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
         self._field_lrs = (1e-2, 1e-3)  # hash grid, MLPs: the trainer's, once its optimizers are known
         # the edit stack applied at render time (see set_edit_stack); not part of the checkpoint
         self.edit_stack = None
+        self.live_edit = None  # a pick's uncommitted edit, rendered over the stack (set_live_edit)
         self.segmentation_edit: Optional[int] = None
         self._edited_cache: Optional[tuple] = None
         if self.imported:

@@ -2,7 +2,8 @@
 
 Geometry stage: whole images, ``geometry_views_per_step`` per step (one by default, as
 splatfacto). Colour stage: the model freezes its geometry (once), the datamanager samples tile
-batches around the frozen Gaussians, the model renders only those tiles.
+batches around the frozen Gaussians, the model renders only those tiles. :func:`training_state`,
+:func:`train_step` and :func:`save_run` train and save a run in process (the demo, tests).
 
 With several processes (:mod:`virgi_ns.nerfstudio.distributed`) each draws its share of every
 step's batch and the model is not wrapped in DDP: virgi's trainer averages the gradients.
@@ -10,14 +11,18 @@ step's batch and the model is not wrapped in DDP: virgi's trainer averages the g
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import copy
+from dataclasses import dataclass, field, fields
+from pathlib import Path
 from typing import Dict, List, Literal, Optional, Type
 
 import torch
+import yaml
+from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 from nerfstudio.utils import profiler
 
-from virgi_ns.errors import InputError
+from virgi_ns.errors import InputError, atomic_path
 from virgi_ns.nerfstudio import distributed
 from virgi_ns.nerfstudio.datamanager import VirgiDataManager
 from virgi_ns.nerfstudio.geometry_stage import mean_over_views
@@ -131,3 +136,38 @@ def train_step(pipeline, optimizers, callbacks, step: int) -> tuple[dict, dict]:
     for cb in callbacks:
         cb.run_callback_at_location(step, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
     return losses, metrics
+
+
+@dataclass
+class RunDirConfig(TrainerConfig):
+    """A trainer config whose run directory is ``output_dir`` itself (``config.yml``,
+    ``nerfstudio_models/``, ``edits/`` directly in it) instead of nerfstudio's
+    ``output_dir/experiment/method/timestamp``: a run saved in process at a path of its choosing
+    (:func:`save_run`), which ``ns-viewer --load-config`` and the virgi commands open as any run."""
+
+    def get_base_dir(self) -> Path:
+        return Path(self.output_dir)
+
+
+def save_run(trainer_config, pipeline, optimizers, step: int, directory=None) -> Path:
+    """Save an in-process run as nerfstudio's trainer would (``config.yml`` and
+    ``nerfstudio_models/step-NNNNNNNNN.ckpt``, without a grad scaler); with ``directory`` the run
+    sits there (a :class:`RunDirConfig` with the model class :class:`VirgiModel` and the method
+    ``virgi``, whatever trained it), else where ``trainer_config`` puts it. Returns the path of ``config.yml``."""
+    cfg = copy.deepcopy(trainer_config)
+    if directory is not None:
+        cfg = RunDirConfig(**{f.name: getattr(cfg, f.name) for f in fields(TrainerConfig)})
+        cfg.output_dir = Path(directory).resolve()
+        cfg.pipeline.model._target = VirgiModel
+        cfg.method_name = "virgi"  # loaders look the datamanager up by a registered method's name
+    base = cfg.get_base_dir()
+    ckpt_dir = cfg.get_checkpoint_dir()
+    ckpt_dir.mkdir(parents=True, exist_ok=True)
+    with atomic_path(ckpt_dir / f"step-{step:09d}.ckpt") as tmp:
+        torch.save({"step": step, "pipeline": pipeline.state_dict(),
+                    "optimizers": {k: v.state_dict() for k, v in optimizers.optimizers.items()},
+                    "schedulers": {k: v.state_dict() for k, v in optimizers.schedulers.items()},
+                    "scalers": {}}, tmp)
+    with atomic_path(base / "config.yml") as tmp:
+        tmp.write_text(yaml.dump(cfg), "utf8")
+    return base / "config.yml"

@@ -1,5 +1,6 @@
 """The render path of :class:`~virgi_ns.nerfstudio.model.VirgiModel`: per-pair colours through the
-edit stack, the specular gate, and whole-camera renders.
+edit stack (and the live edit of a pick, not yet on the stack), the specular gate, and whole-camera
+renders.
 
 Hash features and MLP_diff run once per distinct Gaussian of a contribution list, MLP_spec once per
 (view, Gaussian) pair. An :class:`~virgi_ns.edit.stack.EditStack` set on the model recolours
@@ -35,6 +36,12 @@ class RenderPath:
         self.edit_stack = stack.to(self.device) if stack is not None else None
         self._edited_cache = None
 
+    def set_live_edit(self, edit) -> None:
+        """Render ``edit`` (a :class:`virgi_ns.edit.stack.Edit`, or None) over the stack's edits without
+        adding it to the stack: the uncommitted edit of a pick while its colour is dragged (nothing
+        is written; committing adds it to the stack and clears this slot)."""
+        self.live_edit = edit.to(self.device) if edit is not None else None
+
     def fingerprint(self) -> str:
         """The base run's fingerprint that every edit of it carries."""
         from virgi_ns.edit.stack import field_fingerprint
@@ -68,6 +75,7 @@ class RenderPath:
         pg = contrib.pair_gaussian.to(self.device)
         pv = contrib.pair_view.to(self.device)
         stack = self._active_stack()
+        live = getattr(self, "live_edit", None)
         if pg.numel() == 0:
             z = torch.zeros(0, 3, device=self.device)
             return {"rgb": z, "diffuse": z, "c_s": z, "segmentation": z[:, :1]}
@@ -78,6 +86,10 @@ class RenderPath:
         if gated and self.gate_ready() and fld.decoupled:
             cache = self._edited_diffuse_cache(stack) if stack is not None else self.diffuse_cache
             c_d = cache[pg]
+            if live is not None:  # features of the visible Gaussians only: the live edit changes often
+                u, i_u = torch.unique(pg, return_inverse=True)
+                fu = fld.encode(means[u])
+                c_d = live.over(fu, fld.diffuse_hidden(fu)[1], cache[u])[i_u]
             c_s = torch.zeros_like(c_d)
             sel = self.spec_gate[pg].nonzero().flatten()
             if sel.numel() > 0:
@@ -96,6 +108,8 @@ class RenderPath:
                 c_d_u = fld.diffuse(h2)
                 if stack is not None:
                     c_d_u = stack.diffuse(f, h2, c_d_u)
+                if live is not None:
+                    c_d_u = live.over(f, h2, c_d_u)
                 c_d = c_d_u[inv]
                 c_s = fld.specular(f[inv], d, h1[inv], h2[inv])
             else:
@@ -103,6 +117,8 @@ class RenderPath:
                 c_d = fld.diffuse(h2p)
                 if stack is not None:
                     c_d = stack.diffuse(f[inv], h2p, c_d)
+                if live is not None:
+                    c_d = live.over(f[inv], h2p, c_d)
                 c_s = torch.zeros_like(c_d)
         k = stack.specular_strength if stack is not None else 1.0
         out = {"rgb": torch.sigmoid(c_d + k * c_s), "diffuse": torch.sigmoid(c_d), "c_s": c_s}

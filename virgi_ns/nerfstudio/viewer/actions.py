@@ -1,5 +1,5 @@
 """What the panel does: save a view, take an uploaded edit of it and fit the edit, manage the edit
-stack, export. Mixed into :class:`~virgi_ns.nerfstudio.viewer.panel.VirgiPanel`, whose widgets,
+stack, export (each change of the stack first commits a pending pick, :mod:`.picking`). Mixed into :class:`~virgi_ns.nerfstudio.viewer.panel.VirgiPanel`, whose widgets,
 status line, render lock and edit stack these methods use; each is also a plain method usable
 without a viewer (scripts, tests)."""
 
@@ -135,6 +135,7 @@ class PanelActions:
     def apply_edit(self, wait: bool = False, steps: Optional[int] = None) -> threading.Thread:
         """Fit an edit from the uploaded image for its saved view, in a background thread
         (``wait``: join it). Progress and the outcome go to the status line."""
+        self.settle_pick()
         self._check_idle()
         if self.pending is None:
             if not self.views:
@@ -205,6 +206,7 @@ class PanelActions:
 
     # -------------------------------------------------------------------- the stack
     def set_enabled(self, number: int, enabled: bool) -> None:
+        self.settle_pick()
         stack = self._stack()
         with self._lock():
             stack.set_enabled(number, enabled)
@@ -227,6 +229,7 @@ class PanelActions:
     def _remove_edits(self, remove: Callable[[Any], Any], emptying: Callable[[Any], bool]) -> tuple[Any, Any]:
         """(stack, ``remove(stack)``), run under the render lock once no edit is being fitted; the
         segmentation display is left first when ``emptying(stack)`` says the stack will be empty."""
+        self.settle_pick()
         self._check_idle()
         stack = self._stack()
         with self._lock():
@@ -274,6 +277,7 @@ class PanelActions:
         """Bake the model with its enabled edits and specular strength (:mod:`virgi_ns.nerfstudio.export`) into
         ``path`` (default ``<run>/exports/edited.ply``) in a background thread; files up to
         ``MAX_DOWNLOAD_BYTES`` are also sent to the browser."""
+        self.settle_pick()
         self._check_idle()
         out = Path(path) if path is not None else self.run_dir / "exports" / "edited.ply"
         target = self.viewer.pipeline if getattr(self.viewer, "pipeline", None) is not None else self._model

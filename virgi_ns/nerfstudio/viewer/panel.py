@@ -1,4 +1,5 @@
-"""VIRGi's panel in nerfstudio's viewer: save a view, edit it anywhere, upload it, apply it.
+"""VIRGi's panel in nerfstudio's viewer: pick and recolour in place, or save a view, edit it
+anywhere, upload it, apply it.
 
 The panel is one nerfstudio :class:`ViewerElement` (and :class:`ViewerControl`) held by the model
 as ``model.viewer_panel``; the viewer finds it by walking the pipeline's attributes, installs it
@@ -8,6 +9,8 @@ lock, the run directory and the output selector). It holds, top to bottom:
 - a status line (progress and errors; a failed action never stops the server);
 - **Display** (rgb, diffuse, specular, segmentation of the selected edit): sets the viewer's
   output type; **Specular strength** ``k``;
+- **Pick mode**, **New colour**, **Tolerance**, **Recolour mode** (hue or colour): a click on the
+  render selects what it shows and recolours it live; a pause commits it (:mod:`.picking`);
 - **Save this view**: renders the client's view (longest side **Save size**), writes
   ``<run>/views/view_NNN.png`` and its camera ``view_NNN.json`` (``virgi-render``'s CAM.json, in
   the capture's original frame, as the exported splat) and sends both to the browser;
@@ -18,9 +21,10 @@ lock, the run directory and the output selector). It holds, top to bottom:
 - **Export**: bakes the edited scene to a splat file (:mod:`virgi_ns.nerfstudio.export`).
 
 This module holds the widgets, their plumbing (status line, progress, render lock, the model's
-edit stack) and the display settings. The actions are :class:`~.actions.PanelActions`; every one
-is also a plain method (:meth:`VirgiPanel.save_view`, :meth:`VirgiPanel.upload`,
-:meth:`VirgiPanel.apply_edit`, ...) usable without a viewer.
+edit stack) and the display settings. The actions are :class:`~.actions.PanelActions` and
+:class:`~.picking.PickActions`; every one is also a plain method (:meth:`VirgiPanel.save_view`,
+:meth:`VirgiPanel.upload`, :meth:`VirgiPanel.apply_edit`, :meth:`VirgiPanel.pick_at`, ...) usable
+without a viewer.
 """
 
 from __future__ import annotations
@@ -39,11 +43,13 @@ from nerfstudio.viewer.viewer_elements import (
     ViewerDropdown,
     ViewerElement,
     ViewerNumber,
+    ViewerRGB,
     ViewerSlider,
 )
 
 from virgi_ns.errors import InputError, VirgiError
 from virgi_ns.nerfstudio.viewer.actions import ALL_EDITS, PanelActions
+from virgi_ns.nerfstudio.viewer.picking import PickActions
 from virgi_ns.nerfstudio.viewer.upload import ViewerUpload
 from virgi_ns.nerfstudio.viewer.views import SavedView
 
@@ -53,7 +59,7 @@ if TYPE_CHECKING:
 DISPLAYS = ["rgb", "diffuse", "specular", "segmentation"]
 
 
-class VirgiPanel(PanelActions, ViewerElement[None], ViewerControl):
+class VirgiPanel(PanelActions, PickActions, ViewerElement[None], ViewerControl):
     """The VIRGi panel for ``model`` (a :class:`virgi_ns.nerfstudio.model.VirgiModel`); see the module
     docstring. ``run_dir``: where edits and saved views go (default: the viewer's run directory,
     else a temporary one)."""
@@ -95,6 +101,19 @@ class VirgiPanel(PanelActions, ViewerElement[None], ViewerControl):
         self.undo_button = ViewerButton("Undo", cb_hook=lambda e: self._guard(self.undo))
         self.reset_button = ViewerButton("Reset", cb_hook=lambda e: self._guard(self.reset))
         self.export_button = ViewerButton("Export", cb_hook=lambda e: None)
+        self._init_pick()
+        self.pick_mode = ViewerCheckbox("Pick mode", False,
+                                        cb_hook=lambda e: self._guard(lambda: self.set_pick_mode(bool(e.value))),
+                                        hint="Click on the render to select what it shows (no orbiting while on)")
+        self.pick_colour = ViewerRGB("New colour", (208, 32, 32), cb_hook=lambda e: self._on_pick_params(),
+                                     hint="The picked selection's new colour")
+        self.tolerance = ViewerSlider("Tolerance", 0.2, 0.0, 1.0, 0.01, cb_hook=lambda e: self._on_pick_params(),
+                                      hint="How far (x 90 degrees) colour and features may differ from the clicked "
+                                           "pixel's")
+        self.pick_recolour = ViewerDropdown("Recolour mode", "hue", ["hue", "colour"],
+                                            cb_hook=lambda e: self._on_pick_params(),
+                                            hint="hue: keep shading and highlights; colour: the surface takes the "
+                                                 "colour, shaded, highlights on it")
 
     # ----------------------------------------------------------------- nerfstudio hooks
     def _create_gui_handle(self, viser_server: "ViserServer") -> None:
@@ -107,8 +126,8 @@ class VirgiPanel(PanelActions, ViewerElement[None], ViewerControl):
         with self.gui_handle:  # type: ignore[union-attr]
             self._status_md = viser_server.gui.add_markdown(self._status_text())
             self._progress_bar = viser_server.gui.add_progress_bar(0.0, visible=False)
-            for e in (self.display, self.specular, self.save_size, self.save_button, self.upload_element,
-                      self.apply_button, self.selected):
+            for e in (self.display, self.specular, self.pick_mode, self.pick_colour, self.tolerance, self.pick_recolour,
+                      self.save_size, self.save_button, self.upload_element, self.apply_button, self.selected):
                 e.install(viser_server)
             self._edits_folder = viser_server.gui.add_folder("Edits")
             for e in (self.undo_button, self.reset_button, self.export_button):
@@ -233,6 +252,7 @@ class VirgiPanel(PanelActions, ViewerElement[None], ViewerControl):
 
     def set_specular_strength(self, k: float) -> None:
         def run():
+            self.settle_pick()
             stack = self._stack()
             if abs(stack.specular_strength - k) < 1e-9:
                 return

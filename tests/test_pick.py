@@ -1,0 +1,254 @@
+"""Picks (virgi_ns.edit.pick) on the tiny procedural scene of the edit tests: a glossy blue sphere
+between a matte green and a matte yellow one, the colour field fitted to their known colours (CPU).
+
+A click on the blue sphere in one view selects it, recolours it and fits the edit; held-out views
+are then compared with the objects' known pixels (from the per-Gaussian labels) and with hues and
+values computed by Python's ``colorsys``, independently of the code under test."""
+
+from __future__ import annotations
+
+import colorsys
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import edit_scene as es  # noqa: E402
+
+from virgi_ns.edit.engine import EditEngine  # noqa: E402
+from virgi_ns.edit.pick import PickSession, commit, parse_colour, pick_config, recolour, select  # noqa: E402
+from virgi_ns.edit.scene import render_view  # noqa: E402
+from virgi_ns.edit.stack import EditStack  # noqa: E402
+from virgi_ns.errors import InputError  # noqa: E402
+from virgi_ns.raster import Request, composite  # noqa: E402
+
+EDIT_VIEW, HELD_OUT = 0, (1, 7)
+RED = "#d02020"
+RED_HUE = 360.0 * colorsys.rgb_to_hsv(0xD0 / 255, 0x20 / 255, 0x20 / 255)[0]  # 0 degrees
+
+
+@pytest.fixture(scope="module")
+def world():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # tiny tensors: threads only add contention on a shared machine
+    try:
+        S = es.build()
+        cams = S.cameras
+        onehot = torch.nn.functional.one_hot(S.labels, 3).float()
+        cover, before = [], []
+        for v in range(len(cams)):
+            c = S.scene.contributions(cams.index(v), Request.whole_images(cams.index(v)))
+            cover.append(composite(onehot[c.pair_gaussian.long()], c)[0])  # per-pixel share of each object
+            before.append(render_view(S.scene, cams, v, contrib=c)["rgb"])
+        inner = cover[EDIT_VIEW][..., es.BLUE] > 0.95
+        ys, xs = torch.nonzero(inner, as_tuple=True)
+        k = len(ys) // 2
+        pixel = (int(xs[k]), int(ys[k]))  # a pixel well on the blue sphere
+        sessions = {}
+        for mode in ("hue", "colour"):
+            s = PickSession(S.scene, cams.index(EDIT_VIEW), *pixel, EditStack(S.scene.fingerprint()),
+                            pick_config("cpu"))
+            sessions[mode] = (s, s.update(parse_colour(RED), 0.2, mode))
+        yield {"S": S, "cover": cover, "before": before, "pixel": pixel, "sessions": sessions}
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _hsv(img: torch.Tensor) -> np.ndarray:
+    """[..., 3] RGB -> HSV by colorsys (hue in degrees), pixel by pixel."""
+    flat = img.detach().reshape(-1, 3).double().numpy()
+    out = np.array([colorsys.rgb_to_hsv(*p) for p in flat])
+    out[:, 0] *= 360.0
+    return out.reshape(*img.shape[:-1], 3)
+
+
+def _hue_gap(h: np.ndarray, target: float) -> np.ndarray:
+    d = np.abs(h - target) % 360.0
+    return np.minimum(d, 360.0 - d)
+
+
+def _after(world, mode: str, v: int) -> torch.Tensor:
+    S = world["S"]
+    st = EditStack(S.scene.fingerprint())
+    st.add(world["sessions"][mode][1])
+    return render_view(S.scene, S.cameras, v, st)["rgb"]
+
+
+def test_the_selection_is_the_clicked_object_whole(world):
+    s, _ = world["sessions"]["hue"]
+    cov = world["cover"][EDIT_VIEW]
+    blue = cov[..., es.BLUE]
+    assert bool((blue[s.mask] > 0.5).all())  # nothing of the neighbours
+    inner = (blue > 0.9) & (s.maps.accumulation > 0.5)
+    assert float(s.mask[inner].float().mean()) > 0.97  # the whole sphere, highlight included
+    # a click on the green sphere takes the green one
+    ys, xs = torch.nonzero(cov[..., es.GREEN] > 0.95, as_tuple=True)
+    green = select(s.maps, int(xs[0]), int(ys[0]), 0.2)
+    assert bool((cov[..., es.GREEN][green] > 0.5).all()) and int(green.sum()) > 20
+    # the tolerance widens it: at 1 every covered pixel connected to the click joins
+    everything = select(s.maps, *world["pixel"], 1.0)
+    assert bool(everything[(cov.sum(-1) > 0.9) & (s.maps.accumulation > 0.5)].all())
+
+
+@pytest.mark.parametrize("v", HELD_OUT)
+def test_hue_pick_recolours_the_object_in_held_out_views_and_leaves_the_others(world, v):
+    cov, before = world["cover"][v], world["before"][v]
+    after = _after(world, "hue", v)
+    blue = cov[..., es.BLUE] > 0.9
+    others = (cov[..., es.GREEN] + cov[..., es.YELLOW] > 0.99)
+    assert int(blue.sum()) > 50 and int(others.sum()) > 50
+    hb, ha = _hsv(before), _hsv(after)
+    coloured = blue.numpy() & (ha[..., 1] > 0.3)  # the highlight is near white: no hue to speak of
+    assert np.median(_hue_gap(hb[..., 0][coloured], RED_HUE)) > 90  # it was far from red
+    assert np.median(_hue_gap(ha[..., 0][coloured], RED_HUE)) < 10, np.median(ha[..., 0][coloured])
+    assert float((after - before).abs()[others].mean()) < 0.01
+
+
+@pytest.mark.parametrize("v", (EDIT_VIEW,) + HELD_OUT)
+def test_hue_pick_keeps_the_highlight_and_the_brightness(world, v):
+    cov, before = world["cover"][v], world["before"][v]
+    after = _after(world, "hue", v)
+    on_blue = cov[..., es.BLUE] > 0.9
+    wb = torch.where(on_blue, before.min(-1).values, torch.zeros(()))
+    wa = torch.where(on_blue, after.min(-1).values, torch.zeros(()))
+    assert float(wb.max()) > 0.8  # a real near-white highlight
+    pb, pa = divmod(int(wb.argmax()), wb.shape[1]), divmod(int(wa.argmax()), wa.shape[1])
+    assert abs(pb[0] - pa[0]) <= 1 and abs(pb[1] - pa[1]) <= 1, (pb, pa)
+    assert abs(float(wa.max()) - float(wb.max())) < 0.06
+    value_gap = np.abs(_hsv(after)[..., 2] - _hsv(before)[..., 2])[on_blue.numpy()]
+    # most pixels keep their value; the mean also counts Gaussians the edit view hardly sees
+    assert float(np.median(value_gap)) < 0.03 and float(value_gap.mean()) < 0.08, value_gap.mean()
+
+
+def test_colour_pick_makes_the_colour_the_surface_s_and_keeps_the_highlight(world):
+    """``colour``: the selection's diffuse colour becomes the colour itself (its typical pixel, in a
+    held-out view too), and the highlight still sits on it, near white, where it was."""
+    S = world["S"]
+    for v in (EDIT_VIEW,) + HELD_OUT:
+        st = EditStack(S.scene.fingerprint())
+        st.add(world["sessions"]["colour"][1])
+        out = render_view(S.scene, S.cameras, v, st)
+        on_blue = world["cover"][v][..., es.BLUE] > 0.9
+        typical = out["diffuse"][on_blue].median(0).values
+        assert float((typical - torch.tensor(parse_colour(RED))).abs().max()) < 0.08, (v, typical)
+        wb = torch.where(on_blue, world["before"][v].min(-1).values, torch.zeros(()))
+        wa = torch.where(on_blue, out["rgb"].min(-1).values, torch.zeros(()))
+        pb, pa = divmod(int(wb.argmax()), wb.shape[1]), divmod(int(wa.argmax()), wa.shape[1])
+        assert abs(pb[0] - pa[0]) <= 1 and abs(pb[1] - pa[1]) <= 1, (v, pb, pa)
+        assert float(wa.max()) > 0.7, (v, float(wa.max()))
+
+
+def test_recolour_rules_against_colorsys():
+    g = torch.Generator().manual_seed(0)
+    rgb = torch.rand(6, 7, 3, generator=g) * 0.8 + 0.1
+    mask = torch.rand(6, 7, generator=g) > 0.4
+    colour = (0.2, 0.7, 0.4)
+    th, ts, tv = colorsys.rgb_to_hsv(*colour)
+    hsv = _hsv(rgb)
+    m = mask.numpy()
+    s_typ, v_typ = np.median(hsv[..., 1][m]), np.median(hsv[..., 2][m])
+    want = rgb.double().numpy().copy()
+    for y, x in zip(*np.nonzero(m)):
+        h, s, v = hsv[y, x]
+        want[y, x] = colorsys.hsv_to_rgb(th, min(1.0, s * ts / s_typ), v)
+    got = recolour(rgb, mask, colour, "hue")
+    np.testing.assert_allclose(got.double().numpy(), want, atol=2e-5)
+    want = rgb.double().numpy().copy()
+    want[m] = np.clip(np.array(colour)[None] * hsv[..., 2][m][:, None] / v_typ, 0, 1)
+    np.testing.assert_allclose(recolour(rgb, mask, colour, "colour").double().numpy(), want, atol=2e-5)
+    # with a diffuse render: the colour shades the diffuse, and the render's logit offset over the
+    # diffuse (its view-dependent part) goes back on
+    diffuse = (rgb * 0.7).clamp(0.02, 0.98)
+    d = diffuse.double().numpy()
+    d_typ = np.median(d.max(-1)[m])
+    logit = lambda x: np.log(np.clip(x, 1 / 255, 254 / 255)) - np.log1p(-np.clip(x, 1 / 255, 254 / 255))  # noqa: E731
+    want = rgb.double().numpy().copy()
+    shaded = np.clip(np.array(colour)[None] * d.max(-1)[m][:, None] / d_typ, 0, 1)
+    want[m] = 1 / (1 + np.exp(-(logit(shaded) + logit(want[m]) - logit(d[m]))))
+    got = recolour(rgb, mask, colour, "colour", diffuse).double().numpy()
+    np.testing.assert_allclose(got, want, atol=1e-4)
+
+
+def test_bad_picks_are_refused(world):
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    s, _ = world["sessions"]["hue"]
+    assert parse_colour("#D02020") == parse_colour("d02020") == pytest.approx((208 / 255, 32 / 255, 32 / 255))
+    for bad in ("red", "#12345", "#gg0000", "", "#d0202000"):
+        with pytest.raises(InputError, match="#RRGGBB"):
+            parse_colour(bad)
+    for t in (-0.1, 1.5, float("nan")):
+        with pytest.raises(InputError, match=r"tolerance must be in \[0, 1\]"):
+            s.update(parse_colour(RED), t, "hue")
+    with pytest.raises(InputError, match="recolour mode"):
+        s.update(parse_colour(RED), 0.2, "tint")
+    for x, y in ((es.W, 0), (-1, 5), (3, es.H)):
+        with pytest.raises(InputError, match="outside the 64x48 image"):
+            PickSession(S.scene, cam, x, y)
+    assert float(s.maps.accumulation[0, 0]) < 0.5
+    with pytest.raises(InputError, match="background"):
+        PickSession(S.scene, cam, 0, 0)
+
+
+def test_a_view_set_up_first_and_retargeted_fits_as_a_fresh_engine(world):
+    """``EditEngine(..., None)`` then ``retarget`` is the same fit as an engine built with the target;
+    a retarget with the same selection keeps the pixel batches and the staged segmentation."""
+    S = world["S"]
+    s, _ = world["sessions"]["hue"]
+    cam = S.cameras.index(EDIT_VIEW)
+    cfg = pick_config("cpu")
+    fresh = EditEngine(S.scene, cam, s.edited, None, cfg, changed=s.mask)
+    later = EditEngine(S.scene, cam, None, None, cfg)
+    later.retarget(s.edited, s.mask)
+    a, b = fresh.fit(10)[0], later.fit(10)[0]
+    torch.testing.assert_close(a.head_weight, b.head_weight, atol=0, rtol=0)
+    torch.testing.assert_close(fresh.alpha_fixed, later.alpha_fixed, atol=0, rtol=0)
+    batches, alpha = later.batches, later.alpha_fixed
+    later.retarget(recolour(s.maps.rgb, s.mask, (0.1, 0.8, 0.2), "hue"), s.mask)
+    assert later.batches is batches and later.alpha_fixed is alpha
+    assert fresh.mode == "changed pixels (a selection)"
+    with pytest.raises(InputError, match="selection is empty"):
+        later.retarget(s.edited, torch.zeros_like(s.mask))
+
+
+def test_a_live_update_reaches_a_new_colour_in_few_steps(world):
+    """A warm update (the live drag: the segmentation kept, the layer from the new colour map) with
+    20 steps lands within 0.03 of a fresh fit of the new colour with the full steps."""
+    S = world["S"]
+    green = parse_colour("#20c040")
+    s = PickSession(S.scene, S.cameras.index(EDIT_VIEW), *world["pixel"], EditStack(S.scene.fingerprint()),
+                    pick_config("cpu"))
+    s.update(parse_colour(RED), 0.2, "hue")
+    s.update(green, 0.2, "hue", steps=20)
+    live = s.engine.preview()["rgb"][s.mask]
+    f = PickSession(S.scene, S.cameras.index(EDIT_VIEW), *world["pixel"], EditStack(S.scene.fingerprint()),
+                    pick_config("cpu"))
+    f.update(green, 0.2, "hue")
+    full = f.engine.preview()["rgb"][f.mask]
+    target = s.edited[s.mask]
+    assert float((full - target).abs().mean()) < 0.05
+    assert float((live - full).abs().mean()) < 0.03
+
+
+def test_commit_saves_the_pictures_beside_the_edit_and_replaces_it(world, tmp_path):
+    S = world["S"]
+    s, edit = world["sessions"]["hue"]
+    stack = EditStack(S.scene.fingerprint(), tmp_path)
+    assert commit(stack, s, edit) == 1
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == ["edit_0001.pt", "edit_0001_edited.png", "edit_0001_selection.png", "stack.json"]
+    sel = np.asarray(Image.open(tmp_path / "edit_0001_selection.png"))
+    assert np.array_equal(sel > 127, s.mask.numpy())
+    img = np.asarray(Image.open(tmp_path / "edit_0001_edited.png"), dtype=np.float32) / 255
+    assert np.abs(img - s.edited.numpy()).max() <= 0.5 / 255 + 1e-6
+    assert stack.entries[0].edit.source.image == str(tmp_path / "edit_0001_edited.png")
+    assert commit(stack, s, world["sessions"]["colour"][1], replace=1) == 1
+    assert len(stack) == 1 and sorted(p.name for p in tmp_path.iterdir()) == [
+        "edit_0002.pt", "edit_0002_edited.png", "edit_0002_selection.png", "stack.json"]
+    assert stack.entries[0].edit.info["pick"]["mode"] == "colour"
+    stack.undo()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["stack.json"]

@@ -1,0 +1,258 @@
+"""A click and a colour instead of a painted image: select what was clicked in one view, recolour
+it, and fit that as an edit.
+
+The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain torch, no viewer):
+
+- :func:`view_maps`: the view's render, its diffuse render, the colour field's per-Gaussian
+  features composited per pixel, and its coverage (accumulation), from an
+  :class:`~virgi_ns.edit.engine.EditEngine` set up on the view;
+- :func:`select`: the selection grown from the clicked pixel. A pixel joins when it is covered
+  (accumulation >= :data:`MIN_COVER`), when both its diffuse colour and its features point within
+  ``tolerance`` x 90 degrees of the clicked pixel's (angles between the vectors: brightness and
+  shading do not count, the highlight is not in the diffuse render), and when it is connected to
+  the clicked pixel through such pixels. The colour keeps neighbours of another colour out, the
+  features keep out what only looks alike, the connection keeps to the clicked object;
+- :func:`recolour`: the edited image: ``hue`` gives the selection the colour's hue and saturation
+  and keeps each pixel's value (shading and highlights stay: saturation is scaled from the
+  selection's typical pixel, so a white highlight stays near white); ``colour`` makes the colour
+  the surface's own: the diffuse render becomes ``colour x value / typical value`` (its shading
+  kept, its brightness that of the colour) and each pixel keeps the render's view-dependent part
+  over its diffuse colour (a logit offset), so highlights sit on the new colour as they would on a
+  surface of it;
+- :class:`PickSession`: one click on one view: every :meth:`~PickSession.update` (a new colour,
+  tolerance or mode) refits warm from the last fit (:meth:`EditEngine.retarget`), which is what a
+  live drag needs; :func:`commit` puts the edit on a stack with its edited image and selection
+  saved beside it.
+
+The edit fits the selection as its changed pixels (the rest keeps the render), with the
+``staged`` recipe by default: its segmentation is a classifier of the Gaussians the selection
+covers, which carries the selection to every other view.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from virgi_ns.edit.engine import EditConfig, EditEngine
+from virgi_ns.edit.recolor import hsv_to_rgb, rgb_to_hsv
+from virgi_ns.edit.scene import FrozenScene
+from virgi_ns.edit.stack import Edit, EditSource, EditStack
+from virgi_ns.errors import InputError, atomic_path
+from virgi_ns.raster import Cameras, composite
+
+MODES = ("hue", "colour")
+MIN_COVER = 0.5
+"""A pixel whose accumulation is below this shows mostly background: it is never selected, and a
+click there picks nothing."""
+_HEX = re.compile(r"#?([0-9a-fA-F]{6})")
+
+
+# ------------------------------------------------------------------------------ inputs
+def parse_colour(text: str) -> tuple[float, float, float]:
+    """``'#RRGGBB'`` (or ``RRGGBB``) -> RGB in [0, 1]; anything else is an :class:`InputError`."""
+    m = _HEX.fullmatch(str(text).strip())
+    if m is None:
+        raise InputError(f"cannot read the colour {text!r}: give it as #RRGGBB, e.g. '#d02020'")
+    h = m.group(1)
+    return tuple(int(h[i : i + 2], 16) / 255.0 for i in (0, 2, 4))  # type: ignore[return-value]
+
+
+def check_tolerance(tolerance: float) -> float:
+    t = float(tolerance)
+    if not 0.0 <= t <= 1.0:
+        raise InputError(f"the tolerance must be in [0, 1], got {tolerance}")
+    return t
+
+
+def check_mode(mode: str) -> str:
+    if mode not in MODES:
+        raise InputError(f"the recolour mode must be {' or '.join(MODES)}, got {mode!r}")
+    return mode
+
+
+def pick_config(device: torch.device) -> EditConfig:
+    """The edit settings of a pick: the ``staged`` recipe; on a CPU its classifier trains on fewer
+    samples and steps (a CPU's budget for an interactive tool)."""
+    if torch.device(device).type == "cuda":
+        return EditConfig(recipe="staged")
+    return EditConfig(recipe="staged", seg_samples=8192, seg_steps=150)
+
+
+# ------------------------------------------------------------------------- selection
+@dataclass
+class ViewMaps:
+    """Per-pixel maps of one view [H,W,*]: ``rgb`` (the render through the stack), ``diffuse``
+    and ``features`` (the diffuse colour and the colour field's ``h_diff``, divided by coverage) and
+    ``accumulation`` [H,W]."""
+
+    rgb: Tensor
+    diffuse: Tensor
+    features: Tensor
+    accumulation: Tensor
+
+
+@torch.no_grad()
+def view_maps(engine: EditEngine) -> ViewMaps:
+    """The maps of the engine's view (its contributions, features and colours through the stack)."""
+    c = engine.contrib
+    acc = c.accumulation()[0].to(engine.current)
+    cover = acc[..., None].clamp_min(1e-6)
+    diffuse = composite(torch.sigmoid(engine.c_d), c)[0] / cover
+    features = composite(engine.h_diff.float(), c)[0] / cover
+    return ViewMaps(engine.current, diffuse, features, acc)
+
+
+def _angle(a: Tensor, b: Tensor) -> Tensor:
+    """Degrees between the vectors of ``a`` [...,D] and ``b`` [D]."""
+    cos = (torch.nn.functional.normalize(a, dim=-1) * torch.nn.functional.normalize(b, dim=-1)).sum(-1)
+    return torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0)))
+
+
+def check_pixel(maps: ViewMaps, x: int, y: int) -> None:
+    """Refuse a pixel outside the image or on the background (:data:`MIN_COVER`)."""
+    H, W = maps.accumulation.shape
+    if not (0 <= x < W and 0 <= y < H):
+        raise InputError(f"the pixel ({x}, {y}) is outside the {W}x{H} image (x 0..{W - 1}, y 0..{H - 1})")
+    cover = float(maps.accumulation[y, x])
+    if cover < MIN_COVER:
+        raise InputError(f"nothing to pick at ({x}, {y}): the render there is background (coverage {cover:.2f} "
+                         f"< {MIN_COVER}); pick a pixel on an object")
+
+
+@torch.no_grad()
+def select(maps: ViewMaps, x: int, y: int, tolerance: float) -> Tensor:
+    """Bool [H,W]: the selection grown from pixel (x, y) (see the module docstring)."""
+    check_pixel(maps, x, y)
+    limit = 90.0 * check_tolerance(tolerance)
+    allowed = ((maps.accumulation >= MIN_COVER)
+               & (_angle(maps.diffuse, maps.diffuse[y, x]) <= limit)
+               & (_angle(maps.features, maps.features[y, x]) <= limit))
+    allowed[y, x] = True
+    grown = torch.zeros_like(allowed)
+    grown[y, x] = True
+    grown = grown[None, None].float()
+    free = allowed[None, None].float()
+    while True:  # flood fill (8-connected), a few dilations between checks
+        before = grown
+        for _ in range(8):
+            grown = torch.nn.functional.max_pool2d(grown, 3, 1, 1) * free
+        if torch.equal(grown, before):
+            return grown[0, 0] > 0
+
+
+def _typical(values: Tensor, mask: Tensor) -> float:
+    """The median of ``values`` over ``mask`` (the mean of the middle two for an even count)."""
+    return float(torch.quantile(values[mask].float(), 0.5))
+
+
+def _logit(x: Tensor) -> Tensor:
+    x = x.clamp(1.0 / 255.0, 254.0 / 255.0)
+    return torch.log(x) - torch.log1p(-x)
+
+
+@torch.no_grad()
+def recolour(rgb: Tensor, mask: Tensor, colour: tuple[float, float, float], mode: str,
+             diffuse: Optional[Tensor] = None) -> Tensor:
+    """The edited image: ``rgb`` [H,W,3] with the ``mask`` pixels recoloured towards ``colour`` by
+    ``mode`` (see the module docstring); other pixels unchanged. ``diffuse`` [H,W,3]: the view's
+    diffuse render, which ``colour`` shades and puts the render's view-dependent part back on
+    (without it, ``colour`` shades ``rgb`` and adds nothing)."""
+    check_mode(mode)
+    target = torch.tensor(colour, dtype=rgb.dtype, device=rgb.device)
+    if mode == "hue":
+        hsv = rgb_to_hsv(rgb.clamp(0.0, 1.0))
+        t_hsv = rgb_to_hsv(target)
+        sat = (hsv[..., 1] * float(t_hsv[1]) / max(_typical(hsv[..., 1], mask), 0.05)).clamp(0.0, 1.0)
+        new = hsv_to_rgb(torch.stack([torch.full_like(sat, float(t_hsv[0])), sat, hsv[..., 2]], -1))
+    else:
+        base = (rgb if diffuse is None else diffuse).clamp(0.0, 1.0)
+        value = base.amax(-1, keepdim=True)
+        new = (target * (value / max(_typical(value[..., 0], mask), 1e-3))).clamp(0.0, 1.0)
+        if diffuse is not None:
+            new = torch.sigmoid(_logit(new) + _logit(rgb) - _logit(base))
+    return torch.where(mask[..., None], new, rgb)
+
+
+# ---------------------------------------------------------------------------- session
+class PickSession:
+    """One click at pixel (x, y) of ``camera`` (one view): the view is set up once; each
+    :meth:`update` selects, recolours and fits again, warm from the last fit."""
+
+    def __init__(self, scene: FrozenScene, camera: Cameras, x: int, y: int, stack: Optional[EditStack] = None,
+                 cfg: Optional[EditConfig] = None, source: Optional[EditSource] = None) -> None:
+        W, H = int(camera.widths[0]), int(camera.heights[0])
+        if not (0 <= x < W and 0 <= y < H):  # before the view is rasterized
+            raise InputError(f"the pixel ({x}, {y}) is outside the {W}x{H} image (x 0..{W - 1}, y 0..{H - 1})")
+        self.x, self.y = int(x), int(y)
+        self.engine = EditEngine(scene, camera, None, stack, cfg or pick_config(scene.device), source)
+        self.maps = view_maps(self.engine)
+        check_pixel(self.maps, self.x, self.y)
+        self.mask: Optional[Tensor] = None
+        self.edited: Optional[Tensor] = None
+        self.settings: dict = {}
+        self.steps_done = 0
+
+    def update(self, colour: tuple[float, float, float], tolerance: float, mode: str, steps: Optional[int] = None,
+               seg_steps: Optional[int] = None) -> Edit:
+        """Select with ``tolerance``, recolour towards ``colour`` by ``mode`` and fit ``steps``
+        (default: the config's) from the last fit; ``seg_steps``: the staged segmentation's steps
+        when the selection changed (default: the config's). Returns the edit."""
+        tolerance, mode = check_tolerance(tolerance), check_mode(mode)
+        mask = select(self.maps, self.x, self.y, tolerance)
+        edited = recolour(self.maps.rgb, mask, colour, mode, self.maps.diffuse)
+        self.engine.retarget(edited, mask, seg_steps=seg_steps)
+        self.mask, self.edited, self.steps_done = mask, edited, 0
+        self.settings = {"pixel": [self.x, self.y], "colour": "#" + "".join(f"{round(255 * c):02x}" for c in colour),
+                         "tolerance": tolerance, "mode": mode, "selected": float(mask.float().mean())}
+        return self.refine(self.engine.cfg.steps if steps is None else steps)
+
+    def refine(self, steps: int) -> Edit:
+        """``steps`` more steps of the current fit; returns the edit."""
+        edit, _ = self.engine.fit(max(0, int(steps)))
+        self.steps_done += max(0, int(steps))
+        edit.info["pick"] = dict(self.settings)
+        return edit
+
+
+def _png(path: Path, image: np.ndarray) -> None:
+    from PIL import Image
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(image).save(tmp, format="PNG")
+
+
+def commit(stack: EditStack, session: PickSession, edit: Edit, replace: Optional[int] = None) -> int:
+    """Add ``edit`` to ``stack`` (or put it in the place of edit ``replace``) with the session's
+    edited image and selection saved beside it as ``edit_NNNN_edited.png`` and
+    ``edit_NNNN_selection.png`` (a stack without a directory saves none); returns its number."""
+    if session.edited is None or session.mask is None:
+        raise InputError("nothing picked yet: update the pick first")
+    stem = Path(stack.next_file()).stem
+    pictures: list[Path] = []
+    try:
+        if stack.directory is not None:
+            pictures = [stack.directory / f"{stem}_edited.png", stack.directory / f"{stem}_selection.png"]
+            _png(pictures[0], (session.edited.detach().float().cpu().clamp(0, 1).numpy() * 255.0 + 0.5)
+                 .astype(np.uint8))
+            _png(pictures[1], session.mask.cpu().numpy().astype(np.uint8) * 255)
+            edit = dataclasses.replace(edit, source=dataclasses.replace(edit.source, image=str(pictures[0])))
+        if replace is None:
+            return stack.add(edit)
+        stack.replace(replace, edit)
+        return replace
+    except BaseException:
+        for p in pictures:
+            p.unlink(missing_ok=True)
+        raise
+
+
+__all__ = ["MIN_COVER", "MODES", "PickSession", "ViewMaps", "check_mode", "check_pixel", "check_tolerance", "commit",
+           "parse_colour", "pick_config", "recolour", "select", "view_maps"]
