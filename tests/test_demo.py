@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import sys
@@ -14,6 +13,7 @@ import pytest
 import torch
 from PIL import Image
 
+from script_module import script_module
 from virgi_ns.data.bundle import BUNDLED_SCENE, BundleDataParserConfig, read_points_ply
 from virgi_ns.data.make_bundle import shrink_bundle
 from virgi_ns.edit.recolor import RecolorRule, rule_mask
@@ -21,7 +21,6 @@ from virgi_ns.gaussians import Gaussians
 from virgi_ns.io import load_splat, save_ply
 
 warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
-REPO = Path(__file__).resolve().parents[1]
 
 
 def _tiny_bundle(root: Path) -> Path:
@@ -170,10 +169,11 @@ def test_bundle_parses_with_its_hold_out():
 
 def test_geometry_script_returns_gaussians_to_the_capture_frame(tmp_path):
     """What the GPU script writes, imported by the model (capture frame), is where it trained."""
-    spec = importlib.util.spec_from_file_location("train_demo_geometry", REPO / "scripts" / "train_demo_geometry.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)
+    with script_module("scripts/train_demo_geometry.py", "train_demo_geometry") as mod:
+        _check_geometry_script(mod, tmp_path)
+
+
+def _check_geometry_script(mod, tmp_path):
     from virgi_ns.demo.config import DemoConfig
     from virgi_ns.demo.training import trainer_config
 

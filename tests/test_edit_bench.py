@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import sys
 
 import pytest
 import torch
@@ -14,6 +13,7 @@ from rich.console import Console
 from virgi_ns.bench.recolor import AccuracyTime, Recolor, RuleArgs, psnr, run_accuracy_time, run_recolor, summary
 from virgi_ns.errors import InputError
 
+from script_module import script_module
 from viewer_run import train_tiny
 from virgi_scene import make_scene
 
@@ -80,23 +80,17 @@ def test_bad_bench_arguments(pipeline, tmp_path):
         run_recolor(Recolor(tmp_path / "x.yml", edit_source="paint"), pipeline, _quiet())
 
 
-def _bench_edit_module(monkeypatch):
-    import importlib.util
-    from pathlib import Path
-
-    spec = importlib.util.spec_from_file_location("bench_edit", Path(__file__).resolve().parents[1] / "bench" / "edit.py")
-    bench_edit = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, "bench_edit", bench_edit)  # dataclasses look their module up
-    spec.loader.exec_module(bench_edit)
-    return bench_edit
+@pytest.fixture
+def bench_edit():
+    with script_module("bench/edit.py", "bench_edit") as mod:
+        yield mod
 
 
-def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, tmp_path, monkeypatch):
+def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench_edit, tmp_path, monkeypatch):
     """``bench/edit.py``: a scene of the set, run as a user would edit it (the photo the rule
     recolours most), then one row per --variants entry on the same loaded run (CPU, tiny scene)."""
     from virgi_ns.bench.evalset import EvalScene, edit_view
 
-    bench_edit = _bench_edit_module(monkeypatch)
     import virgi_ns.cli.edit as cli_edit
 
     loads = []

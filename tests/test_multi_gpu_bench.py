@@ -4,7 +4,6 @@ figures on a CPU mean nothing)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import os
@@ -14,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from script_module import script_module
 from virgi_scene import make_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -25,14 +25,8 @@ TINY = ("pipeline.model.random_init=True,pipeline.model.num_random=150,pipeline.
 
 @pytest.fixture(scope="module")
 def bench():
-    sys.path.insert(0, str(ROOT / "bench"))  # as the script puts its folder first
-    spec = importlib.util.spec_from_file_location("bench_multi_gpu", ROOT / "bench" / "multi_gpu.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod  # its dataclasses look their module up there
-    spec.loader.exec_module(mod)
-    yield mod
-    sys.modules.pop(spec.name, None)
-    sys.path.remove(str(ROOT / "bench"))
+    with script_module("bench/multi_gpu.py", "bench_multi_gpu") as mod:
+        yield mod
 
 
 def test_arguments(bench, capsys):

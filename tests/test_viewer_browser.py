@@ -164,6 +164,19 @@ def _scene_pixels(region: np.ndarray) -> np.ndarray:
     return region[np.abs(region - bg).max(-1) > 0.08]
 
 
+def _page(driver):
+    """(the page's text, the panel button with a label): what the browser tests read and press."""
+    from selenium.webdriver.common.by import By
+
+    def body() -> str:
+        return driver.find_element(By.TAG_NAME, "body").text
+
+    def button(label: str):
+        return driver.find_element(By.XPATH, f"//button[normalize-space()='{label}']")
+
+    return body, button
+
+
 def test_save_upload_apply_in_the_browser(viewer, browser, tmp_path):
     from selenium.webdriver.common.by import By
 
@@ -171,11 +184,7 @@ def test_save_upload_apply_in_the_browser(viewer, browser, tmp_path):
     driver, downloads = browser
     driver.get(url)
 
-    def body() -> str:
-        return driver.find_element(By.TAG_NAME, "body").text
-
-    def button(label: str):
-        return driver.find_element(By.XPATH, f"//button[normalize-space()='{label}']")
+    body, button = _page(driver)
 
     _wait("the VIRGi panel", lambda: "Save this view" in body() and "Connected" in body(), 90)
     def rendered():
@@ -281,11 +290,7 @@ def test_pick_in_the_browser(viewer, browser, tmp_path):
     driver, _ = browser
     driver.get(url)
 
-    def body() -> str:
-        return driver.find_element(By.TAG_NAME, "body").text
-
-    def button(label: str):
-        return driver.find_element(By.XPATH, f"//button[normalize-space()='{label}']")
+    body, button = _page(driver)
 
     _wait("the VIRGi panel", lambda: "Pick mode" in body() and "Connected" in body(), 90)
     if list((run_dir / "edits").glob("edit_*.pt")):  # another test's edits: start from the unedited run
