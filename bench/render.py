@@ -26,7 +26,6 @@ step times from its summary line.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import re
@@ -46,10 +45,10 @@ from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from edit import Args as EditArgs  # noqa: E402  (bench/edit.py: the same trained runs)
-from edit import run_config  # noqa: E402
+from edit import _sync, _write, run_config  # noqa: E402
 
 from virgi_ns.bench.evalset import COLOUR_STEPS, GEOMETRY_STEPS, capture_folder, edit_view, find  # noqa: E402
-from virgi_ns.errors import atomic_path, cli_entry  # noqa: E402
+from virgi_ns.errors import cli_entry  # noqa: E402
 
 console = Console(width=200)
 THRESHOLDS = (0.0, 1 / 1024, 1 / 512, 1 / 255, 2 / 255, 4 / 255, 8 / 255)
@@ -70,11 +69,6 @@ class Args:
     """Held-out views measured per scene (the first ones)."""
     cli: bool = False
     """Also time the CLIs in fresh processes on the first scene."""
-
-
-def _sync() -> None:
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
 
 
 def _fps(fn, repeats: int) -> float:
@@ -287,11 +281,6 @@ def main(args: Args) -> None:
 
 def _jsonable(d: dict) -> dict:
     return {k: (str(v) if isinstance(v, Path) else v) for k, v in d.items()}
-
-
-def _write(path: Path, result: dict) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(result, indent=1, default=str))
 
 
 def entrypoint() -> None:

@@ -21,7 +21,7 @@ from torch import Tensor
 
 from virgi_ns.colour.field import view_directions
 from virgi_ns.nerfstudio.cameras import raster_cameras
-from virgi_ns.raster import Cameras, Contributions, Request, composite
+from virgi_ns.raster import Cameras, Contributions, Request, composite, expected_depth
 
 
 class RenderPath:
@@ -229,7 +229,7 @@ class RenderPath:
             parts["rgb"].append(rgb)
             parts["diffuse"].append(diff)
             parts["specular"].append(rgb - diff)
-            parts["depth"].append(torch.where(acc > 1e-10, z_sum / acc.clamp_min(1e-10), torch.zeros_like(z_sum)))
+            parts["depth"].append(expected_depth(z_sum, acc))
             parts["accumulation"].append(acc)
             parts["segmentation"].append(img[..., 7:8] if with_seg else rgb.new_zeros(h, W, 1))
         out: Dict[str, Tensor] = {k: torch.cat(v, dim=0) for k, v in parts.items()}

@@ -11,9 +11,9 @@ import sys
 import torch
 from torch import Tensor
 
-from virgi_ns.raster.contract import Cameras, Contributions, Request, composite, composite_depth
+from virgi_ns.raster.contract import Cameras, Contributions, Request, composite, composite_depth, expected_depth
 
-__all__ = ["Cameras", "Contributions", "Request", "composite", "composite_depth", "rasterize", "resolve_backend"]
+__all__ = ["Cameras", "Contributions", "Request", "composite", "composite_depth", "expected_depth", "rasterize", "resolve_backend"]
 
 _NOTICE_GIVEN = False
 

@@ -226,7 +226,11 @@ def composite_plain(colors: Tensor, contrib: Contributions, background: Tensor |
 
 def composite_depth(contrib: Contributions, eps: float = 1e-10) -> Tensor:
     """Expected depth [T,h,w,1]: sum(w z) / sum(w), 0 where nothing contributes."""
-    z = contrib.pair_depth[:, None]
-    num = composite(z, contrib)
-    acc = contrib.accumulation()[..., None].to(num.dtype)
-    return torch.where(acc > eps, num / acc.clamp_min(eps), torch.zeros_like(num))
+    num = composite(contrib.pair_depth[:, None], contrib)
+    return expected_depth(num, contrib.accumulation()[..., None].to(num.dtype), eps)
+
+
+def expected_depth(weighted_depth: Tensor, accumulation: Tensor, eps: float = 1e-10) -> Tensor:
+    """``sum(w z) / sum(w)`` from its two composites (same shapes), 0 where nothing contributes;
+    for callers that composite depth together with other channels."""
+    return torch.where(accumulation > eps, weighted_depth / accumulation.clamp_min(eps), torch.zeros_like(weighted_depth))
