@@ -440,6 +440,43 @@ def test_transfer_target_moves_the_render_by_the_change_in_logits(world):
     torch.testing.assert_close(eng.batches[0].target.reshape(render.shape), expected, atol=2e-5, rtol=0)
 
 
+def test_map_target_fits_the_render_changed_as_the_user_changed_its_colours(world):
+    """``changed_target="map"``: with a photo that carries detail the model never reproduced (a
+    checkerboard of +-0.08), the changed pixels' targets are close to the rule applied to the render
+    itself (not to the photo), and the held-out views' miss is below that of the edited photo's pixels."""
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    render = world["before"][EDIT_VIEW]["rgb"]
+    H, W = render.shape[:2]
+    checker = ((torch.arange(H)[:, None] + torch.arange(W)[None, :]) % 2).float()[..., None] * 0.16 - 0.08
+    photo = (render + checker).clamp(0, 1)
+    edited, _ = recolor(photo, BLUE_TO_RED)
+    changed = (edited - photo).abs().amax(-1) > EditConfig().unchanged_tol
+    rule_on_render, _ = recolor(render, BLUE_TO_RED)
+    miss, off = {}, {}
+    for target in ("map", "edited"):
+        eng = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=60, pixel_batches=1, changed_target=target),
+                         original=photo)
+        tgt = eng.batches[0].target.reshape(render.shape)
+        off[target] = (tgt - rule_on_render).abs().amax(-1)[changed]
+        if target == "map":
+            assert eng.mode.endswith("colour map of the change)")
+            # most changed pixels: not those at the rule's thresholds, where the checkerboard puts one
+            # colour on both sides (changed in one cell, kept in the next); those keep the edited pixel
+            mapped = (tgt - edited).abs().amax(-1)[changed] > 1e-6
+            assert eng.map_explained is not None and eng.map_explained > 0.7
+            assert abs(float(mapped.float().mean()) - eng.map_explained) < 0.05
+            on_mapped = float(off["map"][mapped].mean())
+            torch.testing.assert_close(tgt[~changed], render[~changed])
+        stack = _stack(world, eng.fit()[0])
+        b = world["before"][HELD_OUT[0]]["rgb"]
+        truth, m = recolor(b, BLUE_TO_RED)
+        miss[target] = float((_render(world, HELD_OUT[0], stack)["rgb"] - truth).abs()[m].mean())
+    assert float(off["edited"].mean()) > 0.06  # the checkerboard
+    assert on_mapped < 0.6 * float(off["edited"][mapped].mean()), (on_mapped, float(off["edited"][mapped].mean()))
+    assert miss["map"] < miss["edited"], miss
+
+
 def test_staged_recipe_segments_first_and_its_edit_renders_what_it_fitted(world):
     """``recipe="staged"``: the segmentation is a classifier of the view's Gaussians, fixed while the
     layer trains; the saved edit's head gives the same alpha at render time, high on the Gaussians
@@ -567,3 +604,31 @@ def test_colour_map_start_fits_a_channel_swap_sooner(world):
         out = eng.preview()["rgb"]
         assert float((out - edited).abs()[mask].mean()) < float((render - edited).abs()[mask].mean())
     assert loss[True] < 0.8 * loss[False], loss
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.parametrize("recipe", ["joint", "staged"])
+def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe):
+    """``cuda_graphs``: the recorded steps replay the eager steps' kernels in the eager order, so the
+    edit (layer, segmentation, final loss) is the eager one's."""
+    import copy
+
+    from virgi_ns.edit.scene import FrozenScene
+
+    S = world["S"]
+    sc = S.scene
+    gpu = FrozenScene(sc.means.cuda(), sc.quats.cuda(), sc.scales.cuda(), sc.opacities.cuda(),
+                      copy.deepcopy(sc.field).cuda(), sc.background.cuda(), backend="auto")
+    cam = S.cameras.index(EDIT_VIEW)
+    edited = world["edited"].cuda()
+    fits = {}
+    for graphs in (True, False):
+        cfg = EditConfig(steps=30, cuda_graphs=graphs, recipe=recipe, seg_samples=4096, seg_steps=50)
+        fits[graphs] = EditEngine(gpu, cam, edited, EditStack(gpu.fingerprint()), cfg).fit()
+    (e_g, t_g), (e_e, t_e) = fits[True], fits[False]
+    torch.testing.assert_close(e_g.weight, e_e.weight, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(e_g.bias, e_e.bias, atol=1e-5, rtol=1e-5)
+    x = torch.randn(64, e_g.seg.l1.in_features, device="cuda")
+    torch.testing.assert_close(e_g.seg.logits_of(x), e_e.seg.logits_of(x), atol=1e-4, rtol=1e-4)
+    assert abs(t_g.final_loss - t_e.final_loss) < 1e-5
+    assert not torch.equal(e_g.weight, torch.as_tensor(sc.field.diffuse_head.weight).cuda())  # it trained

@@ -34,7 +34,9 @@ That is the ``joint`` recipe (the paper's: both heads on the pixel loss). The ``
 labelled by where their weight lands (changed pixels or not), so a part of another colour inside a
 recoloured object is not outvoted by the object around it; it then fits the layer, from the colour
 map, with the segmentation fixed. ``changed_target="transfer"`` fits the changed pixels to the
-render moved by the user's change in logits, instead of to the edited photo's own pixels.
+render moved by the user's change in logits, instead of to the edited photo's own pixels;
+``changed_target="map"`` to the render changed as the user changed pixels of its colour
+(:mod:`virgi_ns.edit.colour_change`), where that explains the user's change.
 
 The result is an :class:`~virgi_ns.edit.stack.Edit` for the :class:`EditStack`. The engine reads
 the model through a :class:`~virgi_ns.edit.scene.FrozenScene`; the view's pixels are split into
@@ -53,6 +55,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from virgi_ns.colour.field import view_directions
+from virgi_ns.edit.colour_change import MIN_SUPPORT, fit_colour_change
 from virgi_ns.edit.pixels import PixelBatch, SparseRender, pixel_batches
 from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead, new_edit_info
@@ -88,13 +91,16 @@ class EditConfig:
     """With an ``original`` image: the share of the loss carried by the changed pixels (the rest by
     the unchanged ones), whatever their numbers; a small edit would otherwise be outvoted by the
     many pixels asking for no change."""
-    changed_target: Literal["change", "transfer", "edited"] = "edited"
+    changed_target: Literal["change", "transfer", "map", "edited"] = "edited"
     """What the changed pixels are fitted to when the unedited image is a photo (``original``):
     ``change``: the current render plus the change the user made (edited - original, clamped to
     [0, 1]), so the photo's detail the model never reproduced is not fitted as part of the edit;
     ``transfer``: the same change as a shift of logits, ``sigmoid(logit(render) + logit(edited) -
     logit(original))`` (colours clamped to [0.02, 0.98]), which keeps the render's colour where the
     change saturates;
+    ``map``: the render changed as the user changed pixels of the same colour in the photo (the
+    change learnt as a function of colour, :mod:`virgi_ns.edit.colour_change`), on the changed
+    pixels that function explains; the others keep the edited image's pixel;
     ``edited``: the edited image itself (the default: with ``change`` the photo's colour delta
     lands on the render's base colour where the two differ; ``transfer`` helps the edits that cover
     most of the view and loses on small ones, bench/RESULTS.md, "The suspects, measured apart").
@@ -141,13 +147,17 @@ class EditConfig:
     scene is not part of an edit): keeps the segmentation off what the edited view never showed
     unless it resembles what the edit changed."""
 
+    cuda_graphs: bool = True
+    """On a GPU, record each pixel set's step once as a CUDA graph and replay it (the same kernels,
+    without a Python and launch round trip per kernel); fits of a few steps run eagerly."""
+
     def __post_init__(self) -> None:
         self.check()
 
     def check(self) -> None:
         """Refuse values no edit can run with (also called by the engine: fields may be set later)."""
-        if self.changed_target not in ("change", "transfer", "edited"):
-            raise ValueError(f"EditConfig.changed_target must be 'change', 'transfer' or 'edited', "
+        if self.changed_target not in ("change", "transfer", "map", "edited"):
+            raise ValueError(f"EditConfig.changed_target must be 'change', 'transfer', 'map' or 'edited', "
                              f"got {self.changed_target!r}")
         if self.recipe not in ("joint", "staged"):
             raise ValueError(f"EditConfig.recipe must be 'joint' or 'staged', got {self.recipe!r}")
@@ -308,6 +318,7 @@ class EditEngine:
         self.bias = head.bias.detach().float().clone().requires_grad_(True)
         self.alpha_fixed: Optional[Tensor] = None
         self.colour_map: Optional[Tensor] = None
+        self.map_explained: Optional[float] = None  # changed_target="map": share of changed pixels it explains
         self.recipe = self.cfg.recipe
 
     def _changed_pixels(self, edited: Tensor, original: Optional[Tensor]) -> tuple[Optional[Tensor], str]:
@@ -338,18 +349,22 @@ class EditEngine:
             changed, ref = self._changed_pixels(edited, original)
         self.mode = "whole image"
         self.changed_fraction = 1.0
+        self.map_explained = None
         if changed is not None:  # untouched pixels: the current render is their target
             if not bool(changed.any()):
                 raise InputError("the selection is empty: nothing to edit" if ref == "selection" else
                                  f"the edited image does not differ from the {ref}: nothing to edit")
             self.mode = {"original": "changed pixels (original given" + {
-                "change": ", render + change)", "transfer": ", render + logit change)"}.get(
+                "change": ", render + change)", "transfer": ", render + logit change)",
+                "map": ", render + colour map of the change)"}.get(
                     cfg.changed_target, ", edited image)"),
                 "selection": "changed pixels (a selection)"}.get(ref, "changed pixels (an edited render)")
             if ref == "original" and cfg.changed_target == "change":
                 edited = (current + (edited - original)).clamp(0.0, 1.0)
             elif ref == "original" and cfg.changed_target == "transfer":
                 edited = torch.sigmoid(_logit(current) + _logit(edited) - _logit(original))
+            elif ref == "original" and cfg.changed_target == "map":
+                edited = self._mapped_target(edited, original, changed)
             edited = torch.where(changed, edited, current)
             self.changed_fraction = float(changed.float().mean())
         flat = None if changed is None else changed.reshape(-1)
@@ -386,7 +401,17 @@ class EditEngine:
                 p.requires_grad_(True)
         self._changed = flat
         trainable = [self.weight, self.bias] + ([] if staged else list(self.seg.parameters()))
-        self.opt = torch.optim.Adam(trainable, lr=cfg.lr, fused=self.scene.device.type == "cuda")
+        on_gpu = self.scene.device.type == "cuda"
+        self.opt = torch.optim.Adam(trainable, lr=cfg.lr, fused=on_gpu, capturable=on_gpu)
+
+    def _mapped_target(self, edited: Tensor, original: Tensor, changed: Tensor) -> Tensor:
+        """``changed_target="map"``: the render changed by the colour map of the user's change
+        where the map explains that pixel's change, the edited pixel elsewhere."""
+        change = fit_colour_change(original, edited)
+        flat_o, flat_e, flat_r = original.reshape(-1, 3), edited.reshape(-1, 3), self.current.reshape(-1, 3)
+        use = change.explains(flat_o, flat_e) & (change.support(flat_r) >= MIN_SUPPORT)
+        self.map_explained = float(use[changed.reshape(-1)].float().mean())
+        return torch.where(use[:, None], change.apply(flat_r), flat_e).reshape(edited.shape)
 
     def retarget(self, edited: Float[Tensor, "H W 3"], changed: Optional[Tensor] = None,
                  original: Optional[Float[Tensor, "H W 3"]] = None, seg_steps: Optional[int] = None) -> None:
@@ -482,21 +507,46 @@ class EditEngine:
         loss = torch.zeros((), device=dev)
         nb = len(self.batches)
         with torch.enable_grad():  # callers may hold a no_grad context (viewer threads, scripts)
-            for i in range(n):
-                loss = self.step(self.batches[i % nb])
-                if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
-                    progress(i + 1, n)
+            if self.cfg.cuda_graphs and dev.type == "cuda" and n > 2 * nb:
+                loss = self._fit_graphed(n, progress)
+            else:
+                for i in range(n):
+                    loss = self.step(self.batches[i % nb])
+                    if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
+                        progress(i + 1, n)
         _sync(dev)
         steps_s = time.perf_counter() - t0
         timing = EditTiming(self.setup_s, steps_s, n, float(loss))
         return self.edit(timing), timing
 
+    def _fit_graphed(self, n: int, progress: Optional[Callable[[int, int], None]]) -> Tensor:
+        """``n`` steps, the first eager on a side stream (it creates Adam's state and warms the
+        libraries up), then one recorded CUDA graph per pixel set, replayed in the eager order."""
+        nb = len(self.batches)
+        side = torch.cuda.Stream(self.scene.device)
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            loss = self.step(self.batches[0])
+        torch.cuda.current_stream().wait_stream(side)
+        graphs, losses = [], []
+        for b in range(nb):
+            g = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(g, pool=graphs[0].pool() if graphs else None):
+                losses.append(self.step(self.batches[b]))
+            graphs.append(g)
+        for i in range(1, n):
+            graphs[i % nb].replay()
+            if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
+                progress(i + 1, n)
+        return losses[(n - 1) % nb].clone() if n > 1 else loss
+
     def edit(self, timing: Optional[EditTiming] = None) -> Edit:
         """The current heads as an :class:`Edit` (copies)."""
+        extra = {} if self.map_explained is None else {"map_explained": self.map_explained}
         times = ({"steps": timing.steps, "setup_s": timing.setup_s, "steps_s": timing.steps_s,
                   "loss": timing.final_loss} if timing is not None else {})
         info = new_edit_info(k=self.k, changed_fraction=self.changed_fraction, fit=self.mode, recipe=self.recipe,
-                             start="colour map" if self.colour_map is not None else "unedited layer", **times)
+                             start="colour map" if self.colour_map is not None else "unedited layer", **extra, **times)
         return Edit(self.weight.detach().clone(), self.bias.detach().clone(), copy.deepcopy(self.seg).eval(),
                     self.source, self.fingerprint, info)
 

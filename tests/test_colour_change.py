@@ -1,0 +1,59 @@
+"""The user's change learnt as a function of colour (virgi_ns.edit.colour_change), checked against the
+hue rule that made the change, applied directly to colours the map never saw."""
+
+from __future__ import annotations
+
+import torch
+
+from virgi_ns.edit.colour_change import EXPLAIN_TOL, MIN_SUPPORT, fit_colour_change
+from virgi_ns.edit.recolor import RecolorRule, hsv_to_rgb, recolor
+
+RULE = RecolorRule(h0=190, h1=260, shift=120, s_min=0.3, v_min=0.1)
+
+
+def _colours(n: int, h0: float, h1: float, seed: int) -> torch.Tensor:
+    """``n`` colours of hue in [h0, h1] degrees, saturation 0.4-0.9, value 0.3-0.9."""
+    g = torch.Generator().manual_seed(seed)
+    h = torch.rand(n, generator=g) * (h1 - h0) + h0
+    s = torch.rand(n, generator=g) * 0.5 + 0.4
+    v = torch.rand(n, generator=g) * 0.6 + 0.3
+    return hsv_to_rgb(torch.stack([h, s, v], -1))
+
+
+def _rule(colours: torch.Tensor) -> torch.Tensor:
+    return recolor(colours[None], RULE)[0][0]
+
+
+def test_the_map_reproduces_the_rule_on_colours_it_never_saw():
+    """A photo of blues (changed by the rule) and warm colours (left alone): the map learnt from it
+    changes new blues as the rule does and leaves new warm colours, to a few hundredths."""
+    photo = torch.cat([_colours(20000, 200, 250, 0), _colours(20000, 0, 60, 1)])
+    change = fit_colour_change(photo, _rule(photo))
+    blues, warm = _colours(4000, 203, 247, 2), _colours(4000, 3, 57, 3)
+    assert float((_rule(blues) - blues).abs().amax(-1).mean()) > 0.3  # the rule moves the blues far
+    for new in (blues, warm):
+        err = (change.apply(new) - _rule(new)).abs().amax(-1)
+        assert float(err.mean()) < 0.02 and float(err.quantile(0.99)) < 0.06, (float(err.mean()), float(err.max()))
+    assert bool(change.explains(photo, _rule(photo)).all())
+
+
+def test_an_edit_that_is_not_one_function_of_colour_is_not_explained():
+    """The same blues changed on half of the pixels and left on the other half: the map averages the
+    two answers, so it does not explain the changed pixels (the engine then keeps their edited colour)."""
+    blues = _colours(10000, 200, 250, 4)
+    edited = torch.cat([_rule(blues[:5000]), blues[5000:]])
+    explained = fit_colour_change(blues, edited).explains(blues, edited)[:5000]
+    size = (edited[:5000] - blues[:5000]).abs().amax(-1)
+    # the residual is about half of the change: every change beyond 2.5x the tolerance is refused,
+    # and only the smallest changes come near the tolerance
+    assert not bool(explained[size > 2.5 * EXPLAIN_TOL].any())
+    assert float(explained.float().mean()) < 0.15
+
+
+def test_colours_the_photo_does_not_show_are_left_alone():
+    """Only blues in the photo: greens away from them get no change, whatever the rule would do."""
+    blues = _colours(5000, 200, 250, 5)
+    change = fit_colour_change(blues, _rule(blues))
+    greens = _colours(500, 100, 140, 6)
+    assert float(change.support(greens).max()) < MIN_SUPPORT
+    torch.testing.assert_close(change.apply(greens), greens)

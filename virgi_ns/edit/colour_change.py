@@ -1,0 +1,100 @@
+"""The user's change as a function of colour, learnt from the photo they edited.
+
+A recolour of a photo is, almost everywhere, a function of the pixel's colour: a hue rule, a pick's
+hue change, a paint bucket. :func:`fit_colour_change` estimates that function from the photo and
+its edited copy (every pixel: the unchanged ones say "this colour stays"), as a kernel regression
+on a regular RGB grid: each pixel's change ``edited - original`` is spread over the 8 grid points
+around its colour with trilinear weights, and :meth:`ColourChange.delta` reads the weighted mean
+change back at any colour with the same weights (a tent kernel about two cells wide).
+
+The edit engine applies it to its *render* (``EditConfig.changed_target="map"``): the changed
+pixels are fitted to ``render + delta(render)`` wherever the map explains the user's change of
+that pixel, so the photo's detail that the model never reproduced is not fitted as part of the edit,
+and a render pixel gets the change the user gave to its own colour (a blended edge of the render
+gets the change of a blended colour, not that of the sharp photo pixel behind it). Where an edit is
+not one function of colour (two objects of one colour changed differently, or one changed and one
+not) :meth:`ColourChange.explains` says so per pixel and the engine keeps the edited pixel itself.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+GRID = 17
+"""Grid points per RGB axis (cells of 1/16): fine enough that a hue rule's change varies little
+across a cell, coarse enough that the colours of one photo fill the cells they touch."""
+MIN_SUPPORT = 0.5
+"""A colour is covered when the photo's pixels near it carry at least this much kernel weight (a
+pixel of that very colour carries 1): one nearby pixel is enough, as a small object in a small
+image may offer no more; elsewhere the map knows nothing and :meth:`ColourChange.delta` gives no
+change."""
+EXPLAIN_TOL = 0.1
+"""A changed pixel is explained by the map when ``original + delta(original)`` is within this (every
+channel, 0..1) of its edited colour: the grid's interpolation error on a smooth change stays a few
+hundredths, while an edit that is not one function of colour leaves about half of its change or
+more (the map averages the two answers)."""
+
+
+def _corners(colours: Float[Tensor, "N 3"], grid: int) -> tuple[Tensor, Tensor]:
+    """The 8 grid points around each colour: flat indices [N,8] and trilinear weights [N,8]."""
+    x = colours.clamp(0.0, 1.0) * (grid - 1)
+    i0 = x.floor().clamp(0, grid - 2)
+    f = x - i0
+    i0 = i0.long()
+    idx, wts = [], []
+    for dz in (0, 1):
+        for dy in (0, 1):
+            for dx in (0, 1):
+                d = torch.tensor([dx, dy, dz], device=colours.device)
+                w = torch.where(d.bool(), f, 1.0 - f).prod(-1)
+                c = i0 + d
+                idx.append((c[:, 0] * grid + c[:, 1]) * grid + c[:, 2])
+                wts.append(w)
+    return torch.stack(idx, 1), torch.stack(wts, 1)
+
+
+@dataclass
+class ColourChange:
+    """Kernel sums on the grid: ``change`` [G^3,3] (weighted changes) and ``weight`` [G^3]."""
+
+    change: Tensor
+    weight: Tensor
+    grid: int = GRID
+
+    def support(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N"]:
+        """Kernel weight of the photo's pixels near each colour."""
+        idx, w = _corners(colours.float(), self.grid)
+        return (self.weight[idx] * w).sum(1)
+
+    def delta(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
+        """The mean change the user made to pixels of (about) this colour; zero where uncovered."""
+        idx, w = _corners(colours.float(), self.grid)
+        num = (self.change[idx] * w[..., None]).sum(1)
+        den = (self.weight[idx] * w).sum(1)
+        return torch.where((den >= MIN_SUPPORT)[:, None], num / den.clamp_min(1e-12)[:, None], torch.zeros_like(num))
+
+    def apply(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
+        """``colours`` changed as the user changed such colours (clamped to [0, 1])."""
+        return (colours + self.delta(colours)).clamp(0.0, 1.0)
+
+    def explains(self, original: Float[Tensor, "N 3"], edited: Float[Tensor, "N 3"],
+                 tol: float = EXPLAIN_TOL) -> Float[Tensor, "N"]:
+        """Per pixel: whether the map takes its original colour to its edited one within ``tol``."""
+        return (self.apply(original) - edited).abs().amax(-1) <= tol
+
+
+def fit_colour_change(original: Float[Tensor, "N 3"], edited: Float[Tensor, "N 3"], grid: int = GRID) -> ColourChange:
+    """The change ``edited - original`` as a function of the original colour (module docstring)."""
+    original, edited = original.reshape(-1, 3).float(), edited.reshape(-1, 3).float()
+    idx, w = _corners(original, grid)
+    change = (edited - original)[:, None, :] * w[..., None]
+    sums = torch.zeros(grid ** 3, 3, device=original.device).index_add_(0, idx.reshape(-1), change.reshape(-1, 3))
+    weight = torch.zeros(grid ** 3, device=original.device).index_add_(0, idx.reshape(-1), w.reshape(-1))
+    return ColourChange(sums, weight, grid)
+
+
+__all__ = ["ColourChange", "EXPLAIN_TOL", "GRID", "MIN_SUPPORT", "fit_colour_change"]
