@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import copy
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Callable, Literal, Optional
 
@@ -507,38 +508,46 @@ class EditEngine:
         loss = torch.zeros((), device=dev)
         nb = len(self.batches)
         with torch.enable_grad():  # callers may hold a no_grad context (viewer threads, scripts)
+            done = 0
             if self.cfg.cuda_graphs and dev.type == "cuda" and n > 2 * nb:
-                loss = self._fit_graphed(n, progress)
-            else:
-                for i in range(n):
-                    loss = self.step(self.batches[i % nb])
-                    if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
-                        progress(i + 1, n)
+                done, loss = self._fit_graphed(n, progress)
+            for i in range(done, n):
+                loss = self.step(self.batches[i % nb])
+                if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
+                    progress(i + 1, n)
         _sync(dev)
         steps_s = time.perf_counter() - t0
         timing = EditTiming(self.setup_s, steps_s, n, float(loss))
         return self.edit(timing), timing
 
-    def _fit_graphed(self, n: int, progress: Optional[Callable[[int, int], None]]) -> Tensor:
-        """``n`` steps, the first eager on a side stream (it creates Adam's state and warms the
-        libraries up), then one recorded CUDA graph per pixel set, replayed in the eager order."""
+    def _fit_graphed(self, n: int, progress: Optional[Callable[[int, int], None]]) -> tuple[int, Tensor]:
+        """Up to ``n`` steps, the first eager on a side stream (it creates Adam's state and warms the
+        libraries up), then one recorded CUDA graph per pixel set, replayed in the eager order.
+        Returns (steps done, last loss): where a graph cannot be recorded, only the first step is
+        done and the caller runs the rest eagerly."""
         nb = len(self.batches)
         side = torch.cuda.Stream(self.scene.device)
         side.wait_stream(torch.cuda.current_stream())
         with torch.cuda.stream(side):
             loss = self.step(self.batches[0])
         torch.cuda.current_stream().wait_stream(side)
-        graphs, losses = [], []
-        for b in range(nb):
-            g = torch.cuda.CUDAGraph()
-            with torch.cuda.graph(g, pool=graphs[0].pool() if graphs else None):
-                losses.append(self.step(self.batches[b]))
-            graphs.append(g)
+        graphs: list = []
+        losses: list[Tensor] = []
+        try:
+            for b in range(nb):
+                g = torch.cuda.CUDAGraph()
+                with torch.cuda.graph(g, pool=graphs[0].pool() if graphs else None):
+                    losses.append(self.step(self.batches[b]))
+                graphs.append(g)
+        except RuntimeError as e:  # a kernel that cannot be recorded (a library's host sync)
+            warnings.warn(f"edit steps run without CUDA graphs: {str(e).splitlines()[0]}")
+            self.cfg.cuda_graphs = False
+            return 1, loss
         for i in range(1, n):
             graphs[i % nb].replay()
             if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
                 progress(i + 1, n)
-        return losses[(n - 1) % nb].clone() if n > 1 else loss
+        return n, losses[(n - 1) % nb].clone()
 
     def edit(self, timing: Optional[EditTiming] = None) -> Edit:
         """The current heads as an :class:`Edit` (copies)."""
