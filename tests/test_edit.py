@@ -626,9 +626,9 @@ def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe):
         cfg = EditConfig(steps=30, cuda_graphs=graphs, recipe=recipe, seg_samples=4096, seg_steps=50)
         fits[graphs] = EditEngine(gpu, cam, edited, EditStack(gpu.fingerprint()), cfg).fit()
     (e_g, t_g), (e_e, t_e) = fits[True], fits[False]
-    torch.testing.assert_close(e_g.weight, e_e.weight, atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(e_g.bias, e_e.bias, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(e_g.head_weight, e_e.head_weight, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(e_g.head_bias, e_e.head_bias, atol=1e-5, rtol=1e-5)
     x = torch.randn(64, e_g.seg.l1.in_features, device="cuda")
     torch.testing.assert_close(e_g.seg.logits_of(x), e_e.seg.logits_of(x), atol=1e-4, rtol=1e-4)
     assert abs(t_g.final_loss - t_e.final_loss) < 1e-5
-    assert not torch.equal(e_g.weight, torch.as_tensor(sc.field.diffuse_head.weight).cuda())  # it trained
+    assert not torch.equal(e_g.head_weight, torch.as_tensor(sc.field.diffuse_head.weight).cuda())  # it trained

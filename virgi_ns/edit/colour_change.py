@@ -39,22 +39,18 @@ hundredths, while an edit that is not one function of colour leaves about half o
 more (the map averages the two answers)."""
 
 
+_OFFSETS = torch.tensor([[dx, dy, dz] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)])  # [8,3]
+
+
 def _corners(colours: Float[Tensor, "N 3"], grid: int) -> tuple[Tensor, Tensor]:
     """The 8 grid points around each colour: flat indices [N,8] and trilinear weights [N,8]."""
     x = colours.clamp(0.0, 1.0) * (grid - 1)
     i0 = x.floor().clamp(0, grid - 2)
-    f = x - i0
-    i0 = i0.long()
-    idx, wts = [], []
-    for dz in (0, 1):
-        for dy in (0, 1):
-            for dx in (0, 1):
-                d = torch.tensor([dx, dy, dz], device=colours.device)
-                w = torch.where(d.bool(), f, 1.0 - f).prod(-1)
-                c = i0 + d
-                idx.append((c[:, 0] * grid + c[:, 1]) * grid + c[:, 2])
-                wts.append(w)
-    return torch.stack(idx, 1), torch.stack(wts, 1)
+    f = (x - i0)[:, None, :]  # [N,1,3]
+    d = _OFFSETS.to(colours.device)
+    w = torch.where(d.bool(), f, 1.0 - f).prod(-1)  # [N,8]
+    c = i0.long()[:, None, :] + d  # [N,8,3]
+    return (c[..., 0] * grid + c[..., 1]) * grid + c[..., 2], w
 
 
 @dataclass
@@ -72,10 +68,15 @@ class ColourChange:
 
     def delta(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
         """The mean change the user made to pixels of (about) this colour; zero where uncovered."""
+        return self.delta_and_support(colours)[0]
+
+    def delta_and_support(self, colours: Float[Tensor, "N 3"]) -> tuple[Tensor, Tensor]:
+        """(:meth:`delta`, :meth:`support`) from one lookup."""
         idx, w = _corners(colours.float(), self.grid)
         num = (self.change[idx] * w[..., None]).sum(1)
         den = (self.weight[idx] * w).sum(1)
-        return torch.where((den >= MIN_SUPPORT)[:, None], num / den.clamp_min(1e-12)[:, None], torch.zeros_like(num))
+        covered = den >= MIN_SUPPORT
+        return torch.where(covered[:, None], num / den.clamp_min(1e-12)[:, None], torch.zeros_like(num)), den
 
     def apply(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
         """``colours`` changed as the user changed such colours (clamped to [0, 1])."""

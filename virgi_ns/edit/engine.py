@@ -410,9 +410,10 @@ class EditEngine:
         where the map explains that pixel's change, the edited pixel elsewhere."""
         change = fit_colour_change(original, edited)
         flat_o, flat_e, flat_r = original.reshape(-1, 3), edited.reshape(-1, 3), self.current.reshape(-1, 3)
-        use = change.explains(flat_o, flat_e) & (change.support(flat_r) >= MIN_SUPPORT)
+        d_r, support = change.delta_and_support(flat_r)
+        use = change.explains(flat_o, flat_e) & (support >= MIN_SUPPORT)
         self.map_explained = float(use[changed.reshape(-1)].float().mean())
-        return torch.where(use[:, None], change.apply(flat_r), flat_e).reshape(edited.shape)
+        return torch.where(use[:, None], (flat_r + d_r).clamp(0.0, 1.0), flat_e).reshape(edited.shape)
 
     def retarget(self, edited: Float[Tensor, "H W 3"], changed: Optional[Tensor] = None,
                  original: Optional[Float[Tensor, "H W 3"]] = None, seg_steps: Optional[int] = None) -> None:
