@@ -23,7 +23,15 @@ rule's mask, and (synthetic) on each object's pixels.
 ``--variants`` measures other EditConfig settings on the same trained runs (e.g. the paper's recipe,
 ``recipe=paper``); ``--merge`` joins the results of several calls (other scenes, other seeds) into one table.
 
+``--pick`` (issue 17) adds, on the same runs, one click per scene on the rule's object with the rule's
+colour (the click and colour by a rule fixed in :mod:`virgi_ns.bench.pick`), measured as the rule edit
+is: a third table of its propagation against the rule edit's (pass: within 1 dB), its selection's
+share of the view and IoU with the rule's mask, its fit time (features cached, as the rule edit's
+warm time); and the viewer's pick latency on the synthetic 1M-Gaussian scene at 1280x720 (drag to
+frame, release to frame; target <= 100 ms), in results.json as ``pick`` per row and ``pick_latency``.
+
     python bench/edit.py --data ../shared/data --out bench_out/edit --variants recipe=paper
+    python bench/edit.py --data ../shared/data --out bench_out/edit --pick
 """
 
 from __future__ import annotations
@@ -80,6 +88,10 @@ class Args:
     that scene only."""
     million: bool = False
     """Also time the engine on a synthetic 1M-Gaussian scene at 1280x720."""
+    pick: bool = False
+    """Also a pick on every scene (one click on the rule's object with the rule's colour, measured as
+    the rule edit is, :mod:`virgi_ns.bench.pick`) and the viewer's pick latency on the synthetic
+    1M-Gaussian scene at 1280x720 (drag to frame, release to frame)."""
     merge: List[Path] = field(default_factory=list)
     """Print one table of these results.json files (no training, no GPU) and write it to --out."""
     synthetic_size: tuple[int, int, int, float] = SYNTHETIC_SIZE
@@ -229,6 +241,8 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
             "why": scene.why, "feature_cache_s": cache_s}
     rows = [{**base, "variant": "engine defaults", **res["mean"], "timing_cold": cold, "timing_warm": warm,
              "per_view": res["views"], "targets": targets(res["mean"], warm["total_s"], scene.synthetic is not None)}]
+    if args.pick:
+        rows[0]["pick"] = bench_pick(args, scene, b, res["mean"]["propagation_psnr"])
     for v in args.variants:
         only, text = variant_scene(v)
         if only is not None and only != scene.name:
@@ -246,12 +260,28 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
     return rows
 
 
+def bench_pick(args: Args, scene: EvalScene, b: Bench, rule_propagation: float) -> dict:
+    """The scene's pick (:func:`virgi_ns.bench.pick.measure_pick`) on the run the rule edit used;
+    its pictures beside the rule edit's. A pick refused (no pixel to click, an empty selection) is a
+    failed row with the reason, not the end of the call."""
+    from virgi_ns.bench.pick import measure_pick
+
+    try:
+        p, pics, picture = measure_pick(b, scene.rule, rule_propagation, keep=args.pictures)
+    except InputError as e:
+        console.log(f"{scene.name}: the pick failed: {e}")
+        return {"error": str(e), "rule_propagation_psnr": rule_propagation, "pass": False}
+    for i, pic in enumerate(pics):
+        _save_png(args.out / f"{scene.name}_pick_view{i}.png", pic)
+    _save_png(args.out / f"{scene.name}_pick.png", picture)
+    return p
+
+
 @torch.no_grad()
-def bench_million(repeats: int, steps: Optional[int], n: int = 1_000_000, width: int = 1280, height: int = 720,
-                  device: str = "cuda") -> dict:
-    """Setup and step times of one edit on ``n`` random Gaussians filling a 1280x720 view."""
+def million_scene(n: int = 1_000_000, width: int = 1280, height: int = 720, device: str = "cuda") -> tuple:
+    """(scene, one-view cameras): ``n`` random Gaussians (seeded) filling a ``width`` x ``height`` view,
+    with a random colour field (its specular head too)."""
     from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
-    from virgi_ns.edit.engine import EditConfig, EditEngine
     from virgi_ns.edit.scene import FrozenScene
     from virgi_ns.raster import Cameras
 
@@ -269,8 +299,18 @@ def bench_million(repeats: int, steps: Optional[int], n: int = 1_000_000, width:
                                  torch.tensor([[-6.0, -4.0, 1.5], [6.0, 4.0, 8.5]])).to(dev)
     torch.nn.init.normal_(field_.spec_l3.weight, std=0.1)
     cams = Cameras.from_params(f, f, width / 2, height / 2, torch.eye(4, device=dev)[None], width, height)
-    scene = FrozenScene(means, quats, scales, opac, field_, torch.zeros(3, device=dev))
-    edited = torch.rand(height, width, 3, generator=g, device=dev)
+    return FrozenScene(means, quats, scales, opac, field_, torch.zeros(3, device=dev)), cams
+
+
+@torch.no_grad()
+def bench_million(repeats: int, steps: Optional[int], n: int = 1_000_000, width: int = 1280, height: int = 720,
+                  device: str = "cuda") -> dict:
+    """Setup and step times of one edit on ``n`` random Gaussians filling a 1280x720 view."""
+    from virgi_ns.edit.engine import EditConfig, EditEngine
+
+    scene, cams = million_scene(n, width, height, device)
+    g = torch.Generator(device=torch.device(device)).manual_seed(1)
+    edited = torch.rand(height, width, 3, generator=g, device=torch.device(device))
     cfg = EditConfig() if steps is None else EditConfig(steps=steps)
 
     def timed() -> dict:
@@ -291,6 +331,15 @@ def bench_million(repeats: int, steps: Optional[int], n: int = 1_000_000, width:
     return {**info, "timing_cold": cold, "timing_warm": warm}
 
 
+def pick_latency(repeats: int, n: int = 1_000_000, width: int = 1280, height: int = 720, device: str = "cuda") -> dict:
+    """The viewer's pick latency (:func:`virgi_ns.bench.pick.viewer_latency`) on :func:`million_scene`,
+    without the features cache (the viewer's pick sets up its scene afresh: ``FrozenScene.from_model``)."""
+    from virgi_ns.bench.pick import viewer_latency
+
+    scene, cams = million_scene(n, width, height, device)
+    return viewer_latency(scene, cams, repeats)
+
+
 # ------------------------------------------------------------------------------ tables
 def _f(x: float, fmt: str = ".2f") -> str:
     return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, fmt)
@@ -305,7 +354,9 @@ def worst_case(rows: List[dict]) -> dict:
             "recolour_gap": nanmin([r["recolour_psnr"] - r["unedited_psnr"] for r in d]),
             "truth_psnr": nanmin([r.get("truth_psnr", math.nan) for r in d]),
             "edit_s": max((r["timing_warm"]["total_s"] for r in d), default=math.nan),
-            "passed": sum(all(r["targets"].values()) for r in d), "rows": len(d)}
+            "passed": sum(all(r["targets"].values()) for r in d), "rows": len(d),
+            "pick_difference_db": nanmin([r["pick"].get("difference_db", math.nan) for r in d if "pick" in r]),
+            "pick_passed": sum(r["pick"]["pass"] for r in d if "pick" in r), "pick_rows": sum("pick" in r for r in d)}
 
 
 def _label(row: dict) -> str:
@@ -346,6 +397,48 @@ def print_tables(rows: List[dict], device: str) -> None:
     console.print(d)
 
 
+def print_pick(rows: List[dict], latencies: List[dict]) -> None:
+    """The pick table (issue 17): each scene's pick against its rule edit; then the latency lines."""
+    from virgi_ns.bench.pick import WITHIN_DB
+
+    picked = [r for r in rows if "pick" in r]
+    if picked:
+        t = Table(title=f"one click with the rule's colour vs the rule-edited image (pass: within {WITHIN_DB:g} dB)")
+        for c in ("scene", "seed", "pixel", "colour", "selected", "IoU with rule mask", "pick propagation (miss, leak)",
+                  "rule propagation", "difference", "pick fit s", "pass"):
+            t.add_column(c)
+        for r in picked:
+            p = r["pick"]
+            if "error" in p:
+                t.add_row(r["scene"], str(r["seed"]), "", "", "", "", "", _f(p["rule_propagation_psnr"]), "", "",
+                          f"FAIL: {p['error']}")
+                continue
+            t.add_row(r["scene"], str(r["seed"]), f"{p['pixel'][0]} {p['pixel'][1]}", p["colour"],
+                      _f(p["selected"], ".1%"), _f(p["iou"], ".3f"),
+                      f"{_f(p['propagation_psnr'])} ({_f(p['miss_psnr'])}, {_f(p['leak_psnr'])})",
+                      _f(p["rule_propagation_psnr"]), _f(p["difference_db"], "+.2f"), _f(p["fit_s"], ".3f"),
+                      "PASS" if p["pass"] else "FAIL")
+        w = worst_case(rows)
+        t.add_row("worst case", "", "", "", "", "", "", "", _f(w["pick_difference_db"], "+.2f"), "",
+                  f"{w['pick_passed']}/{w['pick_rows']} pass")
+        console.print(t)
+    for lat in latencies:
+        console.print(latency_line(lat))
+
+
+def latency_line(lat: dict) -> str:
+    """One line of :func:`pick_latency`'s medians against the 100 ms target."""
+    d, r = lat["drag"], lat["release"]
+    ok = lambda s: "PASS" if s <= lat["target_s"] else "FAIL"  # noqa: E731
+    return (f"pick latency, {lat['gaussians']:,} Gaussians at {lat['image']} ({lat.get('device', '?')}; "
+            f"{lat['renderer']} frames, gate keeps {lat['gate_kept']:.0%}, {lat['selected']:.0%} selected; median of "
+            f"{lat['repeats']}): drag -> frame {1e3 * d['total_s']:.0f} ms ({lat['live_steps']} steps "
+            f"{1e3 * d['fit_s']:.0f} + render {1e3 * d['render_s']:.0f}) {ok(d['total_s'])}; release -> frame "
+            f"{1e3 * r['total_s']:.0f} ms (top-up to {lat['steps']} steps {1e3 * r['fit_s']:.0f} + commit "
+            f"{1e3 * r['commit_s']:.0f} + render {1e3 * r['render_s']:.0f}) {ok(r['total_s'])} "
+            f"(target <= {1e3 * lat['target_s']:.0f} ms)")
+
+
 def _commit() -> Optional[str]:
     """The checkout's git commit (None outside a git checkout): which code made the figures."""
     import subprocess
@@ -367,7 +460,9 @@ def _write(path: Path, result: dict) -> None:
 
 def merged(paths: List[Path]) -> dict:
     """One result of several calls' results.json (rows concatenated; devices and commits listed)."""
-    rows, devices, commits = [], [], []
+    from virgi_ns.bench.pick import pick_passes
+
+    rows, devices, commits, latencies = [], [], [], []
     for p in paths:
         try:
             r = json.loads(Path(p).read_text())
@@ -377,17 +472,22 @@ def merged(paths: List[Path]) -> dict:
             raise InputError(f"--merge: {p} is not a bench/edit.py result")
         for row in r["scenes"]:  # judged again: the targets may have been refined since the call
             row["targets"] = targets(row, row["timing_warm"]["total_s"], row["synthetic"])
+            if "difference_db" in row.get("pick", {}):
+                row["pick"]["pass"] = pick_passes(row["pick"])
         rows += r["scenes"]
+        if "pick_latency" in r:
+            latencies.append({"device": r.get("device"), **r["pick_latency"]})
         devices.append(r.get("device"))
         commits.append(r.get("commit"))
     return {"device": ", ".join(sorted(set(filter(None, devices)))), "commits": commits, "merged": [str(p) for p in paths],
-            "scenes": rows, "worst_case": worst_case(rows)}
+            "scenes": rows, "worst_case": worst_case(rows), "pick_latencies": latencies}
 
 
 def main(args: Args) -> None:
     if args.merge:
         result = merged(args.merge)
         print_tables(result["scenes"], result["device"])
+        print_pick(result["scenes"], result["pick_latencies"])
         _write(args.out / "results.json", result)
         return
     scenes = find(args.scenes)
@@ -404,6 +504,10 @@ def main(args: Args) -> None:
     loaded.clear()
     if rows:
         print_tables(rows, device)
+    if args.pick:
+        result["pick_latency"] = {"device": device, **pick_latency(args.repeats)}
+        _write(args.out / "results.json", result)
+        print_pick(rows, [result["pick_latency"]])
     if args.million:
         result["million"] = bench_million(args.repeats, args.steps)
         m = result["million"]

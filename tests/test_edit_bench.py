@@ -100,8 +100,9 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     cfg.write_text("unused")
     scene = EvalScene("tiny", "tiny", BROAD.rule(), "every saturated pixel")
     args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1,
-                           pictures=1, variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05",
-                                                 "other:steps=5", "tiny:recipe=staged,seg_samples=512,seg_steps=20"])
+                           pictures=1, pick=True,
+                           variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05", "other:steps=5",
+                                     "tiny:recipe=staged,seg_samples=512,seg_steps=20"])
     assert bench_edit.parse_variant("steps=20,pixel_batches=2") == {"steps": 20, "pixel_batches": 2}
     assert bench_edit.parse_variant("rule=10/20/30/0.1/0.2")["rule"] == RuleArgs(10, 20, 30, 0.1, 0.2).rule()
     for bad in ("steps", "colour=3", "steps=many", "rule=1/2/3", "changed_target=chnage", "whole_image=ture",
@@ -145,14 +146,78 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     w = bench_edit.worst_case(rows + [{**rows[0], "variant": "x", "miss_psnr": -1.0}])
     assert w["miss_psnr"] == rows[0]["miss_psnr"] and w["rows"] == 1
     bench_edit.print_tables(rows, "cpu")
-    # --merge: two calls' results as one table
+    _check_pick(rows, pipeline, scene.rule, args.out / "tiny_pick.png")
+    assert "pick" not in rows[1]  # the pick is measured once, beside the engine defaults
+    # a refused pick is a failed row with its reason
+    failed = {**rows[0], "pick": {"error": "no pixel to click", "rule_propagation_psnr": 30.0, "pass": False}}
+    w = bench_edit.worst_case([rows[0], failed])
+    assert (w["pick_rows"], w["pick_passed"]) == (2, int(rows[0]["pick"]["pass"]))
+    assert w["pick_difference_db"] == rows[0]["pick"]["difference_db"]
+    bench_edit.print_pick([rows[0], failed], [])
+    # --merge: two calls' results as one table, picks re-judged, the latency lines kept
+    latency = {"gaussians": 10, "image": "4x3", "renderer": "contributions", "gate_kept": 1.0, "pixel": [1, 1],
+               "selected": 0.5, "live_steps": 20, "steps": 100, "repeats": 1, "target_s": 0.1,
+               "drag": {"fit_s": 0.02, "render_s": 0.01, "total_s": 0.03},
+               "release": {"fit_s": 0.05, "commit_s": 0.02, "render_s": 0.01, "total_s": 0.08}}
     for name in ("a", "b"):
-        (tmp_path / f"{name}.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": rows},
+        (tmp_path / f"{name}.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": rows,
+                                                           **({"pick_latency": latency} if name == "a" else {})},
                                                           default=float))
     m = bench_edit.merged([tmp_path / "a.json", tmp_path / "b.json"])
     assert len(m["scenes"]) == 2 * len(rows) and m["worst_case"]["rows"] == 2
+    w = m["worst_case"]
+    assert w["pick_rows"] == 2 and w["pick_difference_db"] == rows[0]["pick"]["difference_db"]
+    assert [lat["device"] for lat in m["pick_latencies"]] == ["cpu"]
+    assert "30 ms" in bench_edit.latency_line(m["pick_latencies"][0])
+    bench_edit.print_pick(m["scenes"], m["pick_latencies"])
     with pytest.raises(InputError, match="--merge"):
         bench_edit.merged([tmp_path / "missing.json"])
+
+
+def _check_pick(rows, pipeline, rule, picture_png):
+    """The pick beside the engine defaults: the click inside the rule's mask on the edit view's
+    render, the rule's colour there, IoU and selection share as the saved selection and mask give
+    them, finite figures, the difference to the rule edit's propagation on the same run."""
+    import colorsys
+
+    import numpy as np
+    from PIL import Image
+
+    from virgi_ns.edit.recolor import rule_mask
+    from virgi_ns.edit.scene import FrozenScene, render_view
+    from virgi_ns.nerfstudio.cameras import raster_cameras
+
+    p = rows[0]["pick"]
+    v = rows[0]["edit_view"]
+    cams = raster_cameras(pipeline.datamanager.train_dataset.cameras[v : v + 1])
+    render = render_view(FrozenScene.from_model(pipeline.model), cams, 0)["rgb"].clamp(0, 1)
+    x, y = p["pixel"]
+    assert bool(rule_mask(render, rule)[y, x]) and p["depth"] >= 1
+    h, s_, v_ = colorsys.rgb_to_hsv(*(float(c) for c in render[y, x]))
+    r, g, b = colorsys.hsv_to_rgb((h + rule.shift / 360.0) % 1.0, s_, v_)
+    assert p["colour"] == "#" + "".join(f"{round(255 * c):02x}" for c in (r, g, b))
+    assert (p["mode"], p["tolerance"]) == ("hue", 0.2)
+    pic = np.asarray(Image.open(picture_png)) > 127
+    W = pic.shape[1] // 4
+    sel, mask = pic[:, 2 * W : 3 * W, 0], pic[:, 3 * W :, 0]
+    assert np.array_equal(mask, rule_mask(render, rule).numpy())
+    assert p["iou"] == pytest.approx((sel & mask).sum() / (sel | mask).sum()) and p["iou"] > 0
+    assert p["selected"] == pytest.approx(sel.mean())
+    for k in ("propagation_psnr", "miss_psnr", "leak_psnr", "edit_view_propagation_psnr", "fit_s"):
+        assert math.isfinite(p[k]), k
+    assert p["rule_propagation_psnr"] == rows[0]["propagation_psnr"]
+    assert p["difference_db"] == pytest.approx(p["propagation_psnr"] - rows[0]["propagation_psnr"])
+    assert p["pass"] == (p["difference_db"] >= -1.0)
+    assert len(p["per_view_propagation"]) == len(rows[0]["per_view"])
+
+
+def test_pick_tolerance_is_the_tools_default():
+    import dataclasses
+
+    from virgi_ns.bench.pick import TOLERANCE
+    from virgi_ns.cli.edit import Pick
+
+    assert TOLERANCE == {f.name: f.default for f in dataclasses.fields(Pick)}["tolerance"]
 
 
 def test_benchmark_settings_are_split_and_typed_strictly():
@@ -166,3 +231,113 @@ def test_benchmark_settings_are_split_and_typed_strictly():
                 lambda: typed_like(None, "5", "a", "--f")):
         with pytest.raises(InputError, match="--f"):
             bad()
+
+
+# ------------------------------------------------------------------------------ picks (issue 17)
+def _components_by_flood(mask):
+    """4-connected components of a bool numpy mask by a plain flood fill, in raster order of their
+    first pixel: a list of pixel lists."""
+    import numpy as np
+
+    seen = np.zeros_like(mask)
+    comps = []
+    for y0, x0 in zip(*np.nonzero(mask)):
+        if seen[y0, x0]:
+            continue
+        todo, comp = [(y0, x0)], []
+        seen[y0, x0] = True
+        while todo:
+            y, x = todo.pop()
+            comp.append((y, x))
+            for v, u in ((y - 1, x), (y + 1, x), (y, x - 1), (y, x + 1)):
+                if 0 <= v < mask.shape[0] and 0 <= u < mask.shape[1] and mask[v, u] and not seen[v, u]:
+                    seen[v, u] = True
+                    todo.append((v, u))
+        comps.append(comp)
+    return comps
+
+
+def _click_by_brute_force(mask):
+    """The click rule of virgi_ns.bench.pick computed directly: the largest component (the first
+    among equals), each pixel's city-block distance to every pixel outside it (a ring beyond the
+    image included), the deepest, nearest the component's centroid, first in raster order."""
+    import numpy as np
+
+    comps = _components_by_flood(mask)
+    comp = max(comps, key=len)  # max keeps the first among equals
+    inside = set(comp)
+    H, W = mask.shape
+    outside = [(y, x) for y in range(-1, H + 1) for x in range(-1, W + 1) if (y, x) not in inside]
+    oy, ox = np.array(outside).T
+    depth = {p: int((np.abs(oy - p[0]) + np.abs(ox - p[1])).min()) for p in comp}
+    best = max(depth.values())
+    cy, cx = np.mean([p[0] for p in comp]), np.mean([p[1] for p in comp])
+    deepest = sorted(p for p in comp if depth[p] == best)  # raster order
+    y, x = min(deepest, key=lambda p: (p[0] - cy) ** 2 + (p[1] - cx) ** 2)
+    return x, y, best
+
+
+def test_click_pixel_rule_on_hand_made_masks():
+    from virgi_ns.bench.pick import click_pixel
+
+    # a 9x9 square and a 3x41 bar touching it only at a corner: 4-connected they are two components
+    # and the bar is the larger (123 > 81), though the square is deeper (depth 5 at its centre);
+    # the bar's ridge (depth 2) is its middle row, columns 11..49, and its centroid is (11, 30)
+    m = torch.zeros(20, 60, dtype=torch.bool)
+    m[1:10, 1:10] = True
+    m[10:13, 10:51] = True
+    assert click_pixel(m) == (30, 11, 2)
+    # outside the image counts as outside the mask: a full 7x9 mask is deepest (4) on row 3,
+    # columns 3..5, nearest its centre at column 4
+    assert click_pixel(torch.ones(7, 9, dtype=torch.bool)) == (4, 3, 4)
+    with pytest.raises(InputError, match="empty"):
+        click_pixel(torch.zeros(5, 5, dtype=torch.bool))
+    # blobs of smoothed noise against the direct computation
+    g = torch.Generator().manual_seed(3)
+    for _ in range(6):
+        noise = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 24, 30, generator=g), 5, 1, 2)[0, 0]
+        blobs = noise > noise.median()
+        assert click_pixel(blobs) == _click_by_brute_force(blobs.numpy())
+
+
+def test_pick_latency_times_the_viewer_frames_on_a_tiny_random_scene(bench_edit):
+    """The latency protocol on a small random scene (CPU, a short pick config): its figures, and the
+    frames it times are the renders of the live edit and of the committed stack (compared with
+    render_view, which renders without the viewer's render path)."""
+    from virgi_ns.bench.pick import TOLERANCE, ViewerRender, drag_frame, release_frame, viewer_latency
+    from virgi_ns.edit.engine import EditConfig
+    from virgi_ns.edit.pick import PickSession
+    from virgi_ns.edit.scene import render_view
+    from virgi_ns.edit.stack import EditStack
+    from virgi_ns.nerfstudio.cameras import ns_cameras, raster_cameras
+
+    scene, cams = bench_edit.million_scene(1200, 32, 18, "cpu")
+    back = raster_cameras(ns_cameras(cams))
+    assert torch.allclose(back.viewmats, cams.viewmats, atol=1e-6) and torch.equal(back.Ks, cams.Ks)
+    cfg = EditConfig(recipe="staged", seg_samples=512, seg_steps=20, steps=30)
+    lat = viewer_latency(scene, cams, 1, cfg)
+    assert lat["gaussians"] == 1200 and lat["image"] == "32x18" and lat["repeats"] == 1 and lat["steps"] == 30
+    assert lat["renderer"] == "contributions" and 0.0 < lat["selected"] <= 1.0
+    for part, names in (("drag", ("fit_s", "render_s")), ("release", ("fit_s", "commit_s", "render_s"))):
+        t = lat[part]
+        assert all(t[k] > 0 for k in names) and t["total_s"] == pytest.approx(sum(t[k] for k in names), rel=1e-6)
+    x, y = lat["pixel"]
+
+    host = ViewerRender(scene)
+    host.build_specular_gate(cams)
+    camera = ns_cameras(cams)
+    stack = EditStack(scene.fingerprint())
+    host.set_edit_stack(stack)
+    session = PickSession(scene, cams, x, y, stack, cfg)
+    session.update((0.9, 0.2, 0.1), TOLERANCE, "hue", 10)
+    base = render_view(scene, cams, 0)["rgb"].clamp(0, 1)
+    _, drag = drag_frame(host, session, camera, (0.1, 0.3, 0.9), TOLERANCE, "hue")
+    live = EditStack(scene.fingerprint())
+    live.add(host.live_edit)
+    tol = host.config.gate_threshold + 1e-5
+    assert (drag["rgb"] - render_view(scene, cams, 0, live)["rgb"].clamp(0, 1)).abs().max() <= tol
+    _, frame = release_frame(host, stack, session, camera)
+    assert host.live_edit is None and len(stack) == 1 and session.steps_done == 30
+    assert (frame["rgb"] - render_view(scene, cams, 0, stack)["rgb"].clamp(0, 1)).abs().max() <= tol
+    sel = session.mask
+    assert float((frame["rgb"] - base).abs()[sel].mean()) > 0.02  # the frame shows the edit

@@ -79,3 +79,20 @@ def test_edit_recolours_diffuse_and_strength_scales_specular(trained):
     assert (full["rgb"] - gated["rgb"]).abs().max() <= model.config.gate_threshold + 1e-5
     assert (full["diffuse"] - gated["diffuse"]).abs().max() < 1e-5
     model.set_edit_stack(None)
+
+
+def test_gated_render_follows_an_edit_replaced_in_place(trained):
+    """A pick adjusted after its release replaces its edit (EditStack.replace): the gated path's
+    cached edited colours must follow, as the full path does."""
+    model, cam = trained
+    if not model.gate_ready():
+        model.build_specular_gate(model._train_cameras_fn())
+    stack = EditStack(model.fingerprint())
+    stack.add(_edit(model, red_shift=3.0, alpha_logit=12.0))
+    model.set_edit_stack(stack)
+    first = _render(model, cam, gated=True)["diffuse"]
+    stack.replace(1, _edit(model, red_shift=-3.0, alpha_logit=12.0))
+    full, gated = _render(model, cam), _render(model, cam, gated=True)
+    assert (full["diffuse"] - first).abs().max() > 0.1  # the replacement changes the colours
+    assert (full["diffuse"] - gated["diffuse"]).abs().max() < 1e-5
+    model.set_edit_stack(None)

@@ -315,10 +315,12 @@ class EditStack:
         if self.directory is not None:
             edit.save(self.directory / name)
         self.entries[i] = StackEntry(edit.to(self.device) if self.device is not None else edit, name, old.enabled)
+        self.changed()
         try:
             self._write_manifest()
         except BaseException:
             self.entries[i] = old
+            self.changed()
             self._remove_files(name)
             raise
         self._remove_files(old.file)

@@ -33,4 +33,14 @@ def raster_cameras(cameras: NSCameras) -> Cameras:
     return Cameras(K, viewmats_from_c2w(c2w), cams.width.reshape(-1), cams.height.reshape(-1))
 
 
-__all__ = ["raster_cameras", "viewmats_from_c2w"]
+def ns_cameras(cameras: Cameras) -> NSCameras:
+    """Rasterizer :class:`Cameras` -> nerfstudio pinhole cameras (the inverse of :func:`raster_cameras`),
+    for code that renders our own cameras through a model's nerfstudio entry points."""
+    c2w = torch.linalg.inv(cameras.viewmats.float())[:, :3, :4]
+    c2w = c2w * torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=c2w.dtype, device=c2w.device)  # OpenCV -> OpenGL axes
+    K = cameras.Ks.float()
+    return NSCameras(camera_to_worlds=c2w, fx=K[:, 0, 0:1], fy=K[:, 1, 1:2], cx=K[:, 0, 2:3], cy=K[:, 1, 2:3],
+                     width=cameras.widths.reshape(-1, 1).long(), height=cameras.heights.reshape(-1, 1).long())
+
+
+__all__ = ["ns_cameras", "raster_cameras", "viewmats_from_c2w"]

@@ -1,0 +1,292 @@
+"""Issue 17's measurement of a pick (a click and a colour, :mod:`virgi_ns.edit.pick`) for
+``bench/edit.py --pick``: how far one click gets compared with the same edit made from the
+rule-edited image, and how long the viewer takes from a colour change or a release to its frame.
+
+**The click** (fixed before any result was seen): on the edit view the rule edit uses, the pixel of
+the rule's mask on that view's unedited render (covered pixels only: accumulation >=
+:data:`~virgi_ns.edit.pick.MIN_COVER`, elsewhere a click picks nothing) that lies deepest inside the
+mask's largest 4-connected component: the largest city-block distance to the nearest pixel outside
+that component (outside the image counts as outside); among equals the one nearest the component's
+centroid, then the first in raster order. Why: the largest object the rule recolours, clicked where
+its colour is least mixed with its neighbours' (away from its edges), as a user clicks an object.
+
+**The colour**: the rule applied to the render's colour at that pixel, rounded to 8 bits as a
+user's ``#RRGGBB``; mode ``hue``, tolerance :data:`TOLERANCE` (0.2: the default of the viewer's
+slider and of ``virgi-edit pick``). The pick runs as ``virgi-edit pick`` runs it
+(:class:`~virgi_ns.edit.pick.PickSession` with :func:`~virgi_ns.edit.pick.pick_config`, the
+config's steps, :func:`~virgi_ns.edit.pick.commit` onto a fresh stack) and is measured by
+:meth:`Bench.measure <virgi_ns.bench.recolor.Bench.measure>`, as the rule edit is. It passes when
+its propagation PSNR is at most :data:`WITHIN_DB` below the rule edit's.
+
+**Latency** (:func:`viewer_latency`): the calls the viewer's Pick mode makes
+(:mod:`virgi_ns.nerfstudio.viewer.picking`) on a :class:`FrozenScene`, each frame rendered by
+:class:`~virgi_ns.nerfstudio.render_path.RenderPath` (the code of every viewer frame of a
+``VirgiModel``: ``get_outputs`` on frozen geometry is ``render_camera(gated=specular_gating)``) on a
+host holding the scene (:class:`ViewerRender`), since a nerfstudio model of the synthetic
+1M-Gaussian scene would need a dataset and a checkpoint. Drag to frame: ``PickSession.update`` with
+:data:`~virgi_ns.nerfstudio.viewer.picking.LIVE_STEPS` steps and a quarter of the segmentation's
+steps (``_live_pick``), the live-edit slot set, the frame rendered. Release to frame (``_commit_pick``):
+the fit topped up to the config's steps, committed to a stack in a directory (its edit file and
+pictures written, as the viewer's stack is), the live slot cleared, the frame rendered. Not counted:
+the viewer's wait of ``COMMIT_AFTER_S`` without a change that it takes as the release, viser's encoding
+and sending of the frame, and the GUI's refresh of the edit list.
+"""
+
+from __future__ import annotations
+
+import statistics
+import tempfile
+import time
+from types import SimpleNamespace
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from virgi_ns.edit.engine import _sync  # the engine's own timings' synchronisation
+from virgi_ns.edit.recolor import RecolorRule, hsv_to_rgb, recolor, rule_mask
+from virgi_ns.errors import InputError
+from virgi_ns.nerfstudio.render_path import RenderPath
+
+TOLERANCE = 0.2
+MODE = "hue"
+WITHIN_DB = 1.0
+"""The pick passes when its propagation PSNR is at least the rule edit's minus this."""
+LATENCY_TARGET_S = 0.1
+
+
+# ------------------------------------------------------------------------------ the click rule
+def _min4(x: Tensor, fill: int) -> Tensor:
+    """Each pixel's smallest 4-neighbour (``fill`` beyond the image)."""
+    p = torch.nn.functional.pad(x[None], (1, 1, 1, 1), value=fill)[0]
+    return torch.minimum(torch.minimum(p[1:-1, :-2], p[1:-1, 2:]), torch.minimum(p[:-2, 1:-1], p[2:, 1:-1]))
+
+
+def _until_stable(step: Callable[[Tensor], Tensor], x: Tensor, every: int = 16) -> Tensor:
+    """Apply ``step`` until ``x`` no longer changes (checked every ``every`` steps: a check syncs)."""
+    while True:
+        before = x
+        for _ in range(every):
+            x = step(x)
+        if torch.equal(x, before):
+            return x
+
+
+def largest_component(mask: Tensor) -> Tensor:
+    """Bool [H,W]: the largest 4-connected component of ``mask`` (the first in raster order among
+    equals; empty for an empty mask). Each pixel takes the smallest raster index of its component by
+    repeated 4-neighbour minima."""
+    H, W = mask.shape
+    big = H * W
+    index = torch.arange(big, device=mask.device).reshape(H, W)
+    labels = torch.where(mask, index, big)
+    labels = _until_stable(lambda lab: torch.where(mask, torch.minimum(lab, _min4(lab, big)), big), labels)
+    if not bool(mask.any()):
+        return mask.clone()
+    counts = torch.bincount(labels[mask], minlength=big)
+    return labels == int(torch.argmax(counts))  # argmax: the first (smallest label) among equals
+
+
+def border_distance(mask: Tensor) -> Tensor:
+    """Long [H,W]: each ``mask`` pixel's city-block distance to the nearest pixel outside ``mask``
+    (beyond the image counts as outside); 0 outside."""
+    zero = torch.zeros(mask.shape, dtype=torch.long, device=mask.device)
+    return _until_stable(lambda d: torch.where(mask, _min4(d, 0) + 1, zero), zero)
+
+
+def click_pixel(mask: Tensor) -> tuple[int, int, int]:
+    """(x, y, depth) of the click the module docstring's rule chooses in ``mask`` [H,W]."""
+    comp = largest_component(mask)
+    if not bool(comp.any()):
+        raise InputError("no pixel to click: the mask is empty")
+    depth = border_distance(comp)
+    ys, xs = torch.nonzero(depth == depth.max(), as_tuple=True)  # raster order
+    cy, cx = (v.double().mean() for v in torch.nonzero(comp, as_tuple=True))
+    k = int(torch.argmin((ys.double() - cy) ** 2 + (xs.double() - cx) ** 2))  # the first among equals
+    return int(xs[k]), int(ys[k]), int(depth.max())
+
+
+def coverage(scene, camera) -> Tensor:
+    """Float [H,W]: the view's accumulated opacity."""
+    from virgi_ns.raster import Request
+
+    cams = camera.to(scene.device, torch.float32)
+    return scene.contributions(cams, Request.whole_images(cams)).accumulation()[0]
+
+
+def rule_colour(render: Tensor, x: int, y: int, rule: RecolorRule) -> tuple[float, float, float]:
+    """The rule's colour for the render's pixel (x, y), rounded to 8 bits (a user's #RRGGBB)."""
+    c = recolor(render[y, x].clamp(0.0, 1.0), rule)[0]
+    return tuple(round(255.0 * float(v)) / 255.0 for v in c)  # type: ignore[return-value]
+
+
+# ------------------------------------------------------------------------------ pick on a trained run
+def pick_passes(p: dict) -> bool:
+    return p["difference_db"] >= -WITHIN_DB
+
+
+def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0) -> tuple[dict, list, Tensor]:
+    """One click on ``b``'s edit view by the module docstring's rule, measured as the rule edit is
+    (``rule_propagation``: its propagation PSNR on the same run). Returns (figures, the held-out
+    pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection | rule mask)."""
+    from virgi_ns.edit.pick import MIN_COVER, PickSession, commit, pick_config
+    from virgi_ns.edit.stack import EditStack
+
+    render = b.edit_base
+    mask = rule_mask(render, rule)
+    x, y, depth = click_pixel(mask & (coverage(b.scene, b.edit_camera) >= MIN_COVER))
+    colour = rule_colour(render, x, y, rule)
+    stack = EditStack(b.fingerprint)
+    stack.to(b.scene.device)
+    _sync(b.scene.device)
+    t0 = time.perf_counter()
+    session = PickSession(b.scene, b.edit_camera, x, y, stack, pick_config(b.scene.device))
+    edit = session.update(colour, TOLERANCE, MODE)
+    _sync(b.scene.device)
+    fit_s = time.perf_counter() - t0
+    commit(stack, session, edit)
+    res, pics = b.measure(stack.entries[0].edit, rule, lpips=False, keep=keep)
+    sel = session.mask
+    union = int((sel | mask).sum())
+    m = res["mean"]
+    out = {"pixel": [x, y], "depth": depth, "colour": session.settings["colour"], "mode": MODE,
+           "tolerance": TOLERANCE, "selected": session.settings["selected"],
+           "iou": int((sel & mask).sum()) / union if union else float("nan"),
+           "propagation_psnr": m["propagation_psnr"], "miss_psnr": m["miss_psnr"], "leak_psnr": m["leak_psnr"],
+           "edit_view_propagation_psnr": m["edit_view_propagation_psnr"],
+           "rule_propagation_psnr": rule_propagation, "difference_db": m["propagation_psnr"] - rule_propagation,
+           "fit_s": fit_s, "steps": session.steps_done,
+           "per_view_propagation": [v["propagation_psnr"] for v in res["views"]]}
+    out["pass"] = pick_passes(out)
+    grey = lambda t: t.float()[..., None].expand(-1, -1, 3)  # noqa: E731
+    picture = torch.cat([render, session.edited, grey(sel), grey(mask)], dim=1).cpu()
+    return out, pics, picture
+
+
+# ------------------------------------------------------------------------------ the viewer's latency
+class ViewerRender(RenderPath):
+    """:class:`RenderPath`, the mixin a ``VirgiModel`` renders every viewer frame with, on a host that
+    holds only what it reads from the model: a :class:`FrozenScene`'s Gaussians (stored as the model
+    stores them: log scales, logit opacities), its field and background, and ``VirgiModelConfig``'s
+    render settings (its defaults)."""
+
+    def __init__(self, scene) -> None:
+        from virgi_ns.nerfstudio.model import VirgiModelConfig
+
+        d = VirgiModelConfig()
+        self.config = SimpleNamespace(whole_view_renderer=d.whole_view_renderer, specular_gating=d.specular_gating,
+                                      gate_threshold=d.gate_threshold, raster_backend=scene.backend)
+        self.scene = scene
+        self.field = scene.field
+        self.means, self.quats = scene.means, scene.quats
+        self.scales = torch.log(scene.scales)
+        self.opacities = torch.logit(scene.opacities, eps=1e-6)[:, None]
+        self.background_color = scene.background
+        self.device = scene.device
+        self.num_points = int(scene.means.shape[0])
+        self.spec_magnitude = torch.zeros(0, device=self.device)
+        self.diffuse_cache = torch.zeros(0, 3, device=self.device)
+        self.edit_stack = self.live_edit = self.segmentation_edit = self._edited_cache = None
+
+    def _raster(self, cams, request):
+        return self.scene.contributions(cams, request)
+
+    def frame(self, camera) -> dict:
+        """The viewer's frame of ``camera`` (nerfstudio cameras): what ``VirgiModel.get_outputs``
+        renders for frozen geometry in eval mode."""
+        return self.render_camera(camera, gated=self.config.specular_gating)
+
+
+def _timed(device: torch.device, parts: list[tuple[str, Callable[[], object]]]) -> tuple[dict, object]:
+    """Run ``parts`` in order, each synchronised with ``device``: ({name: seconds, 'total_s'}, the last
+    part's value)."""
+    times, value = {}, None
+    _sync(device)
+    start = t = time.perf_counter()
+    for name, fn in parts:
+        value = fn()
+        _sync(device)
+        now = time.perf_counter()
+        times[name] = now - t
+        t = now
+    times["total_s"] = t - start
+    return times, value
+
+
+def drag_frame(host: ViewerRender, session, camera, colour: tuple, tolerance: float, mode: str) -> tuple[dict, dict]:
+    """A colour change during a drag to its frame, as ``PickActions._live_pick`` makes it:
+    ({fit_s, render_s, total_s}, the frame)."""
+    from virgi_ns.nerfstudio.viewer.picking import LIVE_STEPS
+
+    seg = max(1, session.engine.cfg.seg_steps // 4)
+
+    def refit() -> None:
+        host.set_live_edit(session.update(colour, tolerance, mode, LIVE_STEPS, seg))
+
+    return _timed(host.device, [("fit_s", refit), ("render_s", lambda: host.frame(camera))])
+
+
+def release_frame(host: ViewerRender, stack, session, camera) -> tuple[dict, dict]:
+    """A release to its frame, as ``PickActions._commit_pick`` makes it (the first commit of the pick):
+    ({fit_s, commit_s, render_s, total_s}, the frame)."""
+    from virgi_ns.edit.pick import commit
+
+    edit: list = []
+
+    def top_up() -> None:
+        edit.append(session.refine(session.engine.cfg.steps - session.steps_done))
+
+    def put() -> None:
+        commit(stack, session, edit[0])
+        host.set_live_edit(None)
+
+    return _timed(host.device, [("fit_s", top_up), ("commit_s", put), ("render_s", lambda: host.frame(camera))])
+
+
+def _hue(degrees: float) -> tuple[float, float, float]:
+    """A saturated colour of hue ``degrees``."""
+    return tuple(float(v) for v in hsv_to_rgb(torch.tensor([degrees % 360.0, 0.8, 0.85])))  # type: ignore[return-value]
+
+
+def viewer_latency(scene, cams, repeats: int, cfg=None) -> dict:
+    """Median drag-to-frame and release-to-frame times (seconds, by part) of picks on ``scene``'s one
+    view ``cams``, after one warm-up pick. Each pick: a click (the deepest covered pixel by
+    :func:`click_pixel`, set up and fitted untimed, as its first frame shows), one timed colour change,
+    the timed release, then undone (each pick is the stack's only edit). ``cfg``: the pick's
+    :class:`EditConfig` (default: the viewer's, :func:`~virgi_ns.edit.pick.pick_config`)."""
+    from virgi_ns.edit.pick import MIN_COVER, PickSession, pick_config
+    from virgi_ns.edit.stack import EditStack
+    from virgi_ns.nerfstudio.cameras import ns_cameras
+    from virgi_ns.nerfstudio.viewer.picking import LIVE_STEPS
+
+    host = ViewerRender(scene)
+    gate = host.build_specular_gate(cams)
+    camera = ns_cameras(cams).to(scene.device)
+    x, y, _ = click_pixel(coverage(scene, cams) >= MIN_COVER)
+    cfg = cfg or pick_config(scene.device)
+    drags, releases, selected = [], [], []
+    with tempfile.TemporaryDirectory(prefix="virgi_pick_bench_") as run_dir:
+        stack = EditStack.open(run_dir, scene.fingerprint())
+        host.set_edit_stack(stack)
+        for r in range(max(1, repeats) + 1):
+            session = PickSession(scene, cams, x, y, stack, cfg)
+            host.set_live_edit(session.update(_hue(40.0 * r), TOLERANCE, MODE, LIVE_STEPS))
+            host.frame(camera)
+            drag, _ = drag_frame(host, session, camera, _hue(40.0 * r + 20.0), TOLERANCE, MODE)
+            release, _ = release_frame(host, stack, session, camera)
+            stack.undo()
+            if r:  # the first pick warms up
+                drags.append(drag)
+                releases.append(release)
+                selected.append(session.settings["selected"])
+    med = lambda rows: {k: float(statistics.median(t[k] for t in rows)) for k in rows[0]}  # noqa: E731
+    return {"gaussians": host.num_points, "image": f"{int(cams.widths[0])}x{int(cams.heights[0])}",
+            "renderer": "gsplat" if host._renders_with_gsplat() else "contributions",
+            "gate_kept": gate["kept_fraction"], "pixel": [x, y], "selected": float(statistics.median(selected)),
+            "live_steps": LIVE_STEPS, "steps": cfg.steps, "repeats": len(drags), "drag": med(drags),
+            "release": med(releases), "target_s": LATENCY_TARGET_S}
+
+
+__all__ = ["LATENCY_TARGET_S", "MODE", "TOLERANCE", "WITHIN_DB", "ViewerRender", "border_distance", "click_pixel",
+           "coverage", "drag_frame", "largest_component", "measure_pick", "pick_passes", "release_frame",
+           "rule_colour", "viewer_latency"]
