@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from virgi_ns.edit.colour_change import EXPLAIN_TOL, MIN_SUPPORT, fit_colour_change
+from virgi_ns.edit.colour_change import EXPLAIN_TOL, MIN_SUPPORT, SPREAD_SHARE, fit_colour_change
 from virgi_ns.edit.recolor import RecolorRule, hsv_to_rgb, recolor
 
 RULE = RecolorRule(h0=190, h1=260, shift=120, s_min=0.3, v_min=0.1)
@@ -57,3 +57,29 @@ def test_colours_the_photo_does_not_show_are_left_alone():
     greens = _colours(500, 100, 140, 6)
     assert float(change.support(greens).max()) < MIN_SUPPORT
     torch.testing.assert_close(change.apply(greens), greens)
+
+
+def test_the_spread_marks_colours_whose_pixels_were_changed_two_ways():
+    """Dark greens (changed to blue) and dark browns (kept) share grid cells: between them the map's
+    mean change is a blend, and its spread says so; among blues alone it is one change."""
+    g = torch.Generator().manual_seed(7)
+    n = 4000
+    dark_green = torch.tensor([0.06, 0.14, 0.05]) + 0.01 * torch.randn(n, 3, generator=g)
+    dark_brown = torch.tensor([0.12, 0.09, 0.05]) + 0.01 * torch.randn(n, 3, generator=g)
+    blues = _colours(n, 215, 235, 8)
+    photo = torch.cat([dark_green, dark_brown, blues]).clamp(0, 1)
+    edited = photo.clone()
+    edited[:n] = photo[:n][:, [2, 0, 1]]  # green -> blue: a channel rotation
+    edited[2 * n:] = _rule(photo[2 * n:])
+    change = fit_colour_change(photo, edited)
+    between = torch.tensor([[0.09, 0.115, 0.05]])
+    _, _, spread_between = change.lookup(between)
+    _, _, spread_blue = change.lookup(_colours(200, 220, 230, 9))
+    move = float((edited[:n] - photo[:n]).abs().amax(-1).mean())
+    delta_between, _, _ = change.lookup(between)
+    assert float(spread_between) > 0.3 * move  # two populations, about half each
+    assert float(spread_between) > SPREAD_SHARE * float(delta_between.abs().max())
+    assert not bool(change.one_change(between).any())
+    # one change, though it varies over the kernel's width (a rotation of hue moves each colour its own way)
+    assert bool(change.one_change(_colours(200, 220, 230, 9)).all())
+    assert float(spread_blue.max()) < 0.6 * EXPLAIN_TOL

@@ -42,6 +42,13 @@ more (the map averages the two answers)."""
 _OFFSETS = torch.tensor([[dx, dy, dz] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)])  # [8,3]
 
 
+SPREAD_SHARE = 0.25
+"""The change near a colour is one change when its spread is at most this share of its size: pixels
+of one colour changed one way and kept another (a split p / 1-p) give a spread of sqrt((1-p)/p) of
+the mean change, 1 for an even split and 0.25 for 94 / 6, while a smooth recolour's own variation
+over the kernel's width stays near a tenth of it (a hue rotation)."""
+
+
 def _corners(colours: Float[Tensor, "N 3"], grid: int) -> tuple[Tensor, Tensor]:
     """The 8 grid points around each colour: flat indices [N,8] and trilinear weights [N,8]."""
     x = colours.clamp(0.0, 1.0) * (grid - 1)
@@ -55,9 +62,11 @@ def _corners(colours: Float[Tensor, "N 3"], grid: int) -> tuple[Tensor, Tensor]:
 
 @dataclass
 class ColourChange:
-    """Kernel sums on the grid: ``change`` [G^3,3] (weighted changes) and ``weight`` [G^3]."""
+    """Kernel sums on the grid: ``change`` [G^3,3] (weighted changes), ``square`` [G^3,3] (weighted
+    squared changes) and ``weight`` [G^3]."""
 
     change: Tensor
+    square: Tensor
     weight: Tensor
     grid: int = GRID
 
@@ -68,15 +77,28 @@ class ColourChange:
 
     def delta(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
         """The mean change the user made to pixels of (about) this colour; zero where uncovered."""
-        return self.delta_and_support(colours)[0]
+        return self.lookup(colours)[0]
 
-    def delta_and_support(self, colours: Float[Tensor, "N 3"]) -> tuple[Tensor, Tensor]:
-        """(:meth:`delta`, :meth:`support`) from one lookup."""
+    def lookup(self, colours: Float[Tensor, "N 3"]) -> tuple[Tensor, Tensor, Tensor]:
+        """(:meth:`delta`, :meth:`support`, spread) from one lookup. The spread is the largest
+        per-channel standard deviation of the changes near the colour: small where the user changed
+        pixels of this colour one way, about half the change where they changed some and not others
+        (a rule's threshold running through a cell of the grid, dark colours of several hues that
+        share a cell)."""
         idx, w = _corners(colours.float(), self.grid)
-        num = (self.change[idx] * w[..., None]).sum(1)
         den = (self.weight[idx] * w).sum(1)
-        covered = den >= MIN_SUPPORT
-        return torch.where(covered[:, None], num / den.clamp_min(1e-12)[:, None], torch.zeros_like(num)), den
+        covered = (den >= MIN_SUPPORT)[:, None]
+        safe = den.clamp_min(1e-12)[:, None]
+        mean = (self.change[idx] * w[..., None]).sum(1) / safe
+        var = ((self.square[idx] * w[..., None]).sum(1) / safe - mean ** 2).clamp_min(0.0)
+        zero = torch.zeros_like(mean)
+        return torch.where(covered, mean, zero), den, torch.where(covered, var, zero).amax(-1).sqrt()
+
+    def one_change(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N"]:
+        """Per colour: covered, and the changes near it are one change (spread within
+        :data:`SPREAD_SHARE` of the mean change's largest channel)."""
+        delta, support, spread = self.lookup(colours)
+        return (support >= MIN_SUPPORT) & (spread <= SPREAD_SHARE * delta.abs().amax(-1))
 
     def apply(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
         """``colours`` changed as the user changed such colours (clamped to [0, 1])."""
@@ -92,10 +114,13 @@ def fit_colour_change(original: Float[Tensor, "N 3"], edited: Float[Tensor, "N 3
     """The change ``edited - original`` as a function of the original colour (module docstring)."""
     original, edited = original.reshape(-1, 3).float(), edited.reshape(-1, 3).float()
     idx, w = _corners(original, grid)
-    change = (edited - original)[:, None, :] * w[..., None]
-    sums = torch.zeros(grid ** 3, 3, device=original.device).index_add_(0, idx.reshape(-1), change.reshape(-1, 3))
-    weight = torch.zeros(grid ** 3, device=original.device).index_add_(0, idx.reshape(-1), w.reshape(-1))
-    return ColourChange(sums, weight, grid)
+    d = (edited - original)[:, None, :]
+    flat = idx.reshape(-1)
+
+    def splat(values: Tensor) -> Tensor:
+        return torch.zeros(grid ** 3, values.shape[-1], device=original.device).index_add_(0, flat, values.reshape(-1, values.shape[-1]))
+
+    return ColourChange(splat(d * w[..., None]), splat(d * d * w[..., None]), splat(w[..., None])[:, 0], grid)
 
 
-__all__ = ["ColourChange", "EXPLAIN_TOL", "GRID", "MIN_SUPPORT", "fit_colour_change"]
+__all__ = ["ColourChange", "EXPLAIN_TOL", "GRID", "MIN_SUPPORT", "SPREAD_SHARE", "fit_colour_change"]

@@ -56,7 +56,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from virgi_ns.colour.field import view_directions
-from virgi_ns.edit.colour_change import MIN_SUPPORT, fit_colour_change
+from virgi_ns.edit.colour_change import fit_colour_change
 from virgi_ns.edit.pixels import PixelBatch, SparseRender, pixel_batches
 from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead, new_edit_info
@@ -407,13 +407,13 @@ class EditEngine:
 
     def _mapped_target(self, edited: Tensor, original: Tensor, changed: Tensor) -> Tensor:
         """``changed_target="map"``: the render changed by the colour map of the user's change
-        where the map explains that pixel's change, the edited pixel elsewhere."""
+        where the map explains that pixel's change and is one change at the render's colour
+        (:mod:`virgi_ns.edit.colour_change`), the edited pixel elsewhere."""
         change = fit_colour_change(original, edited)
         flat_o, flat_e, flat_r = original.reshape(-1, 3), edited.reshape(-1, 3), self.current.reshape(-1, 3)
-        d_r, support = change.delta_and_support(flat_r)
-        use = change.explains(flat_o, flat_e) & (support >= MIN_SUPPORT)
+        use = change.explains(flat_o, flat_e) & change.one_change(flat_r)
         self.map_explained = float(use[changed.reshape(-1)].float().mean())
-        return torch.where(use[:, None], (flat_r + d_r).clamp(0.0, 1.0), flat_e).reshape(edited.shape)
+        return torch.where(use[:, None], change.apply(flat_r), flat_e).reshape(edited.shape)
 
     def retarget(self, edited: Float[Tensor, "H W 3"], changed: Optional[Tensor] = None,
                  original: Optional[Float[Tensor, "H W 3"]] = None, seg_steps: Optional[int] = None) -> None:
