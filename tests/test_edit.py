@@ -389,12 +389,12 @@ def test_unchanged_pixels_keep_the_render_when_the_original_is_known(world):
 
 
 def test_changed_pixels_target_the_render_plus_the_change(world):
-    """The two fit targets of the changed pixels when a photo is the original: the edited photo's
-    own pixels (``changed_target="edited"``, the default) or the current render plus the user's
-    change (``"change"``). With a photo uniformly brighter than the render, "change" keeps the
-    brightness error out of the recoloured object in the other views; "edited" carries it along.
-    (On real captures "edited" measured better, bench/RESULTS.md.)"""
-    assert EditConfig().changed_target == "edited"
+    """Two fit targets of the changed pixels when a photo is the original: the edited photo's own
+    pixels (``changed_target="edited"``, the paper's) or the current render plus the user's change
+    (``"change"``). With a photo uniformly brighter than the render, "change" keeps the brightness
+    error out of the recoloured object in the other views; "edited" carries it along. (The default
+    is "map", tested below.)"""
+    assert EditConfig().changed_target == "map"
     S = world["S"]
     cam = S.cameras.index(EDIT_VIEW)
     render = world["before"][EDIT_VIEW]["rgb"]
