@@ -213,7 +213,7 @@ class EditStack:
         self._k = float(specular_strength)
         self.device: torch.device | None = None
         self.revision = 0
-        """Counts the changes (edits added, undone, enabled or disabled, moved; ``k`` set): a cache of
+        """Counts the changes (edits added, replaced, undone, enabled or disabled, moved; ``k`` set): a cache of
         colours rendered through the stack is current while the stack object and this number are."""
 
     # ------------------------------------------------------------ persistence
@@ -315,10 +315,12 @@ class EditStack:
         if self.directory is not None:
             edit.save(self.directory / name)
         self.entries[i] = StackEntry(edit.to(self.device) if self.device is not None else edit, name, old.enabled)
+        self.changed()
         try:
             self._write_manifest()
         except BaseException:
             self.entries[i] = old
+            self.changed()
             self._remove_files(name)
             raise
         self._remove_files(old.file)
