@@ -348,6 +348,11 @@ def test_every_change_reaches_the_cached_colours(spec_model):
         other.add(_edit(model, 16))
         model.set_edit_stack(other)
         ref = _check_colours(model, cam, previous=ref)
+        twin = EditStack(model.fingerprint())  # another stack at the same revision
+        twin.add(_edit(model, 19))
+        model.set_edit_stack(twin)
+        assert twin.revision == other.revision
+        ref = _check_colours(model, cam, previous=ref)
         model.set_edit_stack(None)  # no stack
         _check_colours(model, cam, previous=ref)
     finally:
