@@ -204,12 +204,11 @@ class RenderCache:
             self.geometry_level = g
         return g
 
-    def gate(self, model) -> GateCache:
-        """The gate level for the model's field, gate and threshold (the caller has checked that
-        the gate is current and the field decoupled)."""
+    def gate(self, model, params: tuple) -> GateCache:
+        """The gate level for the model's field (``params``: its parameters), gate and threshold (the
+        caller has checked that the gate is current and the field decoupled)."""
         fld = model.field
         half = bool(getattr(model.config, "render_cache_half", False))
-        params = tuple(fld.parameters())
         key = (id(fld), tuple(stamp(p) for p in params), stamp(model.means), stamp(model.spec_magnitude),
                float(model.config.gate_threshold), half)
         g = self.gate_level

@@ -124,9 +124,10 @@ class RenderPath:
     def view_colours(self, view: View, gated: bool = False) -> ViewColours:
         """One colour per Gaussian for ``view``. ``gated`` (and a current gate): from the render
         cache; otherwise the full colour model over every Gaussian."""
-        if gated and self._gate_serves():
+        params = tuple(self.field.parameters()) if gated and self.field.decoupled else ()
+        if params and self._gate_current(params):
             cache = self.render_cache
-            gate = cache.gate(self)
+            gate = cache.gate(self, params)
             edits = cache.edits(self, gate)
             rgb = edits.diffuse if edits.matte else gated_colours(gate, edits, view.centre)
             seg = (lambda: self._cached_segmentation(edits)) if self._with_segmentation() else None
@@ -192,17 +193,18 @@ class RenderPath:
         return edits.segmentation[index]
 
     # ----------------------------------------------------------- specular gate
-    def _field_versions(self) -> tuple:
-        return tuple(p._version for p in self.field.parameters())
+    def _field_versions(self, params=None) -> tuple:
+        """The in-place version counter of every field parameter (optimizer steps and loads bump them)."""
+        return tuple(p._version for p in (params if params is not None else self.field.parameters()))
 
     def gate_ready(self) -> bool:
         """A gate is built for these Gaussians and the field has not changed since."""
+        return self._gate_current(None)
+
+    def _gate_current(self, params) -> bool:
         stamp = getattr(self, "_gate_stamp", None)
         return (self.spec_magnitude.numel() == self.num_points and self.diffuse_cache.shape[0] == self.num_points
-                and (stamp is None or stamp == self._field_versions()))
-
-    def _gate_serves(self) -> bool:
-        return self.field.decoupled and self.gate_ready()
+                and (stamp is None or stamp == self._field_versions(params)))
 
     def drop_specular_gate(self) -> None:
         """Forget the gate, the cached diffuse colours and the render cache (the field changes;
