@@ -500,3 +500,36 @@ def test_gpu_outputs_read_lazily_equal_the_contribution_render(spec_model, monke
     finally:
         model.config.gate_threshold = median
         model.set_edit_stack(None)
+
+
+@pytest.mark.gpu
+def test_gpu_cached_render_equals_the_reference_colours_rendered(spec_model):
+    """On a GPU, with gsplat: the cached colours equal the field's forward (to the tolerance of GPU
+    matrix products), the viewer's frame equals gsplat's render of the reference colours, and a
+    frame that reads rgb and depth computes nothing else."""
+    pipeline, model, cams = spec_model
+    median = model.config.gate_threshold
+    pipeline.to("cuda")
+    try:
+        cam = cams[0:1].to("cuda")
+        stack = EditStack(model.fingerprint())
+        stack.add(_edit(model, 20))
+        model.set_edit_stack(stack)
+        for t in (median, float("inf")):
+            model.config.gate_threshold = t
+            want = _reference(model, cam, model.spec_magnitude > t)
+            got = model.view_colours(model.view_of(cam), gated=True)
+            assert (got.rgb - want["rgb"]).abs().max() <= 1e-5
+            out = model.get_outputs_for_camera(cam)
+            out["rgb"], out["depth"]
+            extra = {"diffuse"} if t == float("inf") else set()
+            assert set(out.computed()) == {"rgb", "depth", "accumulation", "background"} | extra
+            ref = model.render_view(model.view_of(cam), ViewColours(want["rgb"], want["diffuse"],
+                                                                    lambda: want["segmentation"]))
+            for key in ("rgb", "diffuse", "specular", "segmentation", "depth", "accumulation"):
+                assert out[key].shape == ref[key].shape, key
+                assert (out[key] - ref[key]).abs().max() <= 1e-5, key
+    finally:
+        model.set_edit_stack(None)
+        model.config.gate_threshold = median
+        pipeline.to("cpu")
