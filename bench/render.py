@@ -185,6 +185,8 @@ def bench_scene(args: Args, scene, cfg_path: Path) -> dict:
             row.setdefault("stages_ms", {})[name] = stage_ms(model, cams, True, args.repeats)
             if name == "gated":
                 row["cache_mib"] = {k: v / 2**20 for k, v in model.render_cache.nbytes().items()}
+                # the frames above took the cached path (a stale or missing gate would take the full one)
+                row["cache_served"] = model.render_cache.edit_level is not None and model.gate_ready()
         console.log(f"{scene.name}: threshold {t:.5f} keeps {kept:.1%}: {fps:.1f} FPS, {psnr:.1f} dB vs full")
     model.config.gate_threshold = default
     row["sweep"] = sweep[:-1]

@@ -37,5 +37,5 @@ def test_render_bench_row_on_a_cpu(scene, bench_render, monkeypatch):  # noqa: F
     for name in ("gated", "matte"):
         assert set(row["stages_ms"][name]) == {"camera", "colours", "raster"}
         assert all(v > 0 for v in row["stages_ms"][name].values())
-    assert row["cache_mib"]["gate"] > 0 and row["cache_mib"]["edits"] > 0
+    assert row["cache_mib"]["gate"] > 0 and row["cache_mib"]["edits"] > 0 and row["cache_served"]
     bench_render.print_tables([row], None, "cpu")
