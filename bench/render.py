@@ -17,6 +17,13 @@ every held-out view after one warm-up render each (a viewer re-renders the same 
 threshold sweep is fixed (0, 1/1024, 1/512, 1/255 = the default, 2/255, 4/255, 8/255), and the
 default stays where it is unless it misses 45 dB gated vs full on some scene.
 
+A virgi frame is what nerfstudio's viewer does with its default settings: ``get_outputs_for_camera``
+(the model's render cache warm after the warm-up render) and reading ``rgb`` and ``depth`` (the
+viewer composites depth by default); outputs it does not read are computed on access. Per scene
+the JSON also splits the gated (default threshold) and matte frames into stages, each timed alone
+with a sync around it: the camera conversion, the colours per Gaussian, and gsplat's pass with
+reading rgb and depth; and it gives the render cache's memory.
+
 ``--cli`` also times, on the first scene, ``virgi-edit list / apply / undo``, ``virgi-export`` and
 ``virgi-render`` as fresh processes (wall time, what a person waits), with the edit's own setup and
 step times from its summary line.
@@ -111,6 +118,34 @@ def splat_fps(model, cam, sh_degree: Optional[int], repeats: int) -> float:
     return _fps(once, repeats)
 
 
+def viewer_frame(model, cam):
+    """One frame as nerfstudio's viewer renders it by default: the outputs, of which it reads rgb
+    and depth."""
+    out = model.get_outputs_for_camera(cam)
+    return out["rgb"], out["depth"]
+
+
+def _ms(fn, repeats: int) -> float:
+    return 1000.0 / _fps(fn, repeats)
+
+
+def stage_ms(model, cams, gated: bool, repeats: int) -> Dict[str, float]:
+    """Milliseconds per frame of each stage of a whole-view render, mean over ``cams``."""
+    split: Dict[str, List[float]] = {"camera": [], "colours": [], "raster": []}
+    for c in cams:
+        view = model.view_of(c)
+        cols = model.view_colours(view, gated)
+        split["camera"].append(_ms(lambda: model.view_of(c), repeats))
+        split["colours"].append(_ms(lambda: model.view_colours(view, gated), repeats))
+
+        def raster():
+            out = model.render_view(view, cols)
+            return out["rgb"], out["depth"]
+
+        split["raster"].append(_ms(raster, repeats))
+    return {k: statistics.mean(v) for k, v in split.items()}
+
+
 def bench_scene(args: Args, scene, cfg_path: Path) -> dict:
     from virgi_ns.cli.export import load_run
 
@@ -132,14 +167,26 @@ def bench_scene(args: Args, scene, cfg_path: Path) -> dict:
     row["splat_sh3_fps"] = statistics.mean(splat_fps(model, c, 3, args.repeats) for c in cams) if on_gpu else math.nan
     row["splat_sh0_fps"] = statistics.mean(splat_fps(model, c, None, args.repeats) for c in cams) if on_gpu else math.nan
     fulls = [model.render_camera(c, gated=False)["rgb"] for c in cams]
-    row["full_fps"] = mean_fps(lambda c: model.render_camera(c, gated=False))
+
+    def full_frame(c):
+        out = model.render_camera(c, gated=False)
+        return out["rgb"], out["depth"]
+
+    row["full_fps"] = mean_fps(full_frame)
     sweep = []
     for t in list(args.thresholds) + [float("inf")]:
         model.config.gate_threshold = t
         kept = float(model.spec_gate.float().mean())
         psnr = min(_psnr(model.render_camera(c, gated=True)["rgb"], f) for c, f in zip(cams, fulls))
-        fps = mean_fps(lambda c: model.get_outputs_for_camera(c))
+        fps = mean_fps(lambda c: viewer_frame(model, c))
         sweep.append({"threshold": t, "kept": kept, "fps": fps, "psnr_vs_full": psnr})
+        if t == default or t == float("inf"):
+            name = "matte" if t == float("inf") else "gated"
+            row.setdefault("stages_ms", {})[name] = stage_ms(model, cams, True, args.repeats)
+            if name == "gated":
+                row["cache_mib"] = {k: v / 2**20 for k, v in model.render_cache.nbytes().items()}
+                # the frames above took the cached path (a stale or missing gate would take the full one)
+                row["cache_served"] = model.render_cache.edit_level is not None and model.gate_ready()
         console.log(f"{scene.name}: threshold {t:.5f} keeps {kept:.1%}: {fps:.1f} FPS, {psnr:.1f} dB vs full")
     model.config.gate_threshold = default
     row["sweep"] = sweep[:-1]
@@ -210,15 +257,22 @@ def bench_cli(scene, cfg_path: Path, data: Path, out: Path) -> dict:
 def print_tables(rows: List[dict], cli: Optional[dict], device: str) -> None:
     t = Table(title=f"render at the held-out views' size ({device})")
     for c in ("scene", "Gaussians", "size", "splat SH3 FPS", "splat SH0 FPS", "virgi full FPS", "virgi gated FPS",
-              "x vs SH3", "kept", "gated vs full dB", "matte FPS", "matte x vs SH0"):
+              "x vs SH3", "kept", "gated vs full dB", "matte FPS", "matte x vs SH0", "cache MiB"):
         t.add_column(c)
     for r in rows:
         t.add_row(r["scene"], f"{r['gaussians']:,}", "x".join(map(str, r["size"])), f"{r['splat_sh3_fps']:.0f}",
                   f"{r['splat_sh0_fps']:.0f}", f"{r['full_fps']:.0f}", f"{r.get('gated_fps', float('nan')):.0f}",
                   f"{r.get('gated_fps', float('nan')) / r['splat_sh3_fps']:.2f}", f"{r.get('kept', float('nan')):.1%}",
                   f"{r.get('psnr_gated_vs_full', float('nan')):.1f}", f"{r['matte']['fps']:.0f}",
-                  f"{r['matte']['fps'] / r['splat_sh0_fps']:.2f}")
+                  f"{r['matte']['fps'] / r['splat_sh0_fps']:.2f}", f"{sum(r.get('cache_mib', {}).values()):.1f}")
     console.print(t)
+    st = Table(title="stages of a frame, ms (each timed alone: camera conversion, colours per Gaussian, gsplat pass)")
+    for c in ("scene", "gated camera", "gated colours", "gated raster", "matte camera", "matte colours", "matte raster"):
+        st.add_column(c)
+    for r in rows:
+        g, m = r.get("stages_ms", {}).get("gated", {}), r.get("stages_ms", {}).get("matte", {})
+        st.add_row(r["scene"], *(f"{d.get(k, float('nan')):.3f}" for d in (g, m) for k in ("camera", "colours", "raster")))
+    console.print(st)
     s = Table(title="gate threshold sweep: kept share, FPS, PSNR gated vs full")
     s.add_column("threshold")
     for r in rows:

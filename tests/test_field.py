@@ -7,7 +7,14 @@ import math
 import pytest
 import torch
 
-from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField, view_directions
+from virgi_ns.colour.field import (
+    ColorFieldConfig,
+    DecoupledColorField,
+    direction_monomials,
+    monomial_degree,
+    sh_monomial_matrix,
+    view_directions,
+)
 
 AABB = torch.tensor([[-1.0, -2.0, 0.0], [1.0, 2.0, 4.0]])
 
@@ -207,3 +214,32 @@ def test_grid_encoding_matches_nerfstudio_and_a_float64_reference():
     (b * w).sum().backward()
     assert ours.hash_table.grad.abs().max() > 0.1
     assert torch.allclose(ours.hash_table.grad, theirs.hash_table.grad, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("links", [True, False])
+def test_specular_split_by_what_a_view_changes(links):
+    """MLP_spec from its direction-independent parts plus the per-view rest equals MLP_spec."""
+    torch.manual_seed(0)
+    field = DecoupledColorField(small(residual_links=links), AABB).double()
+    for layer in (field.spec_l1, field.spec_l2, field.spec_l3):
+        torch.nn.init.normal_(layer.weight, std=0.3)
+        torch.nn.init.normal_(layer.bias, std=0.3)
+    pos, dirs = rand_inputs()
+    f = field.encode(pos.double())
+    h1, h2 = field.diffuse_hidden(f)
+    want = field.specular(f, dirs.double(), h1, h2)
+    got = field.specular_from_parts(*field.specular_parts(f, h1, h2), dirs.double())
+    assert want.abs().max() > 0.1
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-6)  # the SH encoding itself is float32
+
+
+@pytest.mark.parametrize("levels", [1, 2, 3, 4])
+def test_sh_encoding_as_direction_monomials(levels):
+    """nerfstudio's SH encoding is a fixed linear map of the direction monomials."""
+    from nerfstudio.field_components.encodings import SHEncoding
+
+    _, dirs = rand_inputs(256, seed=levels)
+    d = dirs.double()
+    want = SHEncoding(levels=levels)(d).double()  # computed in float32 by nerfstudio
+    got = direction_monomials(d, monomial_degree(levels)) @ sh_monomial_matrix(levels)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-7)

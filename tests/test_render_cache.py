@@ -1,6 +1,9 @@
-"""Renders from cached diffuse colours equal renders without the cache, and every change of the edit
-stack (an edit added, undone, toggled, changed in place, ``k`` set, another stack) or of the field
-invalidates what it must: a stale cache fails these tests."""
+"""The render cache serves what the colour model computes without it, and every change that must
+invalidate it does: the edit stack (an edit added, replaced, undone, toggled, changed in place,
+``k`` set, another stack), the live edit of a pick, the field (a training step, an in-place
+change), the gate (rebuilt, another threshold) and the Gaussians. The served colours are compared
+with the field's own forward over all Gaussians, never with the cache itself, and every change is
+checked to move that reference, so a stale serve fails these tests."""
 
 from __future__ import annotations
 
@@ -11,7 +14,10 @@ import pytest
 import torch
 
 from test_model_train import build, scene, train  # noqa: F401  (fixture re-exported)
+from virgi_ns.colour.field import view_directions
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead
+from virgi_ns.nerfstudio.render_cache import ViewColours, ViewOutputs
+from virgi_ns.raster import Cameras, Request, composite
 
 warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
 
@@ -169,4 +175,361 @@ def test_gsplat_whole_view_render_matches_the_contribution_lists(gated_model):
                 assert diff.mean() < 1e-3 and diff.max() < 5e-2, (key, float(diff.mean()), float(diff.max()))
     finally:
         model.set_edit_stack(None)
+        pipeline.to("cpu")
+
+
+# ------------------------------------------------------------ per-Gaussian colours
+@pytest.fixture(scope="module")
+def spec_model(scene):  # noqa: F811
+    """A trained model whose specular branch is made strong (random MLP_spec), with a gate that
+    keeps about half of the Gaussians."""
+    steps = 8
+    _, pipeline, optimizers, cbs = build(scene, steps=steps)
+    train(pipeline, optimizers, cbs, steps)
+    pipeline.eval()
+    model = pipeline.model
+    _strong_specular(model, seed=0)
+    model.build_specular_gate(model._train_cameras_fn())
+    model.config.gate_threshold = float(model.spec_magnitude.median())
+    cams = pipeline.datamanager.eval_dataset.cameras
+    return pipeline, model, cams
+
+
+def _strong_specular(model, seed: int) -> None:
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for layer in (model.field.spec_l1, model.field.spec_l2, model.field.spec_l3):
+            layer.weight.copy_(torch.randn(layer.weight.shape, generator=g) * 0.3)
+            layer.bias.copy_(torch.randn(layer.bias.shape, generator=g) * 0.3)
+
+
+def _centre(cam) -> torch.Tensor:
+    """The camera centre straight from nerfstudio's camera-to-world matrix."""
+    return cam.camera_to_worlds.reshape(-1, 3, 4)[0, :, 3][None]
+
+
+@torch.no_grad()
+def _reference(model, cam, gate) -> dict:
+    """Per-Gaussian colours of ``cam``'s view from the field's forward over all Gaussians, the
+    enabled edits (then the live edit) composed one by one, ``c_s`` kept where ``gate`` (a
+    boolean [N], or None for every Gaussian) is true."""
+    fld = model.field
+    means = model.means.detach()
+    out = fld(means, view_directions(means, _centre(cam)))
+    f = fld.encode(means)
+    _, h2 = fld.diffuse_hidden(f)
+    c_d, c_s = out["c_d"], out["c_s"]
+    st, k, keep = model.edit_stack, 1.0, torch.ones_like(c_d[:, :1])
+    if st is not None:
+        for e in st.entries:
+            if e.enabled:
+                c_d = e.edit.over(f, h2, c_d)
+                keep = keep * (1 - e.edit.alpha(f, h2))
+        k = st.specular_strength
+    if model.live_edit is not None:
+        c_d = model.live_edit.over(f, h2, c_d)
+    if gate is not None:
+        c_s = c_s * gate[:, None]
+    if st is not None and model.segmentation_edit is not None:
+        seg = st.entries[model.segmentation_edit - 1].edit.alpha(f, h2)
+    else:
+        seg = 1 - keep
+    return {"rgb": torch.sigmoid(c_d + k * c_s), "diffuse": torch.sigmoid(c_d), "segmentation": seg}
+
+
+def _check_colours(model, cam, gate="model", previous=None) -> torch.Tensor:
+    """The gated colours served for ``cam`` equal :func:`_reference` (``gate="model"``: the
+    model's measured magnitudes over its threshold); with ``previous``, the reference moved."""
+    if isinstance(gate, str):
+        gate = model.spec_magnitude > model.config.gate_threshold
+    got = model.view_colours(model.view_of(cam), gated=True)
+    want = _reference(model, cam, gate)
+    assert (got.rgb - want["rgb"]).abs().max() <= TOL
+    diffuse = got.diffuse if got.diffuse is not None else got.rgb
+    assert (diffuse - want["diffuse"]).abs().max() <= TOL
+    if model.edit_stack is not None and len(model.edit_stack) > 0:
+        assert (got.segmentation() - want["segmentation"]).abs().max() <= TOL
+    else:
+        assert got.segmentation is None
+    if previous is not None:
+        assert (want["rgb"] - previous).abs().max() > 1e-3, "the change did not move the reference"
+    return want["rgb"]
+
+
+def test_gated_colours_equal_the_field_over_all_gaussians(spec_model):
+    _, model, cams = spec_model
+    median = model.config.gate_threshold
+    try:
+        model.set_edit_stack(None)
+        for t in (median, -1.0, float("inf")):
+            model.config.gate_threshold = t
+            for i in range(2):  # two views: only the direction changes between them
+                _check_colours(model, cams[i : i + 1])
+            kept = model.render_cache.gate_level.size
+            assert kept == {median: model.num_points // 2, -1.0: model.num_points}.get(t, 0)
+        stack = EditStack(model.fingerprint())
+        stack.add(_edit(model, 11))
+        model.set_edit_stack(stack)
+        model.config.gate_threshold = median
+        for k in (0.5, 1.7, 0.0):
+            stack.set_specular_strength(k)
+            _check_colours(model, cams[0:1])
+    finally:
+        model.config.gate_threshold = median
+        model.set_edit_stack(None)
+
+
+def test_matte_colours_are_the_cached_tensor(spec_model):
+    """A view the gate keeps nothing of (or with k = 0) is served the cached colours as they are:
+    no per-frame work, diffuse = rgb."""
+    _, model, cams = spec_model
+    median = model.config.gate_threshold
+    try:
+        model.config.gate_threshold = float("inf")
+        a = model.view_colours(model.view_of(cams[0:1]), gated=True)
+        b = model.view_colours(model.view_of(cams[1:2]), gated=True)
+        assert a.rgb is b.rgb and a.diffuse is None and b.diffuse is None
+        model.config.gate_threshold = median
+        stack = EditStack(model.fingerprint())
+        stack.set_specular_strength(0.0)
+        model.set_edit_stack(stack)
+        a = model.view_colours(model.view_of(cams[0:1]), gated=True)
+        assert a.diffuse is None and a.rgb is model.view_colours(model.view_of(cams[1:2]), gated=True).rgb
+        _check_colours(model, cams[0:1])
+    finally:
+        model.config.gate_threshold = median
+        model.set_edit_stack(None)
+
+
+def test_every_change_reaches_the_cached_colours(spec_model):
+    _, model, cams = spec_model
+    cam = cams[0:1]
+    median = model.config.gate_threshold
+    try:
+        stack = EditStack(model.fingerprint())
+        model.set_edit_stack(stack)
+        ref = _check_colours(model, cam)
+        stack.add(_edit(model, 12))  # an edit added
+        ref = _check_colours(model, cam, previous=ref)
+        stack.add(_edit(model, 13))
+        ref = _check_colours(model, cam, previous=ref)
+        model.segmentation_edit = 1  # the segmentation of one edit, then of all
+        _check_colours(model, cam)
+        model.segmentation_edit = None
+        stack.set_enabled(2, False)  # a toggle
+        ref = _check_colours(model, cam, previous=ref)
+        stack.set_enabled(2, True)
+        ref = _check_colours(model, cam, previous=ref)
+        stack.replace(2, _edit(model, 14))  # an edit replaced (a pick adjusted after its commit)
+        ref = _check_colours(model, cam, previous=ref)
+        stack.undo()  # an undo
+        gc.collect()
+        ref = _check_colours(model, cam, previous=ref)
+        with torch.no_grad():  # an edit changed in place, announced to the stack
+            stack.entries[-1].edit.head_bias += 1.0
+        stack.changed()
+        ref = _check_colours(model, cam, previous=ref)
+        stack.set_specular_strength(0.4)  # k
+        ref = _check_colours(model, cam, previous=ref)
+        live = _edit(model, 15)  # a pick's live edit, changed, then cleared
+        model.set_live_edit(live)
+        ref = _check_colours(model, cam, previous=ref)
+        with torch.no_grad():
+            live.head_bias -= 2.0
+        model.set_live_edit(live)
+        ref = _check_colours(model, cam, previous=ref)
+        model.set_live_edit(None)
+        ref = _check_colours(model, cam, previous=ref)
+        model.config.gate_threshold = float(model.spec_magnitude.quantile(0.9))  # another threshold
+        ref = _check_colours(model, cam, previous=ref)
+        model.config.gate_threshold = median
+        ref = _check_colours(model, cam, previous=ref)
+        other = EditStack(model.fingerprint())  # another stack
+        other.add(_edit(model, 16))
+        model.set_edit_stack(other)
+        ref = _check_colours(model, cam, previous=ref)
+        twin = EditStack(model.fingerprint())  # another stack at the same revision
+        twin.add(_edit(model, 19))
+        model.set_edit_stack(twin)
+        assert twin.revision == other.revision
+        ref = _check_colours(model, cam, previous=ref)
+        model.set_edit_stack(None)  # no stack
+        _check_colours(model, cam, previous=ref)
+    finally:
+        model.set_live_edit(None)
+        model.set_edit_stack(None)
+        model.config.gate_threshold = median
+
+
+def test_a_changed_field_is_never_served_from_the_cache(scene):  # noqa: F811
+    """A field changed after the gate was built (a training step, an in-place write) gets the full
+    colour model until the gate is built again; the rebuilt gate serves the new field."""
+    steps = 4
+    _, pipeline, optimizers, cbs = build(scene, steps=steps, seed=1)
+    train(pipeline, optimizers, cbs, steps)
+    pipeline.eval()
+    model = pipeline.model
+    _strong_specular(model, seed=1)
+    model.build_specular_gate(model._train_cameras_fn())
+    model.config.gate_threshold = float(model.spec_magnitude.median())
+    cam = pipeline.datamanager.eval_dataset.cameras[0:1]
+    ref = _check_colours(model, cam)
+    # one optimizer step on the field (no callback drops the gate here)
+    opt = torch.optim.Adam(model.field.parameters(), lr=0.05)
+    means = model.means.detach()
+    out = model.field(means, view_directions(means, _centre(cam)))
+    (out["c_d"].sum() + out["c_s"].sum()).backward()
+    opt.step()
+    assert not model.gate_ready()
+    ref = _check_colours(model, cam, gate=None, previous=ref)
+    model.build_specular_gate(model._train_cameras_fn())  # the gate rebuilt for the new field
+    assert model.gate_ready()
+    ref = _check_colours(model, cam, previous=ref)
+    with torch.no_grad():  # an in-place write to one layer
+        model.field.spec_l2.bias += 0.5
+    ref = _check_colours(model, cam, gate=None, previous=ref)
+    model.build_specular_gate(model._train_cameras_fn())
+    _check_colours(model, cam, previous=ref)
+
+
+def test_the_geometry_level_follows_the_gaussians(spec_model):
+    _, model, _ = spec_model
+    g = model.render_cache.geometry(model)
+    torch.testing.assert_close(g.opacities, torch.sigmoid(model.opacities.detach()).reshape(-1), rtol=0, atol=0)
+    old = model.opacities.detach().clone()
+    try:
+        with torch.no_grad():
+            model.opacities.add_(0.3)
+        g = model.render_cache.geometry(model)
+        torch.testing.assert_close(g.opacities, torch.sigmoid(model.opacities.detach()).reshape(-1), rtol=0, atol=0)
+        torch.testing.assert_close(g.scales, torch.exp(model.scales.detach()), rtol=0, atol=0)
+    finally:
+        with torch.no_grad():
+            model.opacities.copy_(old)
+
+
+def test_gated_render_equals_the_reference_colours_rendered(spec_model):
+    """The whole-view render of the cached colours equals the same renderer given the reference
+    colours (a gate keeping half of the Gaussians, an edit on the stack)."""
+    _, model, cams = spec_model
+    cam = cams[0:1]
+    stack = EditStack(model.fingerprint())
+    stack.add(_edit(model, 17))
+    model.set_edit_stack(stack)
+    try:
+        got = model.render_camera(cam, gated=True)
+        want = _reference(model, cam, model.spec_magnitude > model.config.gate_threshold)
+        ref = model.render_view(model.view_of(cam), ViewColours(want["rgb"], want["diffuse"],
+                                                                lambda: want["segmentation"]))
+        for key in ("rgb", "diffuse", "specular", "segmentation", "depth", "accumulation"):
+            assert (got[key] - ref[key]).abs().max() <= TOL, key
+        assert got["specular"].abs().max() > 1e-2
+    finally:
+        model.set_edit_stack(None)
+
+
+def test_half_precision_cache_is_close(spec_model):
+    """``render_cache_half`` stores MLP_spec's cached parts in float16: within 1e-3 of the field."""
+    _, model, cams = spec_model
+    model.config.render_cache_half = True
+    try:
+        got = model.view_colours(model.view_of(cams[0:1]), gated=True).rgb
+        want = _reference(model, cams[0:1], model.spec_magnitude > model.config.gate_threshold)["rgb"]
+        err = float((got - want).abs().max())
+        assert TOL < err <= 1e-3, err
+        assert model.render_cache.gate_level.p1.dtype == torch.float16
+    finally:
+        model.config.render_cache_half = False
+
+
+# ------------------------------------------------- the GPU path's plumbing, on a CPU
+def _splat_by_contributions(model, passes: list):
+    """A stand-in for gsplat's rasterization with the same outputs (colours composited over the
+    background, expected depth in RGB+ED), made of our contribution lists; records each pass's
+    colour channels and mode."""
+
+    def splat(view, colours, backgrounds, mode):
+        passes.append((colours.shape[-1], mode))
+        cams = Cameras(view.K, view.viewmat, [view.width], [view.height])
+        contrib = model._raster(cams, Request(torch.zeros(1, dtype=torch.long), 0, 0, view.width, view.height))
+        pg = contrib.pair_gaussian
+        chans, bg = [colours[pg]], backgrounds[0]
+        if mode == "RGB+ED":
+            chans.append(contrib.pair_depth[:, None].to(colours))
+            bg = torch.cat([bg, bg.new_zeros(1)])
+        img = composite(torch.cat(chans, -1), contrib, bg)[0]
+        acc = contrib.accumulation()[0, ..., None].to(img)
+        if mode == "RGB+ED":
+            img = torch.cat([img[..., :-1], img[..., -1:] / acc.clamp_min(1e-10)], -1)
+        return img, acc
+
+    return splat
+
+
+@pytest.mark.parametrize("case", ["gated", "matte", "gated_edits", "matte_edits", "full"])
+def test_gpu_outputs_read_lazily_equal_the_contribution_render(spec_model, monkeypatch, case):
+    """The GPU path's outputs (gsplat swapped for a contribution-list stand-in) equal the CPU
+    render; a frame that reads rgb and depth takes one pass, and diffuse, specular and segmentation
+    take one more only where they differ from rgb / zero."""
+    _, model, cams = spec_model
+    cam = cams[0:1]
+    median = model.config.gate_threshold
+    if "matte" in case:
+        model.config.gate_threshold = float("inf")
+    if "edits" in case:
+        stack = EditStack(model.fingerprint())
+        stack.add(_edit(model, 18))
+        model.set_edit_stack(stack)
+    gated = case != "full"
+    try:
+        want = model.render_camera(cam, gated=gated)
+        passes: list = []
+        monkeypatch.setattr(model, "_renders_with_gsplat", lambda: True)
+        monkeypatch.setattr(model, "_splat", _splat_by_contributions(model, passes))
+        out = model.render_camera(cam, gated=gated)
+        assert isinstance(out, ViewOutputs) and list(out.keys()) == list(want.keys())
+        out["rgb"], out["depth"]
+        assert passes == [(3, "RGB+ED")]  # a plain splat's pass
+        for key in ("rgb", "depth", "accumulation", "diffuse", "specular", "segmentation"):
+            assert out[key].shape == want[key].shape, key
+            assert (out[key] - want[key]).abs().max() <= 1e-5, key
+        second = {"gated": [(3, "RGB")], "full": [(3, "RGB")], "gated_edits": [(4, "RGB")], "matte_edits": [(1, "RGB")]}
+        assert passes[1:] == second.get(case, [])
+        out["viewer_extra"] = out["depth"]  # the viewer adds its own keys
+        assert "viewer_extra" in out and len(out) == len(want) + 1
+    finally:
+        model.config.gate_threshold = median
+        model.set_edit_stack(None)
+
+
+@pytest.mark.gpu
+def test_gpu_cached_render_equals_the_reference_colours_rendered(spec_model):
+    """On a GPU, with gsplat: the cached colours equal the field's forward (to the tolerance of GPU
+    matrix products), the viewer's frame equals gsplat's render of the reference colours, and a
+    frame that reads rgb and depth computes nothing else."""
+    pipeline, model, cams = spec_model
+    median = model.config.gate_threshold
+    pipeline.to("cuda")
+    try:
+        cam = cams[0:1].to("cuda")
+        stack = EditStack(model.fingerprint())
+        stack.add(_edit(model, 20))
+        model.set_edit_stack(stack)
+        for t in (median, float("inf")):
+            model.config.gate_threshold = t
+            want = _reference(model, cam, model.spec_magnitude > t)
+            got = model.view_colours(model.view_of(cam), gated=True)
+            assert (got.rgb - want["rgb"]).abs().max() <= 1e-5
+            out = model.get_outputs_for_camera(cam)
+            out["rgb"], out["depth"]
+            extra = {"diffuse"} if t == float("inf") else set()
+            assert set(out.computed()) == {"rgb", "depth", "accumulation", "background"} | extra
+            ref = model.render_view(model.view_of(cam), ViewColours(want["rgb"], want["diffuse"],
+                                                                    lambda: want["segmentation"]))
+            for key in ("rgb", "diffuse", "specular", "segmentation", "depth", "accumulation"):
+                assert out[key].shape == ref[key].shape, key
+                assert (out[key] - ref[key]).abs().max() <= 1e-5, key
+    finally:
+        model.set_edit_stack(None)
+        model.config.gate_threshold = median
         pipeline.to("cpu")

@@ -191,6 +191,41 @@ class DecoupledColorField(nn.Module):
         s2 = torch.relu(self.spec_l2(torch.cat([s1, h1], dim=-1) if self.cfg.residual_links else s1))
         return self.spec_l3(torch.cat([s2, h2], dim=-1) if self.cfg.residual_links else s2)
 
+    # ------------------------------------------- MLP_spec split by what a view changes
+    def specular_parts(
+        self, feats: Float[Tensor, "N F"], h1: Float[Tensor, "N H"], h2: Float[Tensor, "N H"]
+    ) -> tuple[Float[Tensor, "N H"], Float[Tensor, "N H"], Float[Tensor, "N 3"]]:
+        """The parts of MLP_spec's three pre-activations that do not depend on the view direction:
+        ``B1``'s feature columns times ``f`` plus its bias, ``B2``'s link columns times ``h1`` plus
+        its bias, ``B3``'s link columns times ``h2`` plus its bias. A renderer keeps them per
+        Gaussian and finishes with :meth:`specular_from_parts` when only the direction changes."""
+        if not self.cfg.decoupled:
+            raise ValueError("the single-MLP colour field has no specular branch")
+        n, f, h = feats.shape[0], self.feature_dim, self.cfg.hidden
+        p1 = nn.functional.linear(feats, self.spec_l1.weight[:, :f], self.spec_l1.bias)
+        if self.cfg.residual_links:
+            p2 = nn.functional.linear(h1, self.spec_l2.weight[:, h:], self.spec_l2.bias)
+            p3 = nn.functional.linear(h2, self.spec_l3.weight[:, h:], self.spec_l3.bias)
+        else:
+            p2 = self.spec_l2.bias.expand(n, h)
+            p3 = self.spec_l3.bias.expand(n, 3)
+        return p1, p2, p3
+
+    def specular_direction_weights(self) -> tuple[Float[Tensor, "H D"], Float[Tensor, "H H"], Float[Tensor, "3 H"]]:
+        """The weights :meth:`specular_from_parts` applies per view: ``B1``'s direction columns,
+        ``B2``'s columns on ``s1`` and ``B3``'s columns on ``s2``."""
+        f, h = self.feature_dim, self.cfg.hidden
+        return self.spec_l1.weight[:, f:], self.spec_l2.weight[:, :h], self.spec_l3.weight[:, :h]
+
+    def specular_from_parts(
+        self, p1: Float[Tensor, "N H"], p2: Float[Tensor, "N H"], p3: Float[Tensor, "N 3"], dirs: Float[Tensor, "N 3"]
+    ) -> Float[Tensor, "N 3"]:
+        """``c_s`` from :meth:`specular_parts` and unit view directions (equals :meth:`specular`)."""
+        w_dir, w_s1, w_s2 = self.specular_direction_weights()
+        s1 = torch.relu(p1 + nn.functional.linear(self.encode_dirs(dirs).to(p1.dtype), w_dir))
+        s2 = torch.relu(p2 + nn.functional.linear(s1, w_s1))
+        return p3 + nn.functional.linear(s2, w_s2)
+
     # ----------------------------------------------------------------- forward
     def forward(self, positions: Float[Tensor, "N 3"], dirs: Float[Tensor, "N 3"]) -> dict[str, Tensor]:
         """``c_d``, ``c_s`` (pre-sigmoid, [N,3]) and ``rgb = sigmoid(c_d + c_s)``."""
@@ -209,6 +244,63 @@ class DecoupledColorField(nn.Module):
         return list(self.hash.parameters())
 
 
+# nerfstudio's real SH basis (``SHEncoding``, bands 0..3) as polynomials in the direction's
+# components: per output component, {(powers of x, y, z): coefficient}
+_SH_POLYNOMIALS = (
+    {(0, 0, 0): 0.28209479177387814},
+    {(0, 1, 0): 0.4886025119029199},
+    {(0, 0, 1): 0.4886025119029199},
+    {(1, 0, 0): 0.4886025119029199},
+    {(1, 1, 0): 1.0925484305920792},
+    {(0, 1, 1): 1.0925484305920792},
+    {(0, 0, 2): 0.9461746957575601, (0, 0, 0): -0.31539156525251999},
+    {(1, 0, 1): 1.0925484305920792},
+    {(2, 0, 0): 0.5462742152960396, (0, 2, 0): -0.5462742152960396},
+    {(2, 1, 0): 3 * 0.5900435899266435, (0, 3, 0): -0.5900435899266435},
+    {(1, 1, 1): 2.890611442640554},
+    {(0, 1, 2): 5 * 0.4570457994644658, (0, 1, 0): -0.4570457994644658},
+    {(0, 0, 3): 5 * 0.3731763325901154, (0, 0, 1): -3 * 0.3731763325901154},
+    {(1, 0, 2): 5 * 0.4570457994644658, (1, 0, 0): -0.4570457994644658},
+    {(2, 0, 1): 1.445305721320277, (0, 2, 1): -1.445305721320277},
+    {(3, 0, 0): 0.5900435899266435, (1, 2, 0): -3 * 0.5900435899266435},
+)
+
+
+def monomial_degree(levels: int) -> int:
+    """The degree of the products :func:`direction_monomials` forms for an SH encoding of
+    ``levels`` bands (at least 1)."""
+    return max(levels - 1, 1)
+
+
+def direction_monomials(dirs: Float[Tensor, "N 3"], degree: int) -> Float[Tensor, "N M"]:
+    """Every product of ``degree`` factors taken from ``(1, x, y, z)``, ``M = 4 ** degree`` columns
+    (each monomial of degree <= ``degree`` appears, some more than once): three element-wise
+    products for degree 3, where the SH encoding takes dozens of small operations."""
+    one = nn.functional.pad(dirs, (1, 0), value=1.0)  # [N, 4]
+    out = one
+    for _ in range(degree - 1):
+        out = (out[:, :, None] * one[:, None, :]).reshape(dirs.shape[0], -1)
+    return out
+
+
+def sh_monomial_matrix(levels: int, dtype=torch.float64) -> Float[Tensor, "M D"]:
+    """``A`` with ``SHEncoding(levels)(d) = direction_monomials(d, monomial_degree(levels)) @ A`` for
+    unit ``d``: each SH component's coefficients, placed on one column of its monomial."""
+    if not 1 <= levels <= 4:
+        raise ValueError(f"SH levels must be 1..4, got {levels}")
+    q = monomial_degree(levels)
+    a = torch.zeros(4**q, levels**2, dtype=dtype)
+    for comp, poly in enumerate(_SH_POLYNOMIALS[: levels**2]):
+        for (px, py, pz), coef in poly.items():
+            factors = [1] * px + [2] * py + [3] * pz  # indices into (1, x, y, z), padded with the 1
+            factors += [0] * (q - len(factors))
+            row = 0
+            for i in factors:
+                row = row * 4 + i
+            a[row, comp] += coef
+    return a
+
+
 def view_directions(means: Float[Tensor, "N 3"], centers: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
     """Unit directions from camera centres to points (the direction light travels to the eye,
     reversed: camera -> point, as nerfstudio's ray directions)."""
@@ -216,4 +308,5 @@ def view_directions(means: Float[Tensor, "N 3"], centers: Float[Tensor, "N 3"]) 
     return d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-__all__ = ["ColorFieldConfig", "DecoupledColorField", "view_directions"]
+__all__ = ["ColorFieldConfig", "DecoupledColorField", "direction_monomials", "monomial_degree",
+           "sh_monomial_matrix", "view_directions"]

@@ -213,7 +213,7 @@ class EditStack:
         self._k = float(specular_strength)
         self.device: torch.device | None = None
         self.revision = 0
-        """Counts the changes (edits added, undone, enabled or disabled, moved; ``k`` set): a cache of
+        """Counts the changes (edits added, replaced, undone, enabled or disabled, moved; ``k`` set): a cache of
         colours rendered through the stack is current while the stack object and this number are."""
 
     # ------------------------------------------------------------ persistence

@@ -35,6 +35,7 @@ from virgi_ns.nerfstudio import distributed
 from virgi_ns.nerfstudio.colour_stage import ColourStage
 from virgi_ns.nerfstudio.datamanager import TileBatch
 from virgi_ns.nerfstudio.geometry_stage import GeometryStage
+from virgi_ns.nerfstudio.render_cache import RenderCache
 from virgi_ns.nerfstudio.render_path import RenderPath
 from virgi_ns.raster import Cameras, Contributions, Request, rasterize
 
@@ -69,6 +70,9 @@ class VirgiModelConfig(SplatfactoModelConfig):
     gate_threshold: float = 1.0 / 255.0
     """Largest |sigmoid(c_d + c_s) - sigmoid(c_d)| over the training views below which a Gaussian
     is treated as matte."""
+    render_cache_half: bool = False
+    """Keep the render cache's two per-Gaussian hidden-layer parts of MLP_spec in float16: half the
+    cache's memory, colours no longer equal to the field's to float32 precision."""
     box_quantile: float = 0.01
     """The hash grid's box spans these quantiles of the frozen means (expanded by 10%)."""
     colour_init: Literal["geometry", "geometry_sh", "none"] = "geometry_sh"
@@ -158,7 +162,11 @@ class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
         self.edit_stack = None
         self.live_edit = None  # a pick's uncommitted edit, rendered over the stack (set_live_edit)
         self.segmentation_edit: Optional[int] = None
-        self._edited_cache: Optional[tuple] = None
+        # view-independent parts of whole-view renders (see render_cache); keyed on what they are
+        # computed from, so nothing here has to be cleared by hand
+        self._render_cache = RenderCache()
+        self._live_revision = 0  # counts set_live_edit calls (the render cache's key for the live edit)
+        self._gate_stamp: Optional[tuple] = None  # the field's parameter versions when the gate was built
         if self.imported:
             self.freeze_geometry()
         from virgi_ns.nerfstudio.viewer.panel import VirgiPanel
@@ -214,6 +222,8 @@ class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
         out = super().load_state_dict(state_dict, **kwargs)
         for p in self.gauss_params.values():
             p.requires_grad_(not self.geometry_frozen)
+        self._gate_stamp = self._field_versions()  # a saved gate belongs to the saved field
+        self.render_cache.clear()
         return out
 
 

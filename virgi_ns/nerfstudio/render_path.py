@@ -1,18 +1,22 @@
-"""The render path of :class:`~virgi_ns.nerfstudio.model.VirgiModel`: per-pair colours through the
-edit stack (and the live edit of a pick, not yet on the stack), the specular gate, and whole-camera
-renders.
+"""The render path of :class:`~virgi_ns.nerfstudio.model.VirgiModel`: colours through the edit stack
+(and the live edit of a pick, not yet on the stack), the specular gate, and whole-camera renders.
 
-Hash features and MLP_diff run once per distinct Gaussian of a contribution list, MLP_spec once per
-(view, Gaussian) pair. An :class:`~virgi_ns.edit.stack.EditStack` set on the model recolours
-``c_d`` and scales ``c_s`` at render time. After training the model measures every Gaussian's
-specular magnitude over the training views (:meth:`RenderPath.build_specular_gate`); renders then
-run MLP_spec only for Gaussians above ``gate_threshold`` and use cached (edited) diffuse colours
-elsewhere.
+In one view every pair of a Gaussian has the same direction, so a whole-view render computes one
+colour per Gaussian (:meth:`RenderPath.view_colours`) and composites them: on a GPU with gsplat,
+elsewhere through our contribution lists. Tile batches (training) take :meth:`RenderPath.pair_colours`,
+one colour per (view, Gaussian) pair.
+
+An :class:`~virgi_ns.edit.stack.EditStack` set on the model recolours ``c_d`` and scales ``c_s`` at
+render time. After training the model measures every Gaussian's specular magnitude over the
+training views (:meth:`RenderPath.build_specular_gate`). Gated renders then take the
+:class:`~virgi_ns.nerfstudio.render_cache.RenderCache`: MLP_spec's last steps for the Gaussians
+above ``gate_threshold`` from cached view-independent parts, cached (edited) diffuse colours for
+the rest, and nothing per frame for a matte scene.
 """
 
 from __future__ import annotations
 
-from typing import Dict, List
+from typing import Dict, List, Optional
 
 import torch
 from nerfstudio.cameras.cameras import Cameras as NSCameras
@@ -20,13 +24,24 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from virgi_ns.colour.field import view_directions
-from virgi_ns.nerfstudio.cameras import raster_cameras
+from virgi_ns.nerfstudio.render_cache import (
+    CHUNK,
+    RenderCache,
+    View,
+    ViewColours,
+    ViewOutputs,
+    gated_colours,
+    view_of,
+)
 from virgi_ns.raster import Cameras, Contributions, Request, composite, expected_depth
+
+OUTPUTS = ("rgb", "diffuse", "specular", "depth", "accumulation", "segmentation", "background")
 
 
 class RenderPath:
     """Mixed into :class:`~virgi_ns.nerfstudio.model.VirgiModel` (reads its config, Gaussians and
-    field): colours per contribution pair, the specular gate, and renders of whole cameras."""
+    field): colours per Gaussian of a view and per contribution pair, the specular gate, and
+    renders of whole cameras."""
 
     # -------------------------------------------------------------- edit stack
     def set_edit_stack(self, stack) -> None:
@@ -34,13 +49,14 @@ class RenderPath:
         colours) from now on: its enabled edits recolour ``c_d``, its ``specular_strength`` scales
         ``c_s``."""
         self.edit_stack = stack.to(self.device) if stack is not None else None
-        self._edited_cache = None
 
     def set_live_edit(self, edit) -> None:
         """Render ``edit`` (a :class:`virgi_ns.edit.stack.Edit`, or None) over the stack's edits without
         adding it to the stack: the uncommitted edit of a pick while its colour is dragged (nothing
-        is written; committing adds it to the stack and clears this slot)."""
+        is written; committing adds it to the stack and clears this slot). Each call counts as a
+        change for the render cache, so an edit changed in place must be set again."""
         self.live_edit = edit.to(self.device) if edit is not None else None
+        self._live_revision = getattr(self, "_live_revision", 0) + 1
 
     def fingerprint(self) -> str:
         """The base run's fingerprint that every edit of it carries."""
@@ -54,110 +70,148 @@ class RenderPath:
         st = self.edit_stack
         return None if st is None or st.is_identity else st
 
-    def _edited_diffuse_cache(self, stack) -> Tensor:
-        """``c_d''`` of every Gaussian through ``stack``, recomputed whenever the stack has changed
-        since (:attr:`EditStack.revision`) or another stack is set. The cache holds the stack
-        itself, so the identity it is compared by cannot pass to a new object."""
-        cached = self._edited_cache
-        if cached is None or cached[0] is not stack or cached[1] != stack.revision:
-            self._edited_cache = (stack, stack.revision, stack.diffuse_all(self.field, self.means.detach()))
-        return self._edited_cache[2]
+    @property
+    def render_cache(self) -> RenderCache:
+        cache = getattr(self, "_render_cache", None)
+        if cache is None:
+            cache = self._render_cache = RenderCache()
+        return cache
 
-    # ------------------------------------------------------------------ colours
-    def pair_colours(self, contrib: Contributions, cams: Cameras, gated: bool = False,
-                     segmentation: bool = False) -> Dict[str, Tensor]:
-        """Per-pair ``rgb``, ``diffuse`` (sigmoid c_d), ``c_s`` (and ``segmentation``) for a
-        contribution list, through the edit stack when one is set.
-
-        Hash features and MLP_diff run once per distinct Gaussian, MLP_spec once per pair. With
-        ``gated``, MLP_spec runs only for gated Gaussians and cached diffuse colours serve the rest.
-        """
+    # ------------------------------------------------------- colours per pair
+    def pair_colours(self, contrib: Contributions, cams: Cameras) -> Dict[str, Tensor]:
+        """Per-pair ``rgb``, ``diffuse`` (sigmoid c_d) and ``c_s`` of a contribution list (tile
+        batches: many views), through the edit stack when one is set. Hash features and MLP_diff run
+        once per distinct Gaussian, MLP_spec once per pair."""
         pg = contrib.pair_gaussian.to(self.device)
         pv = contrib.pair_view.to(self.device)
         stack = self._active_stack()
         live = getattr(self, "live_edit", None)
         if pg.numel() == 0:
             z = torch.zeros(0, 3, device=self.device)
-            return {"rgb": z, "diffuse": z, "c_s": z, "segmentation": z[:, :1]}
+            return {"rgb": z, "diffuse": z, "c_s": z}
         means = self.means.detach()
         centres = cams.to(self.device).camera_centers().to(means.dtype)
         fld = self.field
-        uniq = inv = f = h2 = None
-        if gated and self.gate_ready() and fld.decoupled:
-            cache = self._edited_diffuse_cache(stack) if stack is not None else self.diffuse_cache
-            c_d = cache[pg]
-            if live is not None:  # features of the visible Gaussians only: the live edit changes often
-                u, i_u = torch.unique(pg, return_inverse=True)
-                fu = fld.encode(means[u])
-                c_d = live.over(fu, fld.diffuse_hidden(fu)[1], cache[u])[i_u]
-            c_s = torch.zeros_like(c_d)
-            sel = self.spec_gate[pg].nonzero().flatten()
-            if sel.numel() > 0:
-                g_sel = pg[sel]
-                u_sel, i_sel = torch.unique(g_sel, return_inverse=True)
-                fs = fld.encode(means[u_sel])
-                hs1, hs2 = fld.diffuse_hidden(fs)
-                d = view_directions(means[g_sel], centres[pv[sel]])
-                c_s[sel] = fld.specular(fs[i_sel], d, hs1[i_sel], hs2[i_sel]).to(c_s.dtype)
+        uniq, inv = torch.unique(pg, return_inverse=True)
+        f = fld.encode(means[uniq])
+        d = view_directions(means[pg], centres[pv])
+        if fld.decoupled:
+            h1, h2 = fld.diffuse_hidden(f)
+            c_d_u = fld.diffuse(h2)
+            if stack is not None:
+                c_d_u = stack.diffuse(f, h2, c_d_u)
+            if live is not None:
+                c_d_u = live.over(f, h2, c_d_u)
+            c_d = c_d_u[inv]
+            c_s = fld.specular(f[inv], d, h1[inv], h2[inv])
         else:
-            uniq, inv = torch.unique(pg, return_inverse=True)
-            f = fld.encode(means[uniq])
-            d = view_directions(means[pg], centres[pv])
+            h1, h2p = fld.diffuse_hidden(f[inv], d)
+            c_d = fld.diffuse(h2p)
+            if stack is not None:
+                c_d = stack.diffuse(f[inv], h2p, c_d)
+            if live is not None:
+                c_d = live.over(f[inv], h2p, c_d)
+            c_s = torch.zeros_like(c_d)
+        k = stack.specular_strength if stack is not None else 1.0
+        return {"rgb": torch.sigmoid(c_d + k * c_s), "diffuse": torch.sigmoid(c_d), "c_s": c_s}
+
+    # ---------------------------------------------------- colours per Gaussian
+    def view_of(self, camera: NSCameras) -> View:
+        """The first camera of ``camera`` as a :class:`~virgi_ns.nerfstudio.render_cache.View`."""
+        return view_of(camera, self.device, self.means.dtype)
+
+    @torch.no_grad()
+    def view_colours(self, view: View, gated: bool = False) -> ViewColours:
+        """One colour per Gaussian for ``view``. ``gated`` (and a current gate): from the render
+        cache; otherwise the full colour model over every Gaussian."""
+        params = tuple(self.field.parameters()) if gated and self.field.decoupled else ()
+        if params and self._gate_current(params):
+            cache = self.render_cache
+            gate = cache.gate(self, params)
+            edits = cache.edits(self, gate)
+            rgb = edits.diffuse if edits.matte else gated_colours(gate, edits, view.centre)
+            seg = (lambda: self._cached_segmentation(edits)) if self._with_segmentation() else None
+            return ViewColours(rgb, None if edits.matte else edits.diffuse, seg)
+        return self._full_colours(view.centre)
+
+    def _full_colours(self, centre: Tensor) -> ViewColours:
+        """Every Gaussian's colour from the field (no cache): the reference the cached colours
+        must equal."""
+        fld = self.field
+        stack = self._active_stack()
+        live = getattr(self, "live_edit", None)
+        k = stack.specular_strength if stack is not None else 1.0
+        means = self.means.detach()
+        rgbs, diffs = [], []
+        for s in range(0, means.shape[0], CHUNK):
+            m = means[s : s + CHUNK]
+            f = fld.encode(m)
+            d = view_directions(m, centre)
             if fld.decoupled:
                 h1, h2 = fld.diffuse_hidden(f)
-                c_d_u = fld.diffuse(h2)
-                if stack is not None:
-                    c_d_u = stack.diffuse(f, h2, c_d_u)
-                if live is not None:
-                    c_d_u = live.over(f, h2, c_d_u)
-                c_d = c_d_u[inv]
-                c_s = fld.specular(f[inv], d, h1[inv], h2[inv])
             else:
-                h1, h2p = fld.diffuse_hidden(f[inv], d)
-                c_d = fld.diffuse(h2p)
-                if stack is not None:
-                    c_d = stack.diffuse(f[inv], h2p, c_d)
-                if live is not None:
-                    c_d = live.over(f[inv], h2p, c_d)
-                c_s = torch.zeros_like(c_d)
-        k = stack.specular_strength if stack is not None else 1.0
-        out = {"rgb": torch.sigmoid(c_d + k * c_s), "diffuse": torch.sigmoid(c_d), "c_s": c_s}
-        if segmentation:
-            out["segmentation"] = self._pair_segmentation(pg, pv, cams, uniq, inv, f, h2)
-        return out
+                h1, h2 = fld.diffuse_hidden(f, d)
+            c_d = fld.diffuse(h2)
+            if stack is not None:
+                c_d = stack.diffuse(f, h2, c_d)
+            if live is not None:
+                c_d = live.over(f, h2, c_d)
+            if fld.decoupled:
+                rgbs.append(torch.sigmoid(c_d + k * fld.specular(f, d, h1, h2)))
+            diffs.append(torch.sigmoid(c_d))
+        diffuse = torch.cat(diffs) if diffs else means.new_zeros(0, 3)
+        rgb = (torch.cat(rgbs) if rgbs else diffuse) if fld.decoupled else diffuse
+        seg = (lambda: self._segmentation_from_field(centre)) if self._with_segmentation() else None
+        return ViewColours(rgb, diffuse if fld.decoupled else None, seg)
 
-    def _pair_segmentation(self, pg, pv, cams, uniq, inv, f, h2) -> Tensor:
-        """Per-pair alpha of ``segmentation_edit`` (or of all enabled edits together) [U,1];
-        zeros without edits."""
+    def _with_segmentation(self) -> bool:
+        return self.edit_stack is not None and len(self.edit_stack) > 0
+
+    def _segmentation_index(self) -> Optional[int]:
         st = self.edit_stack
-        if st is None or len(st) == 0:
-            return torch.zeros(pg.shape[0], 1, device=self.device)
         if self.segmentation_edit is not None and not 1 <= self.segmentation_edit <= len(st):
             self.segmentation_edit = None  # the selected edit was undone: show all enabled edits
-        fld = self.field
-        if f is None:  # the gated path computed no features for these pairs
-            uniq, inv = torch.unique(pg, return_inverse=True)
-            f = fld.encode(self.means.detach()[uniq])
-        if h2 is None:  # gated, or the single MLP (whose hidden layers are per pair)
-            if fld.decoupled:
-                _, h2 = fld.diffuse_hidden(f)
-            else:  # the single MLP's hidden layers need a direction: use each pair's
-                centres = cams.to(self.device).camera_centers().to(f.dtype)
-                d = view_directions(self.means.detach()[pg], centres[pv])
-                _, h2 = fld.diffuse_hidden(f[inv], d)
-                return st.segmentation(f[inv], h2, self.segmentation_edit).to(f.dtype)
-        return st.segmentation(f, h2, self.segmentation_edit)[inv].to(f.dtype)
+        return self.segmentation_edit
+
+    def _segmentation_from_field(self, centre: Optional[Tensor]) -> Tensor:
+        """[N,1] alpha of ``segmentation_edit`` (or of all enabled edits together) per Gaussian; the
+        single MLP's hidden layers need the view's ``centre``."""
+        st, fld, index = self.edit_stack, self.field, self._segmentation_index()
+        means = self.means.detach()
+        out = []
+        for s in range(0, means.shape[0], CHUNK):
+            m = means[s : s + CHUNK]
+            f = fld.encode(m)
+            _, h2 = fld.diffuse_hidden(f) if fld.decoupled else fld.diffuse_hidden(f, view_directions(m, centre))
+            out.append(st.segmentation(f, h2, index).to(means.dtype))
+        return torch.cat(out) if out else means.new_zeros(0, 1)
+
+    def _cached_segmentation(self, edits) -> Tensor:
+        index = self._segmentation_index()
+        if index not in edits.segmentation:
+            edits.segmentation[index] = self._segmentation_from_field(None)
+        return edits.segmentation[index]
 
     # ----------------------------------------------------------- specular gate
+    def _field_versions(self, params=None) -> tuple:
+        """The in-place version counter of every field parameter (optimizer steps and loads bump them)."""
+        return tuple(p._version for p in (params if params is not None else self.field.parameters()))
+
     def gate_ready(self) -> bool:
-        return self.spec_magnitude.numel() == self.num_points and self.diffuse_cache.shape[0] == self.num_points
+        """A gate is built for these Gaussians and the field has not changed since."""
+        return self._gate_current(None)
+
+    def _gate_current(self, params) -> bool:
+        stamp = getattr(self, "_gate_stamp", None)
+        return (self.spec_magnitude.numel() == self.num_points and self.diffuse_cache.shape[0] == self.num_points
+                and (stamp is None or stamp == self._field_versions(params)))
 
     def drop_specular_gate(self) -> None:
-        """Forget the gate and the cached diffuse colours (the field changes; renders take the full
-        path until :meth:`build_specular_gate` runs again)."""
+        """Forget the gate, the cached diffuse colours and the render cache (the field changes;
+        renders take the full path until :meth:`build_specular_gate` runs again)."""
         self.spec_magnitude = self.spec_magnitude.new_zeros(0)
         self.diffuse_cache = self.diffuse_cache.new_zeros(0, 3)
-        self._edited_cache = None
+        self.render_cache.clear()
 
     @property
     def spec_gate(self) -> Tensor:
@@ -190,39 +244,50 @@ class RenderPath:
             mag.fill_(float("inf"))
         self.spec_magnitude = mag
         self.diffuse_cache = cache
-        self._edited_cache = None  # edited colours were computed from the previous field
+        self._gate_stamp = self._field_versions()
+        self.render_cache.clear()  # its colours were computed from the previous field
         kept = float(self.spec_gate.float().mean()) if self.num_points else 0.0
         CONSOLE.log(f"virgi: specular gate keeps {kept:.1%} of {self.num_points:,} Gaussians")
         return {"kept_fraction": kept}
 
     # ------------------------------------------------------------------ renders
     @torch.no_grad()
-    def render_camera(self, camera: NSCameras, gated: bool = False, max_pixels: int = 1 << 20
-                      ) -> Dict[str, Tensor]:
+    def render_camera(self, camera: NSCameras, gated: bool = False, max_pixels: int = 1 << 20):
         """Whole-image ``rgb``, ``diffuse``, ``specular`` (rgb - diffuse, no background), ``depth``,
-        ``accumulation`` and ``segmentation`` (zeros without edits) for one camera, rendered in bands
-        of rows, through the edit stack when one is set."""
-        cams = raster_cameras(camera[0:1] if len(camera.shape) else camera.reshape((1,)))
-        W, H = int(cams.widths[0]), int(cams.heights[0])
-        bg = self.background_color.to(self.device)
+        ``accumulation`` and ``segmentation`` (zeros without edits) for the first camera of
+        ``camera``, through the edit stack when one is set (see :meth:`render_view`)."""
+        view = self.view_of(camera)
+        return self.render_view(view, self.view_colours(view, gated), max_pixels)
+
+    def render_view(self, view: View, colours: ViewColours, max_pixels: int = 1 << 20):
+        """Composite one colour per Gaussian in ``view``. On a GPU (``whole_view_renderer="gsplat"``)
+        one gsplat pass gives rgb, depth and accumulation, and a :class:`ViewOutputs` computes
+        diffuse, specular and segmentation (a second pass) only when they are read; elsewhere our
+        contribution lists, in bands of rows, give them all."""
+        bg = self.render_cache.background(self.background_color, self.device)
         if self._renders_with_gsplat():
-            return self._render_camera_gsplat(cams, gated, bg)
+            return self._render_view_gsplat(view, colours, bg)
+        return self._render_view_contributions(view, colours, bg, max_pixels)
+
+    def _render_view_contributions(self, view: View, colours: ViewColours, bg: Tensor, max_pixels: int
+                                   ) -> Dict[str, Tensor]:
+        cams = Cameras(view.K, view.viewmat, [view.width], [view.height])
+        W, H = view.width, view.height
         rows = max(1, min(H, max_pixels // max(W, 1)))
-        with_seg = self.edit_stack is not None and len(self.edit_stack) > 0
-        names = ("rgb", "diffuse", "specular", "depth", "accumulation", "segmentation")
-        parts: Dict[str, List[Tensor]] = {k: [] for k in names}
+        seg = colours.segmentation() if colours.segmentation is not None else None
+        diffuse = colours.diffuse if colours.diffuse is not None else colours.rgb
+        parts: Dict[str, List[Tensor]] = {k: [] for k in OUTPUTS[:-1]}
         # one composite per band for every output: rgb | diffuse | depth | segmentation channels
         # (the background only behind the two colours), so the lists are walked once
         zero = bg.new_zeros(1)
-        bg_all = torch.cat([bg, bg, zero] + ([zero] if with_seg else []))
+        bg_all = torch.cat([bg, bg, zero] + ([zero] if seg is not None else []))
         for y0 in range(0, H, rows):
             h = min(rows, H - y0)
-            req = Request(torch.zeros(1, dtype=torch.long), 0, y0, W, h)
-            contrib = self._raster(cams, req)
-            cols = self.pair_colours(contrib, cams, gated=gated, segmentation=with_seg)
-            channels = [cols["rgb"], cols["diffuse"], contrib.pair_depth[:, None].to(cols["rgb"])]
-            if with_seg:
-                channels.append(cols["segmentation"].to(cols["rgb"]))
+            contrib = self._raster(cams, Request(torch.zeros(1, dtype=torch.long), 0, y0, W, h))
+            pg = contrib.pair_gaussian.to(self.device)
+            channels = [colours.rgb[pg], diffuse[pg], contrib.pair_depth[:, None].to(colours.rgb)]
+            if seg is not None:
+                channels.append(seg[pg].to(colours.rgb))
             img = composite(torch.cat(channels, dim=-1), contrib, bg_all)[0]
             rgb, diff, z_sum = img[..., 0:3], img[..., 3:6], img[..., 6:7]
             acc = contrib.accumulation()[0, ..., None].to(rgb)
@@ -231,7 +296,7 @@ class RenderPath:
             parts["specular"].append(rgb - diff)
             parts["depth"].append(expected_depth(z_sum, acc))
             parts["accumulation"].append(acc)
-            parts["segmentation"].append(img[..., 7:8] if with_seg else rgb.new_zeros(h, W, 1))
+            parts["segmentation"].append(img[..., 7:8] if seg is not None else rgb.new_zeros(h, W, 1))
         out: Dict[str, Tensor] = {k: torch.cat(v, dim=0) for k, v in parts.items()}
         out["rgb"] = out["rgb"].clamp(0, 1)
         out["diffuse"] = out["diffuse"].clamp(0, 1)
@@ -242,44 +307,67 @@ class RenderPath:
         """Whole views on a GPU go through gsplat's forward rasterizer (``whole_view_renderer``)."""
         return self.config.whole_view_renderer == "gsplat" and self.device.type == "cuda"
 
-    @torch.no_grad()
-    def _render_camera_gsplat(self, cams: Cameras, gated: bool, bg: Tensor) -> Dict[str, Tensor]:
-        """:meth:`render_camera`'s outputs from one gsplat rasterization. In one view every pair of
-        a Gaussian has the same direction, so the colours are computed once per Gaussian (the same
-        numbers the contribution path composites) and gsplat composites rgb, diffuse, segmentation
-        and depth in one pass, at a plain splat's cost plus the colour model's."""
-        from types import SimpleNamespace
-
+    def _splat(self, view: View, colours: Tensor, backgrounds: Tensor, mode: str):
+        """gsplat's forward rasterization of the frozen Gaussians with one colour per Gaussian."""
         from gsplat.rendering import rasterization
 
-        n = self.num_points
-        with_seg = self.edit_stack is not None and len(self.edit_stack) > 0
-        every = SimpleNamespace(pair_gaussian=torch.arange(n, device=self.device),
-                                pair_view=torch.zeros(n, dtype=torch.long, device=self.device))
-        cols = self.pair_colours(every, cams, gated=gated, segmentation=with_seg)  # type: ignore[arg-type]
-        channels = [cols["rgb"], cols["diffuse"]] + ([cols["segmentation"].to(cols["rgb"])] if with_seg else [])
-        colours = torch.cat(channels, dim=-1).float()
-        zero = bg.new_zeros(1)
-        bg_all = torch.cat([bg, bg] + ([zero] if with_seg else [])).float()[None]
-        c = cams.to(self.device)
-        W, H = int(c.widths[0]), int(c.heights[0])
-        img, alpha, _ = rasterization(
-            self.means.detach(), self.quats.detach(), torch.exp(self.scales.detach()),
-            torch.sigmoid(self.opacities.detach()).reshape(-1), colours, c.viewmats.float(), c.Ks.float(), W, H,
-            render_mode="RGB+ED", backgrounds=bg_all, packed=False, rasterize_mode="classic")
-        img, acc = img[0], alpha[0]
-        rgb, diff = img[..., 0:3].clamp(0, 1), img[..., 3:6].clamp(0, 1)
-        return {"rgb": rgb, "diffuse": diff, "specular": img[..., 0:3] - img[..., 3:6],
-                "depth": img[..., -1:] * (acc > 1e-10), "accumulation": acc,
-                "segmentation": img[..., 6:7] if with_seg else rgb.new_zeros(H, W, 1), "background": bg}
+        g = self.render_cache.geometry(self)
+        img, alpha, _ = rasterization(g.means, g.quats, g.scales, g.opacities, colours, view.viewmat, view.K,
+                                      view.width, view.height, render_mode=mode, backgrounds=backgrounds,
+                                      packed=False, rasterize_mode="classic")
+        return img[0], alpha[0]
+
+    def _render_view_gsplat(self, view: View, colours: ViewColours, bg: Tensor) -> ViewOutputs:
+        """:meth:`render_view` on a GPU. The main pass is a plain splat's (colour + expected depth);
+        diffuse and segmentation take a second pass of their own when read, and a matte view (no
+        specular term anywhere) has diffuse = rgb and specular = 0 without one."""
+        background, bg = bg, bg.float()
+        img, acc = self._splat(view, colours.rgb.float(), bg[None], "RGB+ED")
+        rgb_raw = img[..., 0:3]
+        rgb = rgb_raw.clamp(0, 1)
+        H, W = view.height, view.width
+        second: Dict[str, Tensor] = {}
+
+        def pass2() -> Dict[str, Tensor]:
+            if not second:
+                chans, bgs = [], []
+                if colours.diffuse is not None:
+                    chans.append(colours.diffuse.float())
+                    bgs.append(bg)
+                if colours.segmentation is not None:
+                    chans.append(colours.segmentation().float())
+                    bgs.append(bg.new_zeros(1))
+                img2, _ = self._splat(view, torch.cat(chans, -1), torch.cat(bgs)[None], "RGB")
+                i = 0
+                if colours.diffuse is not None:
+                    second["diffuse_raw"], i = img2[..., 0:3], 3
+                if colours.segmentation is not None:
+                    second["segmentation"] = img2[..., i : i + 1]
+            return second
+
+        lazy = {
+            "depth": lambda: img[..., 3:4] * (acc > 1e-10),
+            "specular": (lambda: rgb_raw - pass2()["diffuse_raw"]) if colours.diffuse is not None
+            else (lambda: rgb.new_zeros(H, W, 3)),
+            "segmentation": (lambda: pass2()["segmentation"]) if colours.segmentation is not None
+            else (lambda: rgb.new_zeros(H, W, 1)),
+        }
+        ready = {"rgb": rgb, "accumulation": acc, "background": background}
+        if colours.diffuse is not None:
+            lazy["diffuse"] = lambda: pass2()["diffuse_raw"].clamp(0, 1)
+        else:
+            ready["diffuse"] = rgb
+        return ViewOutputs(OUTPUTS, ready, lazy)
 
     @torch.no_grad()
-    def get_outputs_for_camera(self, camera: NSCameras, obb_box=None) -> Dict[str, Tensor]:
+    def get_outputs_for_camera(self, camera: NSCameras, obb_box=None):
         if obb_box is not None and self.geometry_frozen and not getattr(self, "_crop_notice", False):
             self._crop_notice = True
             CONSOLE.log("virgi: crop boxes are ignored when rendering the colour field")
         self.set_crop(None if self.geometry_frozen else obb_box)
-        return self.get_outputs(camera.to(self.device))  # type: ignore[return-value]
+        if camera.camera_to_worlds.device != self.device:
+            camera = camera.to(self.device)
+        return self.get_outputs(camera)  # type: ignore[return-value]
 
 
-__all__ = ["RenderPath"]
+__all__ = ["OUTPUTS", "RenderPath"]

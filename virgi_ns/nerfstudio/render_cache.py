@@ -1,0 +1,342 @@
+"""What a whole-view render keeps between frames, and the per-frame work that is left.
+
+With frozen geometry and a trained field, a view changes only the view direction of each Gaussian.
+So :class:`RenderCache` keeps, each level rebuilt when what it was computed from changes:
+
+- **geometry** (:class:`GeometryCache`): gsplat's inputs of the frozen Gaussians (exponentiated
+  scales, sigmoid opacities);
+- **gate** (:class:`GateCache`): for each Gaussian the specular gate keeps, its mean and the
+  direction-independent parts of MLP_spec's three pre-activations
+  (:meth:`~virgi_ns.colour.field.DecoupledColorField.specular_parts`), and MLP_spec's per-view
+  weights with the SH direction encoding folded into a weight on direction monomials;
+- **edits** (:class:`EditCache`): every Gaussian's edited diffuse colour ``sigmoid(c_d'')``
+  (through the edit stack and the live edit), and for gated Gaussians ``c_d'' + k p3`` and
+  ``k B3``, so that the last layer lands on the final logit.
+
+A view then costs, for the gated Gaussians only: directions, their monomials, three small matrix
+products and a sigmoid, written over the cached diffuse colours (:func:`gated_colours`); nothing at
+all when the gate keeps no Gaussian or ``k = 0``.
+
+Validity is checked per frame by cheap keys: each tensor's identity, in-place version counter,
+storage and dtype (:func:`stamp`; optimizer steps and ``load_state_dict`` bump the version), the
+edit stack's identity and :attr:`~virgi_ns.edit.stack.EditStack.revision`, a counter of live
+edits, and the gate threshold. Writes through ``.data`` bypass the version counter: call
+:meth:`RenderCache.clear` after those.
+"""
+
+from __future__ import annotations
+
+from collections.abc import MutableMapping
+from dataclasses import dataclass, field
+from typing import Callable, Dict, Iterator, Optional
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from virgi_ns.colour.field import direction_monomials, monomial_degree, sh_monomial_matrix, view_directions
+
+CHUNK = 1 << 18
+"""Gaussians per chunk when a cache is filled (bounds the hash encoding's working memory)."""
+
+
+def stamp(t: Optional[Tensor]) -> tuple:
+    """What changes whenever a tensor's values may have: identity, in-place version, storage, dtype.
+    (Callers keep the tensor alive, so its identity cannot pass to another.)"""
+    if t is None:
+        return (None,)
+    return (id(t), t._version, t.data_ptr(), t.dtype)
+
+
+# ------------------------------------------------------------------------------ a view
+@dataclass
+class View:
+    """One pinhole view in gsplat's form: ``viewmat`` [1,4,4] (world-to-camera, OpenCV axes) and
+    ``K`` [1,3,3] in float32 on the model's device, the camera centre [1,3], and the image size."""
+
+    viewmat: Tensor
+    K: Tensor
+    centre: Tensor
+    width: int
+    height: int
+
+
+def view_of(camera, device: torch.device, dtype: torch.dtype) -> View:
+    """The first camera of a nerfstudio ``Cameras`` as a :class:`View`: one copy to the host, the
+    4x4 algebra there, one copy back (where per-element tensor operations would each be a launch)."""
+    host = torch.cat([camera.camera_to_worlds.reshape(-1, 12)[0]]
+                     + [getattr(camera, k).reshape(-1)[:1].to(camera.camera_to_worlds.dtype)
+                        for k in ("fx", "fy", "cx", "cy", "width", "height")]).cpu().double().numpy()
+    c2w = host[:12].reshape(3, 4)
+    rot = c2w[:, :3] * np.array([1.0, -1.0, -1.0])  # OpenGL -> OpenCV axes
+    t = c2w[:, 3]
+    vm = np.eye(4)
+    vm[:3, :3] = rot.T
+    vm[:3, 3] = -rot.T @ t
+    fx, fy, cx, cy, w, h = host[12:]
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    packed = torch.from_numpy(np.concatenate([vm.ravel(), K.ravel(), t]).astype(np.float32)).to(device)
+    return View(packed[:16].view(1, 4, 4), packed[16:25].view(1, 3, 3), packed[25:28].view(1, 3).to(dtype),
+                int(round(w)), int(round(h)))
+
+
+@dataclass
+class ViewColours:
+    """One colour per Gaussian for one view: ``rgb`` [N,3]; ``diffuse`` [N,3] (None: equal to
+    ``rgb``, no Gaussian has a specular term); ``segmentation`` a function giving [N,1] (None:
+    no edits)."""
+
+    rgb: Tensor
+    diffuse: Optional[Tensor]
+    segmentation: Optional[Callable[[], Tensor]]
+
+
+# ---------------------------------------------------------------------------- the caches
+@dataclass(eq=False)
+class GeometryCache:
+    key: tuple
+    refs: tuple
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    """exp(log-scales) [N,3]"""
+    opacities: Tensor
+    """sigmoid(logit-opacities) [N]"""
+
+
+@dataclass(eq=False)
+class GateCache:
+    key: tuple
+    refs: tuple
+    index: Tensor
+    """[M] the gated Gaussians, ascending."""
+    means: Tensor
+    """[M,3] their means."""
+    p1: Tensor
+    """[M,H] ``B1``'s feature part plus bias."""
+    p2: Tensor
+    """[M,H] (or [1,H] without residual links) ``B2``'s link part plus bias."""
+    p3: Tensor
+    """[M,3] (or [1,3]) ``B3``'s link part plus bias."""
+    w_mono: Tensor
+    """[4^q,H] direction monomials -> ``B1``'s direction part (the SH encoding folded in)."""
+    w_s1: Tensor
+    """[H,H] ``B2``'s columns on ``s1``, transposed."""
+    w_s2: Tensor
+    """[H,3] ``B3``'s columns on ``s2``, transposed."""
+    degree: int
+
+    @property
+    def size(self) -> int:
+        return int(self.index.shape[0])
+
+
+@dataclass(eq=False)
+class EditCache:
+    key: tuple
+    refs: tuple
+    gate: Optional[GateCache]
+    diffuse: Tensor
+    """[N,3] ``sigmoid(c_d'')`` of every Gaussian: the colour of every Gaussian without a
+    specular term."""
+    p3k: Optional[Tensor]
+    """[M,3] ``c_d'' + k p3`` of the gated Gaussians (None: nothing specular to draw)."""
+    w_s2k: Optional[Tensor]
+    """[H,3] ``k B3`` on ``s2``."""
+    segmentation: Dict[Optional[int], Tensor] = field(default_factory=dict)
+    """Per-Gaussian alpha [N,1] by the shown edit (filled on first request)."""
+
+    @property
+    def matte(self) -> bool:
+        return self.p3k is None
+
+
+def gated_colours(gate: GateCache, edits: EditCache, centre: Tensor) -> Tensor:
+    """[N,3] colours for a view from camera centre ``centre`` [1,3]: the cached diffuse colours with
+    the gated Gaussians' ``sigmoid(c_d'' + k c_s)`` written over them."""
+    d = view_directions(gate.means, centre)
+    mono = direction_monomials(d, gate.degree)
+    s1 = torch.addmm(gate.p1.to(mono.dtype), mono, gate.w_mono).relu_()
+    s2 = torch.addmm(gate.p2.to(mono.dtype), s1, gate.w_s1).relu_()
+    z = torch.addmm(edits.p3k, s2, edits.w_s2k).sigmoid_()
+    return edits.diffuse.index_copy(0, gate.index, z)
+
+
+class RenderCache:
+    """The three levels (see the module docstring); :meth:`clear` forgets them all."""
+
+    def __init__(self) -> None:
+        self.geometry_level: Optional[GeometryCache] = None
+        self.gate_level: Optional[GateCache] = None
+        self.edit_level: Optional[EditCache] = None
+        self._background: Optional[tuple] = None
+
+    def clear(self) -> None:
+        self.geometry_level = self.gate_level = self.edit_level = None
+        self._background = None
+
+    def nbytes(self) -> Dict[str, int]:
+        """Bytes held per level (what the cache adds to the model's own tensors)."""
+        def size(*ts):
+            return sum(t.numel() * t.element_size() for t in ts if t is not None)
+
+        g, f, e = self.geometry_level, self.gate_level, self.edit_level
+        return {"geometry": size(g.scales, g.opacities) if g else 0,
+                "gate": size(f.index, f.means, f.p1, f.p2, f.p3, f.w_mono, f.w_s1, f.w_s2) if f else 0,
+                "edits": size(e.diffuse, e.p3k, e.w_s2k, *e.segmentation.values()) if e else 0}
+
+    # ---------------------------------------------------------------- levels
+    def background(self, bg: Tensor, device: torch.device) -> Tensor:
+        """``bg`` on ``device`` (copied once per background tensor, not once per frame)."""
+        key = (stamp(bg), device)
+        if self._background is None or self._background[0] != key:
+            self._background = (key, bg, bg.to(device))
+        return self._background[2]
+
+    def geometry(self, model) -> GeometryCache:
+        params = (model.means, model.quats, model.scales, model.opacities)
+        key = tuple(stamp(p) for p in params)
+        g = self.geometry_level
+        if g is None or g.key != key:
+            with torch.no_grad():
+                means, quats, scales, opac = (p.detach() for p in params)
+                g = GeometryCache(key, params, means, quats, torch.exp(scales), torch.sigmoid(opac).reshape(-1))
+            self.geometry_level = g
+        return g
+
+    def gate(self, model, params: tuple) -> GateCache:
+        """The gate level for the model's field (``params``: its parameters), gate and threshold (the
+        caller has checked that the gate is current and the field decoupled)."""
+        fld = model.field
+        half = bool(getattr(model.config, "render_cache_half", False))
+        key = (id(fld), tuple(stamp(p) for p in params), stamp(model.means), stamp(model.spec_magnitude),
+               float(model.config.gate_threshold), half)
+        g = self.gate_level
+        if g is None or g.key != key:
+            self.gate_level = None  # free the old level before the new one is filled
+            self.edit_level = None
+            g = _build_gate(model, key, (fld, params, model.means, model.spec_magnitude), half)
+            self.gate_level = g
+        return g
+
+    def edits(self, model, gate: GateCache) -> EditCache:
+        stack = model.edit_stack
+        key = (id(gate), stamp(model.diffuse_cache), id(stack), getattr(stack, "revision", None),
+               getattr(model, "_live_revision", 0))
+        e = self.edit_level
+        if e is None or e.key != key:
+            self.edit_level = None
+            e = _build_edits(model, key, (gate, model.diffuse_cache, stack), gate)
+            self.edit_level = e
+        return e
+
+
+@torch.no_grad()
+def _build_gate(model, key: tuple, refs: tuple, half: bool) -> GateCache:
+    fld = model.field
+    means = model.means.detach()
+    index = (model.spec_magnitude > model.config.gate_threshold).nonzero().flatten()
+    means_g = means[index].contiguous()
+    p1s, p2s, p3s = [], [], []
+    for s in range(0, means_g.shape[0], CHUNK):
+        f = fld.encode(means_g[s : s + CHUNK])
+        h1, h2 = fld.diffuse_hidden(f)
+        p1, p2, p3 = fld.specular_parts(f, h1, h2)
+        p1s.append(p1)
+        p2s.append(p2 if fld.cfg.residual_links else p2[:1])
+        p3s.append(p3 if fld.cfg.residual_links else p3[:1])
+    h, dt = fld.cfg.hidden, means.dtype
+    if p1s and fld.cfg.residual_links:
+        p1, p2, p3 = torch.cat(p1s), torch.cat(p2s), torch.cat(p3s)
+    elif p1s:
+        p1, p2, p3 = torch.cat(p1s), p2s[0], p3s[0]
+    else:
+        p1, p2, p3 = means.new_zeros(0, h), means.new_zeros(0, h), means.new_zeros(0, 3)
+    w_dir, w_s1, w_s2 = fld.specular_direction_weights()
+    levels = fld.dir_encoding.levels
+    a = sh_monomial_matrix(levels).to(means.device)
+    w_mono = (a @ w_dir.detach().double().t()).to(dt)
+    store = torch.float16 if half else dt
+    return GateCache(key, refs, index, means_g, p1.to(store).contiguous(), p2.to(store).contiguous(),
+                     p3.to(dt).contiguous(), w_mono.contiguous(), w_s1.detach().t().to(dt).contiguous(),
+                     w_s2.detach().t().to(dt).contiguous(), monomial_degree(levels))
+
+
+@torch.no_grad()
+def _build_edits(model, key: tuple, refs: tuple, gate: Optional[GateCache]) -> EditCache:
+    stack = model._active_stack()
+    live = getattr(model, "live_edit", None)
+    means = model.means.detach()
+    if stack is None and live is None:
+        c_d = model.diffuse_cache.to(means.dtype)
+    else:
+        fld = model.field
+        parts = []
+        for s in range(0, means.shape[0], CHUNK):
+            f = fld.encode(means[s : s + CHUNK])
+            _, h2 = fld.diffuse_hidden(f)
+            c = fld.diffuse(h2)
+            if stack is not None:
+                c = stack.diffuse(f, h2, c)
+            if live is not None:
+                c = live.over(f, h2, c)
+            parts.append(c)
+        c_d = torch.cat(parts) if parts else means.new_zeros(0, 3)
+    k = stack.specular_strength if stack is not None else 1.0
+    p3k = w_s2k = None
+    if gate is not None and gate.size > 0 and k != 0.0:
+        p3k = (c_d[gate.index] + k * gate.p3).contiguous()
+        w_s2k = (gate.w_s2 * k).contiguous()
+    return EditCache(key, refs, gate, torch.sigmoid(c_d).contiguous(), p3k, w_s2k)
+
+
+# ----------------------------------------------------------------------------- outputs
+class ViewOutputs(MutableMapping):
+    """A render's outputs by name, as nerfstudio's viewer and scripts read them (``keys()``,
+    ``out[name]``, ``out[name] = ...``). Names given as functions are computed on first access
+    and kept: the viewer shows one output (and depth), so a frame does not pay for the others."""
+
+    def __init__(self, order: tuple, ready: Dict[str, Tensor], lazy: Dict[str, Callable[[], Tensor]]) -> None:
+        self._order = [k for k in order if k in ready or k in lazy]
+        self._ready = dict(ready)
+        self._lazy = dict(lazy)
+
+    def __getitem__(self, key: str) -> Tensor:
+        if key not in self._ready:
+            if key not in self._lazy:
+                raise KeyError(key)
+            self._ready[key] = self._lazy.pop(key)()
+        return self._ready[key]
+
+    def __setitem__(self, key: str, value) -> None:
+        self._lazy.pop(key, None)
+        if key not in self._ready and key not in self._order:
+            self._order.append(key)
+        self._ready[key] = value
+
+    def __delitem__(self, key: str) -> None:
+        if key not in self._ready and key not in self._lazy:
+            raise KeyError(key)
+        self._ready.pop(key, None)
+        self._lazy.pop(key, None)
+        self._order.remove(key)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(list(self._order))
+
+    def __len__(self) -> int:
+        return len(self._order)
+
+    def __contains__(self, key) -> bool:
+        return key in self._ready or key in self._lazy
+
+    def computed(self) -> list:
+        """Names computed so far (for tests and benchmarks)."""
+        return [k for k in self._order if k in self._ready]
+
+    def __repr__(self) -> str:
+        return f"ViewOutputs({self._order}, computed={self.computed()})"
+
+
+__all__ = ["EditCache", "GateCache", "GeometryCache", "RenderCache", "View", "ViewColours", "ViewOutputs",
+           "gated_colours", "stamp", "view_of"]
