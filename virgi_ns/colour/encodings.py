@@ -30,10 +30,11 @@ class GridEncoding(nn.Module):
     of ``features_per_level``, level ``l`` at resolution ``floor(min_res * growth**l)``, trilinear
     interpolation of the eight corners. The eight look-ups are one ``index_select``, whose gradient
     accumulates with ``index_add_`` (atomic adds on a GPU) instead of the sort that advanced
-    indexing's backward costs."""
+    indexing's backward costs. ``empty``: leave the table uninitialised (its state is loaded next)."""
 
     def __init__(self, num_levels: int = 16, min_res: int = 16, max_res: int = 1024, log2_hashmap_size: int = 19,
-                 features_per_level: int = 2, hash_init_scale: float = 0.001, implementation: str = "torch") -> None:
+                 features_per_level: int = 2, hash_init_scale: float = 0.001, implementation: str = "torch",
+                 empty: bool = False) -> None:
         super().__init__()
         if implementation != "torch":
             raise ValueError(f"GridEncoding: only the torch implementation exists here, not {implementation!r}")
@@ -49,8 +50,12 @@ class GridEncoding(nn.Module):
         self.scalings = torch.floor(min_res * self.growth_factor**levels)
         self.hash_offset = levels * self.hash_table_size
         self.tcnn_encoding = None
-        table = torch.rand(size=(self.hash_table_size * num_levels, features_per_level)) * 2 - 1
-        table *= hash_init_scale
+        size = (self.hash_table_size * num_levels, features_per_level)
+        if empty:  # a table about to be loaded: no random draws (a large table's take a fresh process long)
+            table = torch.empty(size)
+        else:
+            table = torch.rand(size=size) * 2 - 1
+            table *= hash_init_scale
         self.hash_table = nn.Parameter(table)
 
     def get_out_dim(self) -> int:

@@ -66,7 +66,8 @@ class ColorFieldConfig:
 class DecoupledColorField(nn.Module):
     """Per-point colour ``sigmoid(c_d + c_s)`` from hash features and a view direction."""
 
-    def __init__(self, cfg: ColorFieldConfig, aabb: Float[Tensor, "2 3"]) -> None:
+    def __init__(self, cfg: ColorFieldConfig, aabb: Float[Tensor, "2 3"], empty: bool = False) -> None:
+        """``empty``: leave the hash table uninitialised, for a field whose trained state is loaded next."""
         super().__init__()
         self.cfg = cfg
         aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3)
@@ -80,6 +81,7 @@ class DecoupledColorField(nn.Module):
             log2_hashmap_size=cfg.log2_hashmap_size,
             features_per_level=cfg.features_per_level,
             implementation="torch",
+            empty=empty,
         )
         self.dir_encoding = SHDirections(levels=cfg.sh_dir_degree)
         f = self.hash.get_out_dim()
