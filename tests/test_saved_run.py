@@ -259,3 +259,31 @@ def test_list_reads_timings_from_the_manifest_and_from_older_stacks_edit_files(s
         del e["info"]
     man.write_text(json.dumps(m))
     assert run(List(cfg)) == listed
+
+
+def test_virgis_trainer_writes_virgi_run_json_beside_its_checkpoint(saved, tmp_path):
+    """``ns-train``'s path: virgi's trainer saves its checkpoint, then virgi_run.json, which the
+    commands' loader takes (no nerfstudio load) and which describes the cameras nerfstudio's loader
+    sees."""
+    from viewer_run import tiny_config
+
+    from virgi_ns.cli.runs import open_run
+    from virgi_ns.nerfstudio.cameras import raster_cameras
+    from virgi_ns.nerfstudio.saved_run import RUN_INFO
+
+    scene = make_scene(tmp_path / "scene")
+    cfg = tiny_config(scene, 2, tmp_path / "outputs")
+    cfg.vis = "tensorboard"
+    cfg.steps_per_eval_image = cfg.steps_per_eval_batch = cfg.steps_per_eval_all_images = 10**9
+    cfg.steps_per_save = 10**9
+    cfg.save_config()
+    trainer = cfg.setup(local_rank=0, world_size=1)
+    trainer.setup()
+    trainer.train()
+    ckpt_dir = cfg.get_checkpoint_dir()
+    assert list(ckpt_dir.glob("step-*.ckpt")) and (ckpt_dir / RUN_INFO).is_file()
+    opened = open_run(cfg.get_base_dir() / "config.yml", _quiet())
+    assert opened.pipeline is None
+    assert opened.model.fingerprint() == trainer.pipeline.model.fingerprint()
+    ref = raster_cameras(saved["full"].datamanager.train_dataset.cameras)  # the same capture layout
+    assert torch.equal(opened.train.cameras().Ks, ref.Ks) and len(opened.train) == len(ref)
