@@ -26,7 +26,9 @@ reading rgb and depth; and it gives the render cache's memory.
 
 ``--cli`` also times, on the first scene, ``virgi-edit list / apply / undo``, ``virgi-export`` and
 ``virgi-render`` as fresh processes (wall time, what a person waits), with the edit's own setup and
-step times from its summary line.
+step times from its summary line, and the bare imports of torch and of torch with nerfstudio. The run
+is loaded from its files (``virgi_run.json`` beside the checkpoint, written here if training did not);
+the JSON names any command that loaded it through nerfstudio instead.
 
     python bench/render.py --data ../shared/data --out bench_out/render --cli
 """
@@ -200,13 +202,14 @@ def bench_scene(args: Args, scene, cfg_path: Path) -> dict:
 
 
 # ---------------------------------------------------------------------------- CLIs
-def _wall(cmd: List[str], env: dict) -> tuple[float, str]:
+def _wall(cmd: List[str], env: dict) -> tuple[float, str, str]:
+    """(wall seconds, stdout, stderr) of a command in a fresh process."""
     t = time.perf_counter()
     p = subprocess.run(cmd, capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t
     if p.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({p.returncode}): {p.stderr[-2000:]}")
-    return wall, p.stdout.strip()
+    return wall, p.stdout.strip(), p.stderr
 
 
 def bench_cli(scene, cfg_path: Path, data: Path, out: Path) -> dict:
@@ -233,24 +236,44 @@ def bench_cli(scene, cfg_path: Path, data: Path, out: Path) -> dict:
     spec = CameraSpec(int(rc.widths[0]), int(rc.heights[0]), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
                       float(K[1, 2]), vm)
     write_camera_json(out / "cli_camera.json", spec)
-    del pipeline
+    # the commands load the run from its files (virgi_ns/nerfstudio/saved_run.py) when virgi_run.json lies beside
+    # its checkpoint, as training writes it; a run trained before that gets it here, so the new path is measured
+    from virgi_ns.nerfstudio.run_info import run_info_of, write_run_info
+    from virgi_ns.nerfstudio.saved_run import RUN_INFO, run_settings
+
+    ckpt_dir = run_settings(cfg_path).checkpoint_dir
+    run_info = "training" if (ckpt_dir / RUN_INFO).is_file() else "bench"
+    if run_info == "bench":
+        write_run_info(run_info_of(dm, pipeline.model), ckpt_dir, cfg_path)
+    del pipeline, dm
     env = dict(os.environ)
     py = [sys.executable, "-m"]
     cfg = str(cfg_path)
     walls: Dict[str, float] = {}
-    walls["list"], _ = _wall(py + ["virgi_ns.cli.edit", "list", "--load-config", cfg], env)
-    walls["apply"], line = _wall(py + ["virgi_ns.cli.edit", "apply", "--load-config", cfg, "--image", str(image),
-                                       "--image-name", names[view]], env)
+    slow: List[str] = []  # commands that loaded the run through nerfstudio (their note on stderr)
+
+    def wall(name: str, cmd: List[str]) -> str:
+        walls[name], line, err = _wall(py + cmd, env)
+        if "through nerfstudio" in err:
+            slow.append(name)
+        return line
+
+    wall("list", ["virgi_ns.cli.edit", "list", "--load-config", cfg])
+    line = wall("apply", ["virgi_ns.cli.edit", "apply", "--load-config", cfg, "--image", str(image),
+                          "--image-name", names[view]])
     m = re.search(r"setup ([0-9.]+) s \+ steps ([0-9.]+) s", line)
     edit_setup, edit_steps = (float(m.group(1)), float(m.group(2))) if m else (float("nan"), float("nan"))
-    walls["export"], _ = _wall(py + ["virgi_ns.cli.export", "--load-config", cfg, "--out", str(out / "cli.ply")], env)
-    walls["render"], _ = _wall(py + ["virgi_ns.cli.render", str(out / "cli.ply"), "--camera",
-                                     str(out / "cli_camera.json"), "--out", str(out / "cli_render.png")], env)
-    walls["undo"], _ = _wall(py + ["virgi_ns.cli.edit", "undo", "--load-config", cfg], env)
-    t = time.perf_counter()
-    subprocess.run([sys.executable, "-c", "import torch, nerfstudio.pipelines.base_pipeline"], check=True)
-    walls["python_torch_nerfstudio_import"] = time.perf_counter() - t
-    return {"scene": scene.name, "walls_s": walls, "edit_setup_s": edit_setup, "edit_steps_s": edit_steps}
+    wall("export", ["virgi_ns.cli.export", "--load-config", cfg, "--out", str(out / "cli.ply")])
+    wall("render", ["virgi_ns.cli.render", str(out / "cli.ply"), "--camera", str(out / "cli_camera.json"), "--out",
+                    str(out / "cli_render.png")])
+    wall("undo", ["virgi_ns.cli.edit", "undo", "--load-config", cfg])
+    for name, code in (("python_torch_import", "import torch"),
+                       ("python_torch_nerfstudio_import", "import torch, nerfstudio.pipelines.base_pipeline")):
+        t = time.perf_counter()
+        subprocess.run([sys.executable, "-c", code], check=True)
+        walls[name] = time.perf_counter() - t
+    return {"scene": scene.name, "walls_s": walls, "edit_setup_s": edit_setup, "edit_steps_s": edit_steps,
+            "run_info_written_by": run_info, "loaded_through_nerfstudio": slow}
 
 
 # --------------------------------------------------------------------------- report

@@ -243,3 +243,34 @@ def test_sh_encoding_as_direction_monomials(levels):
     want = SHEncoding(levels=levels)(d).double()  # computed in float32 by nerfstudio
     got = direction_monomials(d, monomial_degree(levels)) @ sh_monomial_matrix(levels)
     torch.testing.assert_close(got, want, rtol=0, atol=1e-7)
+
+
+def test_encodings_equal_nerfstudios_and_draw_the_same_initial_table():
+    """The field's own encodings (no nerfstudio import) give nerfstudio's SH components and L-inf
+    contraction bit for bit, and a grid built after the same seed holds nerfstudio's table, so runs
+    trained with either start alike and load into the other."""
+    from nerfstudio.field_components.encodings import HashEncoding, SHEncoding
+    from nerfstudio.field_components.spatial_distortions import SceneContraction
+
+    from virgi_ns.colour.encodings import GridEncoding, SHDirections, contract_linf
+
+    g = torch.Generator().manual_seed(5)
+    dirs = torch.nn.functional.normalize(torch.randn(300, 3, generator=g), dim=-1)
+    for levels in (1, 2, 3, 4):
+        assert torch.equal(SHDirections(levels)(dirs), SHEncoding(levels, implementation="torch")(dirs))
+    from nerfstudio.utils.math import components_from_spherical_harmonics
+
+    from virgi_ns.colour.sh import sh_components
+
+    assert torch.equal(sh_components(5, dirs.double()), components_from_spherical_harmonics(5, dirs.double()))
+    x = torch.randn(400, 3, generator=g) * 3
+    assert torch.equal(contract_linf(x), SceneContraction(order=float("inf"))(x))
+    kw = dict(num_levels=5, min_res=4, max_res=64, log2_hashmap_size=10, features_per_level=2, implementation="torch")
+    torch.manual_seed(11)
+    ours = GridEncoding(**kw)
+    torch.manual_seed(11)
+    theirs = HashEncoding(**kw)
+    assert torch.equal(ours.hash_table, theirs.hash_table) and torch.equal(ours.scalings, theirs.scalings)
+    assert list(ours.state_dict()) == list(theirs.state_dict()) == ["hash_table"]
+    p = torch.rand(200, 3, generator=g)
+    assert torch.equal(ours(p), theirs(p))

@@ -11,8 +11,10 @@
 
 Edits live in ``<run>/edits`` (beside ``config.yml``); the run itself is never written; ``pick``
 saves the edited image it made and its selection beside the edit. ``apply``, ``pick`` and
-``import`` load the run and refuse edits of another base run; the other commands work on the
-edit files alone. Bad input is one line on stderr, exit 2, nothing saved.
+``import`` load the run (:func:`virgi_ns.cli.runs.open_run`: from its files, without nerfstudio,
+when it can) and refuse edits of another base run; the other commands work on the edit stack's
+manifest alone (:mod:`virgi_ns.edit.manifest`), importing neither torch nor nerfstudio. Bad input
+is one line on stderr, exit 2, nothing saved.
 """
 
 from __future__ import annotations
@@ -21,14 +23,17 @@ import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal, Optional, Union
+from typing import TYPE_CHECKING, Annotated, Literal, Optional, Union
 
-import numpy as np
-import torch
 import tyro
-from rich.console import Console
 
 from virgi_ns.errors import InputError, cli_entry
+
+if TYPE_CHECKING:  # torch, numpy and rich load with the commands that need them (list and undo do not)
+    import numpy as np
+    from rich.console import Console
+
+    from virgi_ns.cli.runs import OpenRun
 
 GREY_MODES = ("1", "L", "LA", "I", "I;16", "I;16B", "I;16L", "F")
 
@@ -172,6 +177,7 @@ Command = Union[
 def load_edited_image(path: Path) -> tuple[np.ndarray, list[str]]:
     """[H,W,3] float32 in [0,1] and notes for the user. Non-images and grayscale images raise
     :class:`InputError`; an alpha channel is dropped with a note."""
+    import numpy as np
     from PIL import Image, UnidentifiedImageError
 
     path = Path(path)
@@ -202,6 +208,7 @@ def fit_size(image: np.ndarray, width: int, height: int, resize: bool, name: str
         return image, []
     if not resize:
         raise InputError(f"{name} is {w}x{h} but the camera renders {width}x{height} (pass --resize to resize it)")
+    import numpy as np
     from PIL import Image
 
     im = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)).resize((width, height),
@@ -209,52 +216,36 @@ def fit_size(image: np.ndarray, width: int, height: int, resize: bool, name: str
     return np.asarray(im, dtype=np.float32) / 255.0, [f"{name}: resized from {w}x{h} to {width}x{height}"]
 
 
-def _datasets(pipeline) -> list:
-    dm = pipeline.datamanager
-    return [d for d in (getattr(dm, "train_dataset", None), getattr(dm, "eval_dataset", None)) if d is not None]
-
-
-def _find_image(pipeline, name: str):
-    """(dataset, index) of the training (or evaluation) image called ``name`` (file name, stem or
-    path), or None."""
-    for ds in _datasets(pipeline):
-        for i, fn in enumerate(ds.image_filenames):
-            p = Path(fn)
-            if name in (p.name, p.stem, str(p)):
-                return ds, i
-    return None
-
-
-def resolve_camera(pipeline, args: Union[Apply, Pick]):
+def resolve_camera(run: "OpenRun", args: Union[Apply, Pick]):
     """(raster Cameras of one view, a description) for the chosen camera of ``args``."""
-    from virgi_ns.nerfstudio.cameras import raster_cameras
-
     chosen = [x is not None for x in (args.camera_index, args.image_name, args.camera_json)]
     if sum(chosen) != 1:
         raise InputError("choose the edited image's camera with exactly one of --camera-index, --image-name, "
                          "--camera-json")
     if args.camera_index is not None:
-        train = pipeline.datamanager.train_dataset
+        train = run.train
         n = len(train)
         i = args.camera_index
         if not 0 <= i < n:
             raise InputError(f"--camera-index {i} is out of range: the run has {n} training images (0..{n - 1})")
-        return raster_cameras(train.cameras[i : i + 1]), f"train index {i} ({Path(train.image_filenames[i]).name})"
+        return train.camera(i), f"train index {i} ({Path(train.filenames[i]).name})"
     if args.image_name is not None:
         want = args.image_name
-        found = _find_image(pipeline, want)
+        found = run.find_image(want)
         if found is not None:
-            ds, i = found
-            return raster_cameras(ds.cameras[i : i + 1]), f"image {Path(ds.image_filenames[i]).name}"
-        some = [Path(f).name for f in pipeline.datamanager.train_dataset.image_filenames[:3]]
+            views, i = found
+            return views.camera(i), f"image {Path(views.filenames[i]).name}"
+        some = [Path(f).name for f in run.train.filenames[:3]]
         raise InputError(f"no image named {want!r} in the run (e.g. {', '.join(some)})")
-    return camera_from_json(pipeline.model, Path(args.camera_json)), f"camera {Path(args.camera_json).name}"
+    return camera_from_json(run.model, Path(args.camera_json)), f"camera {Path(args.camera_json).name}"
 
 
-def original_image(pipeline, args: Apply, shape: tuple, console: Console):
+def original_image(run: "OpenRun", args: Apply, shape: tuple, console: "Console"):
     """The unedited image as float32 HxWx3 in [0,1]: ``--original``, else the chosen training (or
     evaluation) photo; None for a --camera-json view without --original, or (with a note) when
     the photo's size differs from the edited image's."""
+    import numpy as np
+
     if args.original is not None:
         img, _ = load_edited_image(args.original)  # read as the edited image is (alpha dropped)
         img, _ = fit_size(img, shape[1], shape[0], args.resize, "--original")
@@ -262,15 +253,15 @@ def original_image(pipeline, args: Apply, shape: tuple, console: Console):
     else:
         found = None
         if args.camera_index is not None:
-            found = (pipeline.datamanager.train_dataset, args.camera_index)
+            found = (run.train, args.camera_index)
         elif args.image_name is not None:
-            found = _find_image(pipeline, args.image_name)
+            found = run.find_image(args.image_name)
         if found is None:
             return None
-        ds, i = found
+        views, i = found
         # the file's own pixels, alpha dropped as for the edited image (not blended onto a background)
-        img = ds.get_numpy_image(i)[..., :3].astype(np.float32) / 255.0
-        where = Path(ds.image_filenames[i]).name
+        img = views.photo(i)[..., :3].astype(np.float32) / 255.0
+        where = Path(views.filenames[i]).name
     if tuple(img.shape) != tuple(shape):
         console.print(f"note: the photo {where} is {img.shape[1]}x{img.shape[0]}, not the edited image's size: "
                       "fitting every pixel of the edited image")
@@ -281,9 +272,10 @@ def original_image(pipeline, args: Apply, shape: tuple, console: Console):
 def camera_from_json(model, path: Path):
     """Raster Cameras of a CAM.json; ``"frame": "dataparser"`` means the run's own frame, anything
     else the capture's (as the viewer saves views)."""
+    import torch
+
     from virgi_ns.io.camera_json import read_camera_json
-    from virgi_ns.nerfstudio.cameras import raster_cameras
-    from virgi_ns.nerfstudio.frames import camera_from_spec, capture_frame
+    from virgi_ns.nerfstudio.frames import capture_frame, raster_camera_from_spec
 
     spec = read_camera_json(path)
     frame = json.loads(path.read_text(encoding="utf-8")).get("frame", "capture")
@@ -291,29 +283,22 @@ def camera_from_json(model, path: Path):
         T, s = torch.eye(4)[:3].double(), 1.0
     else:
         T, s = capture_frame(model)
-    return raster_cameras(camera_from_spec(spec, T, s))
+    return raster_camera_from_spec(spec, T, s)
 
 
-def _edits_stack(load_config: Path):
-    """The stack of a run from its files alone (no model): trusts the manifest's fingerprint."""
-    from virgi_ns.edit.stack import MANIFEST, EditStack
+def _manifest(load_config: Path):
+    """The edit stack's manifest of a run (no model, no torch)."""
+    from virgi_ns.edit.manifest import read_manifest
 
     load_config = Path(load_config)
     if not load_config.is_file():
         raise InputError(f"no such config: {load_config}")
-    d = EditStack.edits_dir(load_config.parent)
-    fp = ""
-    if (d / MANIFEST).is_file():
-        try:
-            fp = str(json.loads((d / MANIFEST).read_text())["fingerprint"])
-        except Exception as e:  # noqa: BLE001
-            raise InputError(f"{d / MANIFEST} is not a virgi edit stack ({type(e).__name__})") from None
-    return EditStack.open(load_config.parent, fp)
+    return read_manifest(load_config.parent)
 
 
 # -------------------------------------------------------------------------- running
 def load_run(config: Path):
-    """(config, pipeline) of a VIRGi run; see :func:`virgi_ns.cli.export.load_run`."""
+    """(config, pipeline) of a VIRGi run through nerfstudio; see :func:`virgi_ns.cli.export.load_run`."""
     from virgi_ns.cli.export import load_run as _load
 
     if not Path(config).is_file():
@@ -321,22 +306,35 @@ def load_run(config: Path):
     return _load(Path(config))
 
 
-def open_view(args: Union[Apply, Pick], console: Console, pipeline=None):
-    """(pipeline, the run's edit stack on the model's device, the camera on it, its description):
-    what ``apply`` and ``pick`` edit. ``pipeline``: an already loaded run."""
+def _run_of(load_config: Path, console: "Console", run=None) -> "OpenRun":
+    """``run`` as an :class:`~virgi_ns.cli.runs.OpenRun`: one already (returned as is), a loaded
+    nerfstudio pipeline (wrapped), or None (the run of ``load_config`` is opened)."""
+    from virgi_ns.cli.runs import OpenRun, open_run
+
+    if isinstance(run, OpenRun):
+        return run
+    if run is not None:
+        return OpenRun.from_pipeline(run)
+    with console.status(f"loading {load_config}"):
+        return open_run(Path(load_config), console)
+
+
+def open_view(args: Union[Apply, Pick], console: "Console", pipeline=None):
+    """(the run, its edit stack on the model's device, the camera on it, its description): what
+    ``apply`` and ``pick`` edit. ``pipeline``: an already loaded run (a nerfstudio pipeline or an
+    :class:`~virgi_ns.cli.runs.OpenRun`)."""
     from virgi_ns.edit.stack import EditStack
 
-    if pipeline is None:
-        with console.status(f"loading {args.load_config}"):
-            _, pipeline = load_run(args.load_config)
-    model = pipeline.model
+    run = _run_of(args.load_config, console, pipeline)
+    model = run.model
     stack = EditStack.open(Path(args.load_config).parent, model.fingerprint())
-    cams, where = resolve_camera(pipeline, args)
-    return pipeline, stack.to(model.device), cams.to(model.device), where
+    cams, where = resolve_camera(run, args)
+    return run, stack.to(model.device), cams.to(model.device), where
 
 
-def apply(args: Apply, console: Console, pipeline=None) -> str:
+def apply(args: Apply, console: "Console", pipeline=None) -> str:
     """Fit and save one edit; returns the summary line. ``pipeline``: an already loaded run."""
+    import torch
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from virgi_ns.edit.engine import EditConfig, EditEngine
@@ -349,13 +347,13 @@ def apply(args: Apply, console: Console, pipeline=None) -> str:
     if not Path(args.load_config).is_file():
         raise InputError(f"no such config: {args.load_config}")
     image, notes = load_edited_image(args.image)
-    pipeline, stack, cams, where = open_view(args, console, pipeline)
-    model = pipeline.model
+    run, stack, cams, where = open_view(args, console, pipeline)
+    model = run.model
     W, H = int(cams.widths[0]), int(cams.heights[0])
     image, more = fit_size(image, W, H, args.resize, Path(args.image).name)
     for n in notes + more:
         console.print(f"note: {n}")
-    original = None if args.whole_image else original_image(pipeline, args, image.shape, console)
+    original = None if args.whole_image else original_image(run, args, image.shape, console)
     scene = FrozenScene.from_model(model)
     source = EditSource(str(Path(args.image).resolve()), cams.Ks[0].cpu(), cams.viewmats[0].cpu(), W, H, where)
     cfg = EditConfig()
@@ -385,9 +383,11 @@ def _check_steps(steps: Optional[int]) -> None:
         raise InputError(f"--steps must be >= 1, got {steps}")
 
 
-def pick(args: Pick, console: Console, pipeline=None) -> str:
+def pick(args: Pick, console: "Console", pipeline=None) -> str:
     """Pick, recolour, fit and save one edit with its edited image and selection; returns the
     summary line. Every argument is checked before the run is loaded, the pixel before any fit."""
+    import torch
+
     from virgi_ns.edit.pick import PickSession, check_tolerance, commit, parse_colour, pick_config
     from virgi_ns.edit.scene import FrozenScene
     from virgi_ns.edit.stack import EditSource
@@ -397,8 +397,8 @@ def pick(args: Pick, console: Console, pipeline=None) -> str:
     _check_steps(args.steps)
     if not Path(args.load_config).is_file():
         raise InputError(f"no such config: {args.load_config}")
-    pipeline, stack, cams, where = open_view(args, console, pipeline)
-    model = pipeline.model
+    run, stack, cams, where = open_view(args, console, pipeline)
+    model = run.model
     W, H = int(cams.widths[0]), int(cams.heights[0])
     x, y = args.pixel
     source = EditSource("", cams.Ks[0].cpu(), cams.viewmats[0].cpu(), W, H, f"{where}, pixel {x} {y}")
@@ -412,48 +412,60 @@ def pick(args: Pick, console: Console, pipeline=None) -> str:
             f"beside it: {Path(stack.entries[-1].file).stem}_edited.png, _selection.png)")
 
 
-def run(cmd: object, console: Optional[Console] = None, pipeline=None) -> str:
-    """Run one parsed command; returns the line to print."""
-    console = console or Console(stderr=True)
-    if isinstance(cmd, Apply):
-        return apply(cmd, console, pipeline)
-    if isinstance(cmd, Pick):
-        return pick(cmd, console, pipeline)
-    if isinstance(cmd, Import):
+def run(cmd: object, console: Optional["Console"] = None, pipeline=None) -> str:
+    """Run one parsed command; returns the line to print. ``pipeline``: an already loaded run (a
+    nerfstudio pipeline or an :class:`~virgi_ns.cli.runs.OpenRun`) for the commands that load one."""
+    if isinstance(cmd, (Apply, Pick, Import)):
+        if console is None:
+            from rich.console import Console
+
+            console = Console(stderr=True)
+        if isinstance(cmd, Apply):
+            return apply(cmd, console, pipeline)
+        if isinstance(cmd, Pick):
+            return pick(cmd, console, pipeline)
         from virgi_ns.edit.stack import EditStack
 
         if not Path(cmd.edit_file).is_file():
             raise InputError(f"no such edit file: {cmd.edit_file}")
-        if pipeline is None:
-            with console.status(f"loading {cmd.load_config}"):
-                _, pipeline = load_run(cmd.load_config)
-        stack = EditStack.open(Path(cmd.load_config).parent, pipeline.model.fingerprint())
+        model = _run_of(cmd.load_config, console, pipeline).model
+        stack = EditStack.open(Path(cmd.load_config).parent, model.fingerprint())
         n = stack.import_file(cmd.edit_file)
         return f"edit {n} imported from {cmd.edit_file}"
-    stack = _edits_stack(cmd.load_config)  # type: ignore[attr-defined]
+    m = _manifest(cmd.load_config)  # type: ignore[attr-defined]
     if isinstance(cmd, List):
-        if not len(stack):
-            return f"no edits (specular strength {stack.specular_strength:g})"
-        lines = [f"{len(stack)} edit(s), specular strength {stack.specular_strength:g}"]
-        for r in stack.rows():
-            info = r["info"]
-            t = f", {info['setup_s'] + info['steps_s']:.2f} s" if "setup_s" in info else ""
-            lines.append(f"  {r['number']:>3}  {'on ' if r['enabled'] else 'off'}  {r['file']}  "
-                         f"{Path(r['image']).name or '-'}  [{r['camera'] or '-'}{t}]")
-        return "\n".join(lines)
+        return _listing(m)
     if isinstance(cmd, Undo):
-        stack.undo()
-        return f"undone: {len(stack)} edit(s) left"
+        m.undo()
+        return f"undone: {len(m.entries)} edit(s) left"
     if isinstance(cmd, Reset):
-        n = stack.reset()
+        n = m.reset()
         return f"reset: removed {n} edit(s), specular strength 1"
     if isinstance(cmd, (Enable, Disable)):
-        stack.set_enabled(cmd.number, isinstance(cmd, Enable))
+        m.set_enabled(cmd.number, isinstance(cmd, Enable))
         return f"edit {cmd.number} {'enabled' if isinstance(cmd, Enable) else 'disabled'}"
     if isinstance(cmd, Specular):
-        stack.set_specular_strength(cmd.strength)
+        m.set_specular_strength(cmd.strength)
         return f"specular strength {cmd.strength:g}"
     raise InputError(f"unknown command {cmd!r}")
+
+
+def _listing(m) -> str:
+    """``list``'s lines from the manifest; an edit's ``info`` comes from its file only when the
+    manifest predates recording it there."""
+    if not m.entries:
+        return f"no edits (specular strength {m.specular_strength:g})"
+    lines = [f"{len(m.entries)} edit(s), specular strength {m.specular_strength:g}"]
+    for number, e in enumerate(m.entries, 1):
+        info = e.get("info")
+        if not isinstance(info, dict):
+            from virgi_ns.edit.stack import Edit
+
+            info = Edit.load(m.directory / e["file"]).info
+        t = f", {info['setup_s'] + info['steps_s']:.2f} s" if "setup_s" in info and "steps_s" in info else ""
+        lines.append(f"  {number:>3}  {'on ' if e['enabled'] else 'off'}  {e['file']}  "
+                     f"{Path(str(e.get('image', ''))).name or '-'}  [{e.get('camera') or '-'}{t}]")
+    return "\n".join(lines)
 
 
 def main(argv: Optional[list[str]] = None) -> None:

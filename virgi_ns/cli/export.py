@@ -4,6 +4,8 @@ The run's edits (``<run>/edits``, as the viewer panel and the edit tools keep th
 specular strength are applied unless ``--no-edits``; ``--specular-strength`` overrides ``k``.
 Colours are fitted to SH degree 3 per Gaussian (:mod:`virgi_ns.nerfstudio.export`); geometry is put back in
 the capture's original frame (the inverse of the run's ``dataparser_transforms.json``), so the file lines up with the source data and any splat imported from it.
+The run is opened from its files when it can be (:func:`virgi_ns.cli.runs.open_run`); :func:`load_run` is
+nerfstudio's loader, for callers that want the whole pipeline.
 """
 
 from __future__ import annotations
@@ -99,14 +101,15 @@ def _setup_inference(cfg, ckpt_dir: Path):
 def run(args: Export) -> str:
     """Do the export; returns the one-line summary."""
     _validate(args)
+    from virgi_ns.cli.runs import open_run
     from virgi_ns.edit.stack import EditStack
-    from virgi_ns.nerfstudio.export import BakeConfig, bake_pipeline, write_splat
+    from virgi_ns.nerfstudio.export import BakeConfig, bake, write_splat
     from virgi_ns.nerfstudio.frames import CaptureFrame
 
     console = Console(stderr=True)
     with console.status(f"loading {args.load_config}"):
-        cfg, pipeline = load_run(args.load_config)
-    model = pipeline.model
+        opened = open_run(args.load_config, console)
+    model = opened.model
     run_dir = args.load_config.parent
     stack = None if args.no_edits else EditStack.open(run_dir, model.fingerprint())
     if args.frame == "dataparser":
@@ -114,7 +117,7 @@ def run(args: Export) -> str:
     elif (run_dir / "dataparser_transforms.json").is_file():
         frame = CaptureFrame.from_transforms_json(run_dir / "dataparser_transforms.json")
     else:
-        frame = CaptureFrame.from_pipeline(pipeline)
+        frame = opened.frame
     k = args.specular_strength if args.specular_strength is not None else (
         stack.specular_strength if stack is not None else 1.0)
     n_edits = len(stack.active) if stack is not None else 0
@@ -122,8 +125,8 @@ def run(args: Export) -> str:
     with Progress(TextColumn("baking colours"), BarColumn(), TextColumn("{task.completed:,}/{task.total:,} Gaussians"),
                   TimeElapsedColumn(), console=console, transient=True) as bar:
         task = bar.add_task("bake", total=model.num_points)
-        g = bake_pipeline(pipeline, stack, k, frame, BakeConfig(directions=args.directions),
-                          progress=lambda done, total: bar.update(task, completed=done))
+        g = bake(model, stack, k, frame, opened.train.cameras(), BakeConfig(directions=args.directions),
+                 progress=lambda done, total: bar.update(task, completed=done))
     with console.status(f"writing {args.out}"):
         write_splat(g, args.out)
     secs = time.perf_counter() - t0

@@ -29,9 +29,9 @@ from dataclasses import dataclass
 
 import torch
 from jaxtyping import Float
-from nerfstudio.field_components.encodings import HashEncoding, SHEncoding
-from nerfstudio.field_components.spatial_distortions import SceneContraction
 from torch import Tensor, nn
+
+from virgi_ns.colour.encodings import GridEncoding, SHDirections, contract_linf
 
 
 @dataclass
@@ -51,7 +51,7 @@ class ColorFieldConfig:
     hidden: int = 64
     """Width of every hidden layer."""
     sh_dir_degree: int = 4
-    """View-direction encoding: nerfstudio ``SHEncoding(levels=sh_dir_degree)`` (1..4), which gives
+    """View-direction encoding: SH bands ``0 .. sh_dir_degree - 1`` (1..4; nerfstudio's ``SHEncoding``), which gives
     ``sh_dir_degree ** 2`` components (4 -> 16, SH bands 0..3)."""
     decoupled: bool = True
     """Diffuse + specular branches (True) or the single view-dependent MLP baseline (False)."""
@@ -63,51 +63,17 @@ class ColorFieldConfig:
         return int(round(self.base_res * self.growth ** max(self.levels - 1, 0)))
 
 
-_CORNERS = ((1, 1, 1), (1, 0, 1), (0, 0, 1), (0, 1, 1), (1, 1, 0), (1, 0, 0), (0, 0, 0), (0, 1, 0))
-
-
-class GridEncoding(HashEncoding):
-    """nerfstudio's torch :class:`HashEncoding` (same hash, same trilinear arithmetic, same
-    parameter), with the eight corner look-ups done as one ``index_select``: its gradient is
-    accumulated by ``index_add_`` (atomic adds on a GPU) instead of advanced indexing's sort-based
-    accumulation, which dominated a colour step."""
-
-    def pytorch_fwd(self, in_tensor: Float[Tensor, "*bs input_dim"]) -> Float[Tensor, "*bs output_dim"]:
-        assert in_tensor.shape[-1] == 3
-        in_tensor = in_tensor[..., None, :]  # [..., 1, 3]
-        scaled = in_tensor * self.scalings.view(-1, 1).to(in_tensor.device)  # [..., L, 3]
-        c = torch.ceil(scaled).type(torch.int32)
-        f = torch.floor(scaled).type(torch.int32)
-        offset = scaled - f
-        # the eight corners [..., 8, L, 3] in the parent's order (x, y, z; 1 = ceil): ccc, cfc, ffc,
-        # fcc, ccf, cff, fff, fcf; with corners before levels, the parent's hash_fn adds each level's
-        # table offset as it does for one corner
-        ceil = torch.tensor(_CORNERS, dtype=torch.bool, device=c.device).view(8, 1, 3)
-        hashed = self.hash_fn(torch.where(ceil, c[..., None, :, :], f[..., None, :, :]))  # [..., 8, L]
-        feats = self.hash_table.index_select(0, hashed.reshape(-1)).view(*hashed.shape, -1)  # [..., 8, L, F]
-        f_0, f_1, f_2, f_3, f_4, f_5, f_6, f_7 = feats.unbind(-3)
-        o0, o1, o2 = offset[..., 0:1], offset[..., 1:2], offset[..., 2:3]
-        f_03 = f_0 * o0 + f_3 * (1 - o0)
-        f_12 = f_1 * o0 + f_2 * (1 - o0)
-        f_56 = f_5 * o0 + f_6 * (1 - o0)
-        f_47 = f_4 * o0 + f_7 * (1 - o0)
-        f0312 = f_03 * o1 + f_12 * (1 - o1)
-        f4756 = f_47 * o1 + f_56 * (1 - o1)
-        encoded = f0312 * o2 + f4756 * (1 - o2)  # [..., L, F]
-        return torch.flatten(encoded, start_dim=-2, end_dim=-1)
-
-
 class DecoupledColorField(nn.Module):
     """Per-point colour ``sigmoid(c_d + c_s)`` from hash features and a view direction."""
 
-    def __init__(self, cfg: ColorFieldConfig, aabb: Float[Tensor, "2 3"]) -> None:
+    def __init__(self, cfg: ColorFieldConfig, aabb: Float[Tensor, "2 3"], empty: bool = False) -> None:
+        """``empty``: leave the hash table uninitialised, for a field whose trained state is loaded next."""
         super().__init__()
         self.cfg = cfg
         aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3)
         if not bool((aabb[1] > aabb[0]).all()):
             raise ValueError(f"DecoupledColorField: empty scene box {aabb.tolist()}")
         self.register_buffer("aabb", aabb.clone())
-        self.contraction = SceneContraction(order=float("inf"))
         self.hash = GridEncoding(
             num_levels=cfg.levels,
             min_res=cfg.base_res,
@@ -115,8 +81,9 @@ class DecoupledColorField(nn.Module):
             log2_hashmap_size=cfg.log2_hashmap_size,
             features_per_level=cfg.features_per_level,
             implementation="torch",
+            empty=empty,
         )
-        self.dir_encoding = SHEncoding(levels=cfg.sh_dir_degree, implementation="torch")
+        self.dir_encoding = SHDirections(levels=cfg.sh_dir_degree)
         f = self.hash.get_out_dim()
         d = self.dir_encoding.get_out_dim()
         h = cfg.hidden
@@ -146,7 +113,7 @@ class DecoupledColorField(nn.Module):
         [-2, 2]^3, then mapped to the hash grid's [0, 1]^3."""
         lo, hi = self.aabb[0], self.aabb[1]
         x = (positions - (lo + hi) / 2) / ((hi - lo) / 2)
-        x = self.contraction(x)
+        x = contract_linf(x)
         return ((x + 2.0) / 4.0).clamp(0.0, 1.0)
 
     def encode(self, positions: Float[Tensor, "N 3"]) -> Float[Tensor, "N F"]:
@@ -308,5 +275,5 @@ def view_directions(means: Float[Tensor, "N 3"], centers: Float[Tensor, "N 3"]) 
     return d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-__all__ = ["ColorFieldConfig", "DecoupledColorField", "direction_monomials", "monomial_degree",
+__all__ = ["ColorFieldConfig", "DecoupledColorField", "GridEncoding", "direction_monomials", "monomial_degree",
            "sh_monomial_matrix", "view_directions"]

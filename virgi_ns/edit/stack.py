@@ -13,8 +13,9 @@ so a later edit overrides earlier ones where its alpha is high; the rendered col
 ``sigmoid(c_d''_n + k c_s)`` with the stack's specular strength ``k`` (0 removes highlights,
 1.5 strengthens them). With no enabled edit and ``k = 1`` the stack is the identity.
 
-On disk (``<run>/edits/``): ``stack.json`` (order, enable flags, ``k``, the run's fingerprint)
-and one ``edit_NNNN.pt`` per edit (plain tensors and strings, loadable with
+On disk (``<run>/edits/``): ``stack.json`` (order, enable flags, ``k``, the run's fingerprint, each
+edit's ``info``; :mod:`virgi_ns.edit.manifest` reads and changes it without torch) and one
+``edit_NNNN.pt`` per edit (plain tensors and strings, loadable with
 ``torch.load(weights_only=True)``). Every write goes through :func:`virgi_ns.errors.atomic_path`;
 nothing of the run itself is ever written. The stack is deliberately not an ``nn.Module``, so it
 never enters a model's checkpoint.
@@ -33,12 +34,11 @@ import torch
 from jaxtyping import Float
 from torch import Tensor, nn
 
+from virgi_ns.edit.manifest import EDITS_DIR, MANIFEST, edits_dir, read_manifest, remove_edit_files, write_manifest
 from virgi_ns.errors import InputError, atomic_path
 
 EDIT_FORMAT = "virgi-edit"
 EDIT_VERSION = 1
-MANIFEST = "stack.json"
-EDITS_DIR = "edits"
 
 
 # ------------------------------------------------------------------------------ heads
@@ -219,33 +219,27 @@ class EditStack:
     # ------------------------------------------------------------ persistence
     @staticmethod
     def edits_dir(run_dir: str | Path) -> Path:
-        return Path(run_dir) / EDITS_DIR
+        return edits_dir(run_dir)
 
     @classmethod
     def open(cls, run_dir: str | Path, fingerprint: str) -> "EditStack":
         """The stack saved beside ``run_dir`` (empty if there is none). A stack or an edit made
         for another base run raises :class:`InputError`."""
-        d = cls.edits_dir(run_dir)
+        m = read_manifest(run_dir)
+        d = m.directory
         stack = cls(fingerprint, d)
-        man = d / MANIFEST
-        if not man.is_file():
+        if not m.exists:
             return stack
-        try:
-            m = json.loads(man.read_text())
-            items = m["edits"]
-            k = float(m.get("specular_strength", 1.0))
-            fp = str(m["fingerprint"])
-        except Exception as e:  # noqa: BLE001
-            raise InputError(f"{man} is not a virgi edit stack ({type(e).__name__})") from None
-        if fp == "" and not items:  # a manifest written before the run's fingerprint was known
+        fp = m.fingerprint
+        if fp == "" and not m.entries:  # a manifest written before the run's fingerprint was known
             fp = fingerprint
         if fp != fingerprint:
             raise InputError(f"the edits in {d} were made for another base run (fingerprint {fp}, this run {fingerprint})")
-        stack._k = k
-        for it in items:
+        stack._k = m.specular_strength
+        for it in m.entries:
             edit = Edit.load(d / it["file"])
             stack._check(edit, d / it["file"])
-            stack.entries.append(StackEntry(edit, str(it["file"]), bool(it.get("enabled", True))))
+            stack.entries.append(StackEntry(edit, it["file"], it["enabled"]))
         return stack
 
     def _check(self, edit: Edit, where: Path | str) -> None:
@@ -256,12 +250,9 @@ class EditStack:
     def _write_manifest(self) -> None:
         if self.directory is None:
             return
-        m = {"format": "virgi-edit-stack", "version": 1, "fingerprint": self.fingerprint,
-             "specular_strength": self._k,
-             "edits": [{"file": e.file, "enabled": e.enabled, "image": e.edit.source.image,
-                        "camera": e.edit.source.camera} for e in self.entries]}
-        with atomic_path(self.directory / MANIFEST) as tmp:
-            tmp.write_text(json.dumps(m, indent=1))
+        write_manifest(self.directory, self.fingerprint, self._k,
+                       [{"file": e.file, "enabled": e.enabled, "image": e.edit.source.image,
+                         "camera": e.edit.source.camera, "info": e.edit.info} for e in self.entries])
 
     def next_file(self) -> str:
         """The file name the next added edit gets (``edit_NNNN.pt``); its pictures may share the stem."""
@@ -327,11 +318,8 @@ class EditStack:
 
     def _remove_files(self, file: str) -> None:
         """An edit's file and the pictures saved beside it (``<stem>_*.png``, a pick's)."""
-        if self.directory is None:
-            return
-        (self.directory / file).unlink(missing_ok=True)
-        for p in self.directory.glob(f"{Path(file).stem}_*.png"):
-            p.unlink(missing_ok=True)
+        if self.directory is not None:
+            remove_edit_files(self.directory, file)
 
     def import_file(self, path: str | Path) -> int:
         """Add an edit file made elsewhere (refused when made for another base run)."""
@@ -440,5 +428,5 @@ def new_edit_info(**kw) -> dict:
     return {"created": time.strftime("%Y-%m-%d %H:%M:%S"), **kw}
 
 
-__all__ = ["Edit", "EditSource", "EditStack", "SegmentationHead", "field_fingerprint", "run_fingerprint",
-           "new_edit_info"]
+__all__ = ["EDITS_DIR", "MANIFEST", "Edit", "EditSource", "EditStack", "SegmentationHead", "field_fingerprint",
+           "run_fingerprint", "new_edit_info"]

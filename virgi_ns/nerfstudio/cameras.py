@@ -6,11 +6,15 @@ contract wants world-to-camera with OpenCV axes (x right, y down, z forward).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
-from nerfstudio.cameras.cameras import Cameras as NSCameras
 from torch import Tensor
 
 from virgi_ns.raster import Cameras
+
+if TYPE_CHECKING:  # only read here: importing this module (or frames) needs no nerfstudio
+    from nerfstudio.cameras.cameras import Cameras as NSCameras
 
 
 def viewmats_from_c2w(c2w: Tensor) -> Tensor:

@@ -14,14 +14,19 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
 import torch
 from jaxtyping import Float
-from nerfstudio.cameras.cameras import Cameras as NSCameras
 from torch import Tensor
 
 from virgi_ns.errors import InputError
 from virgi_ns.io.camera_json import CameraSpec
-from virgi_ns.nerfstudio.cameras import raster_cameras
+from virgi_ns.nerfstudio.cameras import raster_cameras, viewmats_from_c2w
+from virgi_ns.raster import Cameras
+
+if TYPE_CHECKING:  # the frames themselves need no nerfstudio (the command-line tools import this module)
+    from nerfstudio.cameras.cameras import Cameras as NSCameras
 
 
 # ---------------------------------------------------------------------------- rigid maps
@@ -205,8 +210,8 @@ def camera_spec(camera: NSCameras, transform: torch.Tensor, scale: float) -> Cam
                       float(K[1, 2]), M.numpy())
 
 
-def camera_from_spec(spec: CameraSpec, transform: torch.Tensor, scale: float) -> NSCameras:
-    """The nerfstudio camera (dataparser frame) of a capture-frame CAM.json; inverse of :func:`camera_spec`."""
+def _c2w_of_spec(spec: CameraSpec, transform: torch.Tensor, scale: float) -> Tensor:
+    """The OpenGL camera-to-world [3,4] (float64, dataparser frame) of a capture-frame CAM.json."""
     M = torch.as_tensor(spec.world_to_camera, dtype=torch.float64)
     R, t = transform[:3, :3].double(), transform[:3, 3].double()
     Rv = M[:3, :3] @ R.T
@@ -215,9 +220,23 @@ def camera_from_spec(spec: CameraSpec, transform: torch.Tensor, scale: float) ->
     c2w[:3, :3] = Rv.T
     c2w[:3, 3] = -Rv.T @ tv
     c2w[:3, 1:3] *= -1  # OpenCV -> OpenGL camera axes
-    return NSCameras(camera_to_worlds=c2w[None].float(), fx=spec.fx, fy=spec.fy, cx=spec.cx, cy=spec.cy,
-                     width=spec.width, height=spec.height)
+    return c2w
+
+
+def camera_from_spec(spec: CameraSpec, transform: torch.Tensor, scale: float) -> "NSCameras":
+    """The nerfstudio camera (dataparser frame) of a capture-frame CAM.json; inverse of :func:`camera_spec`."""
+    from nerfstudio.cameras.cameras import Cameras as NSCameras
+
+    return NSCameras(camera_to_worlds=_c2w_of_spec(spec, transform, scale)[None].float(), fx=spec.fx, fy=spec.fy,
+                     cx=spec.cx, cy=spec.cy, width=spec.width, height=spec.height)
+
+
+def raster_camera_from_spec(spec: CameraSpec, transform: torch.Tensor, scale: float) -> Cameras:
+    """``raster_cameras(camera_from_spec(...))`` without nerfstudio: the same float32 numbers."""
+    c2w = _c2w_of_spec(spec, transform, scale)[None].float()
+    K = torch.tensor([[[spec.fx, 0.0, spec.cx], [0.0, spec.fy, spec.cy], [0.0, 0.0, 1.0]]], dtype=torch.float32)
+    return Cameras(K, viewmats_from_c2w(c2w), spec.width, spec.height)
 
 
 __all__ = ["CaptureFrame", "camera_from_spec", "camera_spec", "capture_frame", "frame_of_model", "quat_multiply",
-           "rotmat_to_quat", "transform_gaussians"]
+           "raster_camera_from_spec", "rotmat_to_quat", "transform_gaussians"]

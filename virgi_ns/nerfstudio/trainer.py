@@ -13,6 +13,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Tuple, Type
 
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
@@ -135,6 +136,23 @@ class VirgiTrainer(Trainer):
 
     def setup_optimizers(self):
         return distributed.make_optimizers(self.config.optimizers.copy(), self.pipeline.get_param_groups())
+
+    def save_checkpoint(self, step: int) -> None:
+        """nerfstudio's checkpoint, then (once per training, on the main process) ``virgi_run.json``
+        beside it: what the virgi commands load instead of nerfstudio's dataparser. A failure to write
+        it never stops training (the commands then load the run through nerfstudio)."""
+        super().save_checkpoint(step)
+        if not distributed.is_main() or getattr(self, "_run_info_written", False):
+            return
+        self._run_info_written = True
+        try:
+            from virgi_ns.nerfstudio.run_info import training_run_info, write_run_info
+
+            write_run_info(training_run_info(self.config, self.pipeline.model), self.checkpoint_dir,
+                           Path(self.config.get_base_dir()) / "config.yml")
+        except Exception as e:  # noqa: BLE001 - a convenience file; training goes on
+            CONSOLE.log(f"virgi: virgi_run.json not written ({type(e).__name__}: {e}); the virgi commands will "
+                        "load this run through nerfstudio")
 
     def eval_iteration(self, step: int) -> None:
         if self.world_size == 1 or distributed.is_main():
