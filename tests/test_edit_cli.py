@@ -200,7 +200,7 @@ def test_original_image_limits_the_fit_to_changed_pixels(saved, tmp_path):
     try:
         first = run(_apply(saved, original=orig), _quiet(), pl)
         run(_apply(saved, whole_image=True), _quiet(), pl)
-        assert "edited image)" in first, first
+        assert "colour map of the change)" in first, first
         st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
         fr = [e.edit.info["changed_fraction"] for e in st.entries]
         assert abs(fr[0] - float(mask.float().mean())) < 0.03 and fr[0] < 0.9, fr
