@@ -10,6 +10,7 @@ import torch
 
 from virgi_ns.errors import InputError
 from virgi_ns.io import load_splat
+from virgi_ns.io.splatfacto import _safe_load
 
 
 def _checkpoint(n: int, degree: int, seed: int) -> dict:
@@ -80,3 +81,22 @@ def test_degree_zero_checkpoint_colours_are_the_sigmoid_of_features_dc(tmp_path)
     assert g.sh_degree == 0
     colour = 0.28209479177387814 * g.sh[:, 0].double() + 0.5
     torch.testing.assert_close(colour, torch.sigmoid(p["features_dc"].double()), atol=1e-6, rtol=0)
+
+
+def test_reading_a_splatfacto_checkpoint_leaves_the_checkpoint_allow_list_alone(tmp_path):
+    """The reader's temporary allow-list must not take back the numpy globals our compat module allowed
+    for good (nerfstudio checkpoints need them later in the same process)."""
+    import numpy as np
+
+    import virgi_ns.nerfstudio.compat as compat
+
+    compat.apply()
+    before = set(map(str, torch.serialization.get_safe_globals()))
+    assert str(np.dtype) in before
+    path = tmp_path / "x.ckpt"
+    torch.save({"pipeline": {}, "step": np.float64(1.0)}, path)
+    try:
+        _safe_load(path)
+    except Exception:
+        pass  # not a splat: only the allow-list matters here
+    assert before <= set(map(str, torch.serialization.get_safe_globals()))

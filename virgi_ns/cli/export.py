@@ -84,7 +84,9 @@ def _setup_inference(cfg, ckpt_dir: Path):
     knows, which a fresh process would otherwise pay for on every command."""
     import torch
 
-    import virgi_ns.nerfstudio.compat  # noqa: F401  (checkpoints load with torch's safe unpickling)
+    from virgi_ns.nerfstudio import compat
+
+    compat.apply()  # checkpoints load with torch's safe unpickling (idempotent; other code may have narrowed it)
 
     steps = sorted(int(p.stem.split("-")[1]) for p in ckpt_dir.glob("step-*.ckpt") if p.stem.split("-")[1].isdigit())
     if not steps:

@@ -32,6 +32,10 @@ def _safe_load(path: Path) -> dict:
     except AttributeError:  # pragma: no cover - numpy 1.x
         allowed += [np.core.multiarray.scalar, np.core.multiarray._reconstruct]
     allowed += [type(np.dtype(t)) for t in ("f4", "f8", "i4", "i8", "u1", "bool")]
+    # torch's context removes its globals on exit: pass only those not allowed already, or it would
+    # take back what other code (our checkpoint compat) allowed for good
+    before = torch.serialization.get_safe_globals()
+    allowed = [g for g in allowed if g not in before]
     try:
         with torch.serialization.safe_globals(allowed):
             obj = torch.load(path, map_location="cpu", weights_only=True)

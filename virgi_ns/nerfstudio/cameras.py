@@ -40,6 +40,8 @@ def raster_cameras(cameras: NSCameras) -> Cameras:
 def ns_cameras(cameras: Cameras) -> NSCameras:
     """Rasterizer :class:`Cameras` -> nerfstudio pinhole cameras (the inverse of :func:`raster_cameras`),
     for code that renders our own cameras through a model's nerfstudio entry points."""
+    from nerfstudio.cameras.cameras import Cameras as NSCameras
+
     c2w = torch.linalg.inv(cameras.viewmats.float())[:, :3, :4]
     c2w = c2w * torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=c2w.dtype, device=c2w.device)  # OpenCV -> OpenGL axes
     K = cameras.Ks.float()
