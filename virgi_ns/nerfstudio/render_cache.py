@@ -263,6 +263,17 @@ def _build_gate(model, key: tuple, refs: tuple, half: bool) -> GateCache:
 
 
 @torch.no_grad()
+
+def edited_diffuse(fld, f: Tensor, h2: Tensor, stack, live) -> Tensor:
+    """Diffuse logits of Gaussians with features ``f`` / ``h2``: the base head, then the edit stack's
+    edits, then the live (uncommitted) edit over them."""
+    c = fld.diffuse(h2)
+    if stack is not None:
+        c = stack.diffuse(f, h2, c)
+    if live is not None:
+        c = live.over(f, h2, c)
+    return c
+
 def _build_edits(model, key: tuple, refs: tuple, gate: Optional[GateCache]) -> EditCache:
     stack = model._active_stack()
     live = getattr(model, "live_edit", None)
@@ -275,12 +286,7 @@ def _build_edits(model, key: tuple, refs: tuple, gate: Optional[GateCache]) -> E
         for s in range(0, means.shape[0], CHUNK):
             f = fld.encode(means[s : s + CHUNK])
             _, h2 = fld.diffuse_hidden(f)
-            c = fld.diffuse(h2)
-            if stack is not None:
-                c = stack.diffuse(f, h2, c)
-            if live is not None:
-                c = live.over(f, h2, c)
-            parts.append(c)
+            parts.append(edited_diffuse(fld, f, h2, stack, live))
         c_d = torch.cat(parts) if parts else means.new_zeros(0, 3)
     k = stack.specular_strength if stack is not None else 1.0
     p3k = w_s2k = None
@@ -338,5 +344,5 @@ class ViewOutputs(MutableMapping):
         return f"ViewOutputs({self._order}, computed={self.computed()})"
 
 
-__all__ = ["EditCache", "GateCache", "GeometryCache", "RenderCache", "View", "ViewColours", "ViewOutputs",
+__all__ = ["EditCache", "edited_diffuse", "GateCache", "GeometryCache", "RenderCache", "View", "ViewColours", "ViewOutputs",
            "gated_colours", "stamp", "view_of"]

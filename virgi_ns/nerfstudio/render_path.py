@@ -30,6 +30,7 @@ from virgi_ns.nerfstudio.render_cache import (
     View,
     ViewColours,
     ViewOutputs,
+    edited_diffuse,
     gated_colours,
     view_of,
 )
@@ -97,12 +98,7 @@ class RenderPath:
         d = view_directions(means[pg], centres[pv])
         if fld.decoupled:
             h1, h2 = fld.diffuse_hidden(f)
-            c_d_u = fld.diffuse(h2)
-            if stack is not None:
-                c_d_u = stack.diffuse(f, h2, c_d_u)
-            if live is not None:
-                c_d_u = live.over(f, h2, c_d_u)
-            c_d = c_d_u[inv]
+            c_d = edited_diffuse(fld, f, h2, stack, live)[inv]
             c_s = fld.specular(f[inv], d, h1[inv], h2[inv])
         else:
             h1, h2p = fld.diffuse_hidden(f[inv], d)
