@@ -262,8 +262,6 @@ def _build_gate(model, key: tuple, refs: tuple, half: bool) -> GateCache:
                      w_s2.detach().t().to(dt).contiguous(), monomial_degree(levels))
 
 
-@torch.no_grad()
-
 def edited_diffuse(fld, f: Tensor, h2: Tensor, stack, live) -> Tensor:
     """Diffuse logits of Gaussians with features ``f`` / ``h2``: the base head, then the edit stack's
     edits, then the live (uncommitted) edit over them."""
@@ -274,6 +272,8 @@ def edited_diffuse(fld, f: Tensor, h2: Tensor, stack, live) -> Tensor:
         c = live.over(f, h2, c)
     return c
 
+
+@torch.no_grad()
 def _build_edits(model, key: tuple, refs: tuple, gate: Optional[GateCache]) -> EditCache:
     stack = model._active_stack()
     live = getattr(model, "live_edit", None)
@@ -344,5 +344,5 @@ class ViewOutputs(MutableMapping):
         return f"ViewOutputs({self._order}, computed={self.computed()})"
 
 
-__all__ = ["EditCache", "edited_diffuse", "GateCache", "GeometryCache", "RenderCache", "View", "ViewColours", "ViewOutputs",
-           "gated_colours", "stamp", "view_of"]
+__all__ = ["EditCache", "GateCache", "GeometryCache", "RenderCache", "View", "ViewColours", "ViewOutputs",
+           "edited_diffuse", "gated_colours", "stamp", "view_of"]
