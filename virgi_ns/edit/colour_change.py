@@ -72,8 +72,7 @@ class ColourChange:
 
     def support(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N"]:
         """Kernel weight of the photo's pixels near each colour."""
-        idx, w = _corners(colours.float(), self.grid)
-        return (self.weight[idx] * w).sum(1)
+        return self.lookup(colours)[1]
 
     def delta(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
         """The mean change the user made to pixels of (about) this colour; zero where uncovered."""
@@ -97,8 +96,13 @@ class ColourChange:
     def one_change(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N"]:
         """Per colour: covered, and the changes near it are one change (spread within
         :data:`SPREAD_SHARE` of the mean change's largest channel)."""
+        return self.apply_where_one_change(colours)[1]
+
+    def apply_where_one_change(self, colours: Float[Tensor, "N 3"]) -> tuple[Tensor, Tensor]:
+        """(:meth:`apply`, :meth:`one_change`) of ``colours`` from one lookup."""
         delta, support, spread = self.lookup(colours)
-        return (support >= MIN_SUPPORT) & (spread <= SPREAD_SHARE * delta.abs().amax(-1))
+        one = (support >= MIN_SUPPORT) & (spread <= SPREAD_SHARE * delta.abs().amax(-1))
+        return (colours + delta).clamp(0.0, 1.0), one
 
     def apply(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
         """``colours`` changed as the user changed such colours (clamped to [0, 1])."""

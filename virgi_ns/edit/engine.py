@@ -415,9 +415,10 @@ class EditEngine:
         (:mod:`virgi_ns.edit.colour_change`), the edited pixel elsewhere."""
         change = fit_colour_change(original, edited)
         flat_o, flat_e, flat_r = original.reshape(-1, 3), edited.reshape(-1, 3), self.current.reshape(-1, 3)
-        use = change.explains(flat_o, flat_e) & change.one_change(flat_r)
+        mapped, one = change.apply_where_one_change(flat_r)
+        use = change.explains(flat_o, flat_e) & one
         self.map_explained = float(use[changed.reshape(-1)].float().mean())
-        return torch.where(use[:, None], change.apply(flat_r), flat_e).reshape(edited.shape)
+        return torch.where(use[:, None], mapped, flat_e).reshape(edited.shape)
 
     def retarget(self, edited: Float[Tensor, "H W 3"], changed: Optional[Tensor] = None,
                  original: Optional[Float[Tensor, "H W 3"]] = None, seg_steps: Optional[int] = None) -> None:
