@@ -9,8 +9,10 @@ takes a second or two on a CPU.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
+from typing import Iterator
 
 import torch
 
@@ -103,3 +105,14 @@ def build(seed: int = 0, per_object: int = 400, fit_steps: int = 150) -> EditSce
         p.requires_grad_(False)
     scene = FrozenScene(means, quats, scales, opac, field, torch.zeros(3), backend="reference")
     return EditScene(scene, cams, labels, normals)
+
+
+@contextlib.contextmanager
+def one_thread() -> Iterator[None]:
+    """torch on one thread inside: tiny tensors, where threads only add contention on a shared machine."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)

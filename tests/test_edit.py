@@ -27,9 +27,7 @@ EDIT_VIEW, HELD_OUT = 0, (1, 7)
 @pytest.fixture(scope="module")
 def world():
     """The scene, every view's contributions, unedited renders, and one fitted blue -> red edit."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny tensors: threads only add contention on a shared machine
-    try:
+    with es.one_thread():
         S = es.build()
         cams = S.cameras
         contrib = [S.scene.contributions(cams.index(v), Request.whole_images(cams.index(v))) for v in range(len(cams))]
@@ -42,8 +40,6 @@ def world():
         cover = [composite(c.gather(onehot), c)[0] for c in contrib]
         yield {"S": S, "contrib": contrib, "before": before, "edited": edited, "edit": edit, "timing": timing,
                "cover": cover, "engine": eng}
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _stack(world, *edits: Edit, directory=None) -> EditStack:

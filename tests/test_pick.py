@@ -33,9 +33,7 @@ RED_HUE = 360.0 * colorsys.rgb_to_hsv(0xD0 / 255, 0x20 / 255, 0x20 / 255)[0]  # 
 
 @pytest.fixture(scope="module")
 def world():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny tensors: threads only add contention on a shared machine
-    try:
+    with es.one_thread():
         S = es.build()
         cams = S.cameras
         onehot = torch.nn.functional.one_hot(S.labels, 3).float()
@@ -54,8 +52,6 @@ def world():
                             pick_config("cpu"))
             sessions[mode] = (s, s.update(parse_colour(RED), 0.2, mode))
         yield {"S": S, "cover": cover, "before": before, "pixel": pixel, "sessions": sessions}
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _hsv(img: torch.Tensor) -> np.ndarray:

@@ -183,14 +183,8 @@ def test_gsplat_whole_view_render_matches_the_contribution_lists(gated_model):
 def spec_model(scene):  # noqa: F811
     """A trained model whose specular branch is made strong (random MLP_spec), with a gate that
     keeps about half of the Gaussians."""
-    steps = 8
-    _, pipeline, optimizers, cbs = build(scene, steps=steps)
-    train(pipeline, optimizers, cbs, steps)
-    pipeline.eval()
+    pipeline = _gated_specular_pipeline(scene, steps=8, seed=0)
     model = pipeline.model
-    _strong_specular(model, seed=0)
-    model.build_specular_gate(model._train_cameras_fn())
-    model.config.gate_threshold = float(model.spec_magnitude.median())
     cams = pipeline.datamanager.eval_dataset.cameras
     return pipeline, model, cams
 
@@ -201,6 +195,19 @@ def _strong_specular(model, seed: int) -> None:
         for layer in (model.field.spec_l1, model.field.spec_l2, model.field.spec_l3):
             layer.weight.copy_(torch.randn(layer.weight.shape, generator=g) * 0.3)
             layer.bias.copy_(torch.randn(layer.bias.shape, generator=g) * 0.3)
+
+
+def _gated_specular_pipeline(scene, steps: int, seed: int):  # noqa: F811
+    """A model trained ``steps`` steps (``seed``), its specular branch made strong (random MLP_spec),
+    with a gate that keeps about half of the Gaussians; in eval mode."""
+    _, pipeline, optimizers, cbs = build(scene, steps=steps, seed=seed)
+    train(pipeline, optimizers, cbs, steps)
+    pipeline.eval()
+    model = pipeline.model
+    _strong_specular(model, seed=seed)
+    model.build_specular_gate(model._train_cameras_fn())
+    model.config.gate_threshold = float(model.spec_magnitude.median())
+    return pipeline
 
 
 def _centre(cam) -> torch.Tensor:
@@ -364,14 +371,8 @@ def test_every_change_reaches_the_cached_colours(spec_model):
 def test_a_changed_field_is_never_served_from_the_cache(scene):  # noqa: F811
     """A field changed after the gate was built (a training step, an in-place write) gets the full
     colour model until the gate is built again; the rebuilt gate serves the new field."""
-    steps = 4
-    _, pipeline, optimizers, cbs = build(scene, steps=steps, seed=1)
-    train(pipeline, optimizers, cbs, steps)
-    pipeline.eval()
+    pipeline = _gated_specular_pipeline(scene, steps=4, seed=1)
     model = pipeline.model
-    _strong_specular(model, seed=1)
-    model.build_specular_gate(model._train_cameras_fn())
-    model.config.gate_threshold = float(model.spec_magnitude.median())
     cam = pipeline.datamanager.eval_dataset.cameras[0:1]
     ref = _check_colours(model, cam)
     # one optimizer step on the field (no callback drops the gate here)
