@@ -245,32 +245,35 @@ def test_sh_encoding_as_direction_monomials(levels):
     torch.testing.assert_close(got, want, rtol=0, atol=1e-7)
 
 
-def test_encodings_equal_nerfstudios_and_draw_the_same_initial_table():
-    """The field's own encodings (no nerfstudio import) give nerfstudio's SH components and L-inf
-    contraction bit for bit, and a grid built after the same seed holds nerfstudio's table, so runs
-    trained with either start alike and load into the other."""
-    from nerfstudio.field_components.encodings import HashEncoding, SHEncoding
-    from nerfstudio.field_components.spatial_distortions import SceneContraction
+def test_grid_encoding_equals_nerfstudios_and_an_empty_one_loads_its_state():
+    """The grid's one-``index_select`` forward gives nerfstudio's ``HashEncoding`` output bit for bit
+    and its gradient to rounding (atomic adds sum in another order) on the same table; ``empty=True`` draws nothing from torch's generator,
+    has the same scalings, offsets and state dict, and after loading the state computes the same."""
+    from nerfstudio.field_components.encodings import HashEncoding
 
-    from virgi_ns.colour.encodings import GridEncoding, SHDirections, contract_linf
+    from virgi_ns.colour.encodings import GridEncoding
 
-    g = torch.Generator().manual_seed(5)
-    dirs = torch.nn.functional.normalize(torch.randn(300, 3, generator=g), dim=-1)
-    for levels in (1, 2, 3, 4):
-        assert torch.equal(SHDirections(levels)(dirs), SHEncoding(levels, implementation="torch")(dirs))
-    from nerfstudio.utils.math import components_from_spherical_harmonics
-
-    from virgi_ns.colour.sh import sh_components
-
-    assert torch.equal(sh_components(5, dirs.double()), components_from_spherical_harmonics(5, dirs.double()))
-    x = torch.randn(400, 3, generator=g) * 3
-    assert torch.equal(contract_linf(x), SceneContraction(order=float("inf"))(x))
     kw = dict(num_levels=5, min_res=4, max_res=64, log2_hashmap_size=10, features_per_level=2, implementation="torch")
     torch.manual_seed(11)
     ours = GridEncoding(**kw)
     torch.manual_seed(11)
     theirs = HashEncoding(**kw)
-    assert torch.equal(ours.hash_table, theirs.hash_table) and torch.equal(ours.scalings, theirs.scalings)
-    assert list(ours.state_dict()) == list(theirs.state_dict()) == ["hash_table"]
-    p = torch.rand(200, 3, generator=g)
-    assert torch.equal(ours(p), theirs(p))
+    assert torch.equal(ours.hash_table, theirs.hash_table)
+    p = torch.rand(200, 3, generator=torch.Generator().manual_seed(5))
+    a, b = ours(p), theirs(p)
+    assert torch.equal(a, b)
+    w = torch.randn_like(a)
+    (a * w).sum().backward()
+    (b * w).sum().backward()
+    torch.testing.assert_close(ours.hash_table.grad, theirs.hash_table.grad, rtol=1e-6, atol=1e-6)  # summation order
+
+    torch.manual_seed(3)
+    before = torch.rand(1)
+    torch.manual_seed(3)
+    empty = GridEncoding(**kw, empty=True)
+    assert torch.equal(torch.rand(1), before)  # no draws taken
+    assert empty.hash_table.device.type == "cpu" and empty.hash_table.shape == theirs.hash_table.shape
+    assert torch.equal(empty.scalings, theirs.scalings) and torch.equal(empty.hash_offset, theirs.hash_offset)
+    assert list(empty.state_dict()) == list(theirs.state_dict()) == ["hash_table"]
+    empty.load_state_dict(theirs.state_dict())
+    assert torch.equal(empty(p), theirs(p))

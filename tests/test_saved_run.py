@@ -1,7 +1,7 @@
 """The command-line tools' own run loader (:mod:`virgi_ns.nerfstudio.saved_run`, :func:`virgi_ns.cli.runs.open_run`)
 on a tiny saved run (CPU): it gives the Gaussians, colour field, cameras and photos nerfstudio's
-loader gives; ``list``/``undo`` import neither nerfstudio nor torch and ``apply``/``export`` no
-nerfstudio; runs without ``virgi_run.json`` still load (through nerfstudio, which writes it)."""
+loader gives; ``list``/``undo`` import neither nerfstudio nor torch and ``apply``/``export`` only
+nerfstudio's field components (the colour field's encodings); runs without ``virgi_run.json`` still load (through nerfstudio, which writes it)."""
 
 from __future__ import annotations
 
@@ -159,30 +159,41 @@ def test_an_edit_and_an_export_are_the_same_through_either_loader(saved, tmp_pat
     assert ja == jb
 
 
-def _blocked(module: str, blocked: str, *args: str) -> subprocess.CompletedProcess:
+FIELD_PARTS = "nerfstudio,nerfstudio.field_components.*,nerfstudio.utils.*,nerfstudio.data,nerfstudio.data.scene_box"
+"""What of nerfstudio loading a run's colour field may import: its encodings and their helpers,
+none of its models, pipelines, data managers, cameras or viewer."""
+
+
+def _blocked(module: str, blocked: str, *args: str, allowed: str = "") -> subprocess.CompletedProcess:
     """Run ``python -m module args`` in a fresh process where importing any of ``blocked``
-    (comma-separated top-level packages) raises."""
+    (comma-separated top-level packages) raises, except the modules ``allowed`` names
+    (comma-separated; ``pkg.*`` allows a package and its submodules)."""
     code = ("import os, runpy, sys\n"
+            "def ok(name):\n"
+            "    for a in filter(None, os.environ['ALLOWED'].split(',')):\n"
+            "        if name == a or (a.endswith('.*') and (name == a[:-2] or name.startswith(a[:-1]))):\n"
+            "            return True\n"
+            "    return False\n"
             "class Block:\n"
             "    def find_spec(self, name, path=None, target=None):\n"
-            "        if name.split('.')[0] in os.environ['BLOCKED'].split(','):\n"
+            "        if name.split('.')[0] in os.environ['BLOCKED'].split(',') and not ok(name):\n"
             "            raise ImportError(name + ' must not be imported here')\n"
             "sys.meta_path.insert(0, Block())\n"
             "sys.argv = [os.environ['MOD']] + sys.argv[1:]\n"
             "runpy.run_module(os.environ['MOD'], run_name='__main__', alter_sys=True)\n")
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""),
-           "BLOCKED": blocked, "MOD": module}
+           "BLOCKED": blocked, "ALLOWED": allowed, "MOD": module}
     return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, env=env,
                           timeout=600, cwd=REPO)
 
 
-def test_stack_commands_import_neither_nerfstudio_nor_torch_and_apply_export_no_nerfstudio(saved, tmp_path):
+def test_stack_commands_import_neither_nerfstudio_nor_torch_and_apply_export_only_its_field_parts(saved, tmp_path):
     cfg = _copy_run(saved, tmp_path / "run")
     p = _blocked("virgi_ns.cli.edit", "nerfstudio", "apply", "--load-config", str(cfg), "--image",
-                 str(saved["edited"]), "--camera-index", "1", "--steps", "2")
+                 str(saved["edited"]), "--camera-index", "1", "--steps", "2", allowed=FIELD_PARTS)
     assert p.returncode == 0 and p.stdout.startswith("edit 1 saved"), p.stderr
     p = _blocked("virgi_ns.cli.export", "nerfstudio", "--load-config", str(cfg), "--out", str(tmp_path / "o.ply"),
-                 "--directions", "4")
+                 "--directions", "4", allowed=FIELD_PARTS)
     assert p.returncode == 0 and "1 edit(s)" in p.stdout, p.stderr
     for args, want in ((["list"], "1 edit(s), specular strength 1"), (["specular", "1.5"], "specular strength 1.5"),
                        (["disable", "1"], "edit 1 disabled"), (["list"], "off  edit_0001.pt  edited.png"),

@@ -1,4 +1,4 @@
-"""A trained VIRGi run read from its files without importing nerfstudio: what ``virgi-edit apply|pick|import``
+"""A trained VIRGi run read from its files without nerfstudio's loader: what ``virgi-edit apply|pick|import``
 and ``virgi-export`` need of it.
 
 nerfstudio's own loader (``eval_setup``, or :func:`virgi_ns.cli.export.load_run`) imports the
