@@ -534,3 +534,103 @@ def test_gpu_cached_render_equals_the_reference_colours_rendered(spec_model):
         model.set_edit_stack(None)
         model.config.gate_threshold = median
         pipeline.to("cpu")
+
+
+# ---------------------------------------------------------------- the camera conversion
+def _previous_view_of(camera, device, dtype):
+    """The conversion as it was before it gathered the camera's numbers as words (numpy on the host)."""
+    import numpy as np
+
+    from virgi_ns.nerfstudio.render_cache import View
+
+    host = torch.cat([camera.camera_to_worlds.reshape(-1, 12)[0]]
+                     + [getattr(camera, k).reshape(-1)[:1].to(camera.camera_to_worlds.dtype)
+                        for k in ("fx", "fy", "cx", "cy", "width", "height")]).cpu().double().numpy()
+    c2w = host[:12].reshape(3, 4)
+    rot = c2w[:, :3] * np.array([1.0, -1.0, -1.0])
+    t = c2w[:, 3]
+    vm = np.eye(4)
+    vm[:3, :3] = rot.T
+    vm[:3, 3] = -rot.T @ t
+    fx, fy, cx, cy, w, h = host[12:]
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    packed = torch.from_numpy(np.concatenate([vm.ravel(), K.ravel(), t]).astype(np.float32)).to(device)
+    return View(packed[:16].view(1, 4, 4), packed[16:25].view(1, 3, 3), packed[25:28].view(1, 3).to(dtype),
+                int(round(w)), int(round(h)))
+
+
+def _random_cameras(seed: int, n: int, c2w_dtype=torch.float32, size_dtype=torch.int64):
+    """``n`` nerfstudio pinhole cameras: random rotations and positions far from the origin,
+    non-square images, principal points off the centre, fx != fy."""
+    from nerfstudio.cameras.cameras import Cameras as NSCameras
+
+    g = torch.Generator().manual_seed(seed)
+    q, _ = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=torch.float64))
+    q = q * torch.sign(torch.linalg.det(q))[:, None, None]  # proper rotations
+    t = torch.randn(n, 3, 1, generator=g, dtype=torch.float64) * 30.0
+    c2w = torch.cat([q, t], dim=-1).to(c2w_dtype)
+    w = torch.randint(64, 2000, (n, 1), generator=g)
+    h = torch.randint(64, 2000, (n, 1), generator=g)
+    f = torch.rand(n, 1, generator=g) * 1500 + 100
+    return NSCameras(camera_to_worlds=c2w, fx=f, fy=f * (0.8 + 0.4 * torch.rand(n, 1, generator=g)),
+                     cx=w * torch.rand(n, 1, generator=g), cy=h * torch.rand(n, 1, generator=g),
+                     width=w.to(size_dtype), height=h.to(size_dtype))
+
+
+def _oracle(camera):
+    """(viewmat [4,4], K [3,3], centre [3], width, height) of the first camera, in float64 through the
+    project's own batched conversion."""
+    from virgi_ns.nerfstudio.cameras import viewmats_from_c2w
+
+    c2w = camera.camera_to_worlds.reshape(-1, 3, 4)[:1].double()
+    K = torch.zeros(3, 3, dtype=torch.float64)
+    K[0, 0], K[1, 1] = camera.fx.reshape(-1)[0].double(), camera.fy.reshape(-1)[0].double()
+    K[0, 2], K[1, 2], K[2, 2] = camera.cx.reshape(-1)[0].double(), camera.cy.reshape(-1)[0].double(), 1.0
+    return (viewmats_from_c2w(c2w)[0], K, c2w[0, :, 3], int(camera.width.reshape(-1)[0]),
+            int(camera.height.reshape(-1)[0]))
+
+
+@pytest.mark.parametrize("c2w_dtype,size_dtype,batch", [(torch.float32, torch.int64, "one"),
+                                                         (torch.float32, torch.int64, "many"),
+                                                         (torch.float64, torch.int32, "one"),
+                                                         (torch.float32, torch.int64, "grid")])
+def test_view_of_equals_the_float64_oracle_and_the_previous_conversion(c2w_dtype, size_dtype, batch):
+    from virgi_ns.nerfstudio.render_cache import view_of
+
+    for seed in range(25):
+        cams = _random_cameras(seed, 3, c2w_dtype, size_dtype)
+        cam = {"one": cams[1:2], "many": cams, "grid": cams.reshape((3, 1))}[batch]
+        vm, K, centre, w, h = _oracle(cam)
+        for dtype in (torch.float32, torch.float64):
+            got = view_of(cam, torch.device("cpu"), dtype)
+            assert (got.width, got.height) == (w, h)
+            assert got.viewmat.shape == (1, 4, 4) and got.K.shape == (1, 3, 3) and got.centre.shape == (1, 3)
+            assert got.viewmat.dtype == torch.float32 and got.K.dtype == torch.float32 and got.centre.dtype == dtype
+            # float32 results of float64 algebra: within float32 rounding of the oracle
+            torch.testing.assert_close(got.viewmat[0].double(), vm, rtol=1e-6, atol=1e-6 * float(vm.abs().max()))
+            torch.testing.assert_close(got.K[0].double(), K, rtol=1e-6, atol=0.0)
+            torch.testing.assert_close(got.centre[0].double(), centre, rtol=1e-6, atol=1e-6)
+            # a point ahead of the camera lands on the principal point (to the float32 rounding of a
+            # translation of ~50 at a focal length of up to 1600 pixels)
+            ahead = centre - cam.camera_to_worlds.reshape(-1, 3, 4)[0, :, 2].double()  # OpenGL looks down -z
+            p = got.viewmat[0].double() @ torch.cat([ahead, ahead.new_ones(1)])
+            uv = (got.K[0].double() @ p[:3]) / p[2]
+            torch.testing.assert_close(uv[:2], K[:2, 2], rtol=0.0, atol=2e-2)
+            old = _previous_view_of(cam, torch.device("cpu"), dtype)
+            for a, b in ((got.viewmat, old.viewmat), (got.K, old.K), (got.centre, old.centre)):
+                torch.testing.assert_close(a, b, rtol=2e-7, atol=1e-6)
+            assert (got.width, got.height) == (old.width, old.height)
+
+
+@pytest.mark.gpu
+def test_view_of_on_the_gpu_equals_the_cpu_conversion():
+    """A camera on the GPU (as the viewer hands it over): the same View, on the GPU."""
+    from virgi_ns.nerfstudio.render_cache import view_of
+
+    for seed in range(5):
+        cam = _random_cameras(seed, 2)[0:1]
+        want = view_of(cam, torch.device("cpu"), torch.float32)
+        got = view_of(cam.to("cuda"), torch.device("cuda"), torch.float32)
+        assert got.viewmat.is_cuda and (got.width, got.height) == (want.width, want.height)
+        for a, b in ((got.viewmat, want.viewmat), (got.K, want.K), (got.centre, want.centre)):
+            assert torch.equal(a.cpu(), b)

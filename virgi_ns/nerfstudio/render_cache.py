@@ -26,11 +26,11 @@ edits, and the gate threshold. Writes through ``.data`` bypass the version count
 
 from __future__ import annotations
 
+import struct
 from collections.abc import MutableMapping
 from dataclasses import dataclass, field
 from typing import Callable, Dict, Iterator, Optional
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -49,6 +49,13 @@ def stamp(t: Optional[Tensor]) -> tuple:
 
 
 # ------------------------------------------------------------------------------ a view
+_CAMERA_FIELDS = ("fx", "fy", "cx", "cy", "width", "height")
+_WORD_CODES = {torch.float32: "f", torch.float64: "d", torch.int32: "i", torch.int64: "q"}
+"""struct codes of the dtypes whose bytes :func:`_camera_numbers` moves as 32-bit words."""
+_CAMERA_FORMATS: Dict[tuple, str] = {}
+"""struct formats of single cameras by their fields' (dtype, shape, contiguity)."""
+
+
 @dataclass
 class View:
     """One pinhole view in gsplat's form: ``viewmat`` [1,4,4] (world-to-camera, OpenCV axes) and
@@ -61,23 +68,55 @@ class View:
     height: int
 
 
+def _camera_numbers(camera) -> list:
+    """The first camera's 12 camera-to-world entries, fx, fy, cx, cy, width and height as Python numbers,
+    gathered where they lie with one launch (each tensor's bytes taken as 32-bit words, so that float
+    and integer fields share one ``cat``) and one copy to the host; decoded there."""
+    fields = [camera.camera_to_worlds] + [getattr(camera, k) for k in _CAMERA_FIELDS]
+    key = tuple((t.dtype, t.shape, t.is_contiguous()) for t in fields)
+    fmt = _CAMERA_FORMATS.get(key)
+    if fmt is not None:  # one camera of nerfstudio's shapes: the words are views
+        words = [fields[0].view(1, 12).view(torch.int32)] + [t.view(torch.int32) for t in fields[1:]]
+    else:
+        words, fmt = [], "<"
+        for i, t in enumerate(fields):
+            n = 12 if i == 0 else 1
+            code = _WORD_CODES.get(t.dtype)
+            if code is None:  # an unusual dtype: as float64
+                t, code = t.double(), "d"
+            words.append(t.reshape(-1)[:n].reshape(1, n).contiguous().view(torch.int32))
+            fmt += f"{n}{code}"
+        if fields[0].shape == (1, 3, 4) and all(t.shape == (1, 1) for t in fields[1:]) and key[0][2]:
+            _CAMERA_FORMATS[key] = fmt
+    raw = torch.cat(words, dim=1).tolist()[0]
+    return list(struct.unpack(fmt, struct.pack(f"<{len(raw)}i", *raw)))
+
+
 def view_of(camera, device: torch.device, dtype: torch.dtype) -> View:
-    """The first camera of a nerfstudio ``Cameras`` as a :class:`View`: one copy to the host, the
-    4x4 algebra there, one copy back (where per-element tensor operations would each be a launch)."""
-    host = torch.cat([camera.camera_to_worlds.reshape(-1, 12)[0]]
-                     + [getattr(camera, k).reshape(-1)[:1].to(camera.camera_to_worlds.dtype)
-                        for k in ("fx", "fy", "cx", "cy", "width", "height")]).cpu().double().numpy()
-    c2w = host[:12].reshape(3, 4)
-    rot = c2w[:, :3] * np.array([1.0, -1.0, -1.0])  # OpenGL -> OpenCV axes
-    t = c2w[:, 3]
-    vm = np.eye(4)
-    vm[:3, :3] = rot.T
-    vm[:3, 3] = -rot.T @ t
-    fx, fy, cx, cy, w, h = host[12:]
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    packed = torch.from_numpy(np.concatenate([vm.ravel(), K.ravel(), t]).astype(np.float32)).to(device)
-    return View(packed[:16].view(1, 4, 4), packed[16:25].view(1, 3, 3), packed[25:28].view(1, 3).to(dtype),
-                int(round(w)), int(round(h)))
+    """The first camera of a nerfstudio ``Cameras`` as a :class:`View`. Per frame: one gather of the
+    camera's 18 numbers and one copy to the host (:func:`_camera_numbers`; the image size must be
+    known there), the 4x4 algebra in float64 on Python floats, and one copy of the 28 results to
+    ``device`` (on a GPU from pinned memory, without a sync)."""
+    h = _camera_numbers(camera)
+    # camera-to-world (OpenGL axes) -> world-to-camera (OpenCV axes): R' = R diag(1,-1,-1), viewmat = [R'^T, -R'^T t]
+    a0, a1, a2 = h[0], h[4], h[8]
+    b0, b1, b2 = -h[1], -h[5], -h[9]
+    c0, c1, c2 = -h[2], -h[6], -h[10]
+    tx, ty, tz = h[3], h[7], h[11]
+    fx, fy, cx, cy, w, hh = h[12:18]
+    vals = [a0, a1, a2, -(a0 * tx + a1 * ty + a2 * tz),
+            b0, b1, b2, -(b0 * tx + b1 * ty + b2 * tz),
+            c0, c1, c2, -(c0 * tx + c1 * ty + c2 * tz),
+            0.0, 0.0, 0.0, 1.0,
+            fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0,
+            tx, ty, tz]
+    if torch.device(device).type == "cuda":
+        packed = torch.tensor(vals, dtype=torch.float32, pin_memory=True).to(device, non_blocking=True)
+    else:
+        packed = torch.tensor(vals, dtype=torch.float32, device=device)
+    centre = packed[25:28].view(1, 3)
+    return View(packed[:16].view(1, 4, 4), packed[16:25].view(1, 3, 3),
+                centre if dtype == torch.float32 else centre.to(dtype), int(round(w)), int(round(hh)))
 
 
 @dataclass
