@@ -445,12 +445,12 @@ def test_half_precision_cache_is_close(spec_model):
 
 # ------------------------------------------------- the GPU path's plumbing, on a CPU
 def _splat_by_contributions(model, passes: list):
-    """A stand-in for gsplat's rasterization with the same outputs (colours composited over the
+    """A stand-in for the model's gsplat pass with the same outputs (colours composited over the
     background, expected depth in RGB+ED), made of our contribution lists; records each pass's
-    colour channels and mode."""
+    colour channels, mode and whether it was given a projection."""
 
-    def splat(view, colours, backgrounds, mode):
-        passes.append((colours.shape[-1], mode))
+    def splat(view, colours, backgrounds, mode, projection=None):
+        passes.append((colours.shape[-1], mode, projection is not None))
         cams = Cameras(view.K, view.viewmat, [view.width], [view.height])
         contrib = model._raster(cams, Request(torch.zeros(1, dtype=torch.long), 0, 0, view.width, view.height))
         pg = contrib.pair_gaussian
@@ -462,7 +462,7 @@ def _splat_by_contributions(model, passes: list):
         acc = contrib.accumulation()[0, ..., None].to(img)
         if mode == "RGB+ED":
             img = torch.cat([img[..., :-1], img[..., -1:] / acc.clamp_min(1e-10)], -1)
-        return img, acc
+        return img, acc, "projection"
 
     return splat
 
@@ -490,11 +490,13 @@ def test_gpu_outputs_read_lazily_equal_the_contribution_render(spec_model, monke
         out = model.render_camera(cam, gated=gated)
         assert isinstance(out, ViewOutputs) and list(out.keys()) == list(want.keys())
         out["rgb"], out["depth"]
-        assert passes == [(3, "RGB+ED")]  # a plain splat's pass
+        assert passes == [(3, "RGB+ED", False)]  # a plain splat's pass
         for key in ("rgb", "depth", "accumulation", "diffuse", "specular", "segmentation"):
             assert out[key].shape == want[key].shape, key
             assert (out[key] - want[key]).abs().max() <= 1e-5, key
-        second = {"gated": [(3, "RGB")], "full": [(3, "RGB")], "gated_edits": [(4, "RGB")], "matte_edits": [(1, "RGB")]}
+        # (the second pass composites in the main pass's projection)
+        second = {"gated": [(3, "RGB", True)], "full": [(3, "RGB", True)], "gated_edits": [(4, "RGB", True)],
+                  "matte_edits": [(1, "RGB", True)]}
         assert passes[1:] == second.get(case, [])
         out["viewer_extra"] = out["depth"]  # the viewer adds its own keys
         assert "viewer_extra" in out and len(out) == len(want) + 1
@@ -634,3 +636,38 @@ def test_view_of_on_the_gpu_equals_the_cpu_conversion():
         assert got.viewmat.is_cuda and (got.width, got.height) == (want.width, want.height)
         for a, b in ((got.viewmat, want.viewmat), (got.K, want.K), (got.centre, want.centre)):
             assert torch.equal(a.cpu(), b)
+
+
+# ------------------------------------------------------------------ the gsplat pass
+@pytest.mark.gpu
+def test_the_gsplat_pass_equals_gsplat_rasterization(spec_model):
+    """The model's pass through gsplat's pieces gives what ``gsplat.rasterization`` gives as the
+    baseline calls it (RGB+ED, unpacked, classic), with the background composited in; a second pass
+    in the main pass's projection equals a fresh ``rasterization`` of its channels."""
+    from gsplat.rendering import rasterization
+
+    pipeline, model, cams = spec_model
+    pipeline.to("cuda")
+    try:
+        cam = cams[0:1].to("cuda")
+        view = model.view_of(cam)
+        g = model.render_cache.geometry(model)
+        n = g.means.shape[0]
+        colours = torch.rand(n, 3, device="cuda", generator=torch.Generator("cuda").manual_seed(0))
+        bg = torch.tensor([[0.2, 0.5, 0.9]], device="cuda")
+        got, acc, proj = model._splat(view, colours, bg, "RGB+ED")
+        want, want_acc, _ = rasterization(g.means, g.quats, g.scales, g.opacities, colours, view.viewmat, view.K,
+                                          view.width, view.height, render_mode="RGB+ED", backgrounds=bg,
+                                          packed=False, rasterize_mode="classic")
+        assert got.shape == want[0].shape and acc.shape == want_acc[0].shape
+        assert (got - want[0]).abs().max() <= 1e-6 and (acc - want_acc[0]).abs().max() <= 1e-6
+        assert acc.max() > 0.5  # the view sees the scene
+        extra = torch.rand(n, 4, device="cuda", generator=torch.Generator("cuda").manual_seed(1))
+        bg4 = torch.tensor([[0.1, 0.3, 0.7, 0.0]], device="cuda")
+        got2, _, _ = model._splat(view, extra, bg4, "RGB", proj)
+        want2, _, _ = rasterization(g.means, g.quats, g.scales, g.opacities, extra, view.viewmat, view.K,
+                                    view.width, view.height, render_mode="RGB", backgrounds=bg4, packed=False,
+                                    rasterize_mode="classic")
+        assert (got2 - want2[0]).abs().max() <= 1e-6
+    finally:
+        pipeline.to("cpu")

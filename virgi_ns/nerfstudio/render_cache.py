@@ -229,8 +229,27 @@ class RenderCache:
         """``bg`` on ``device`` (copied once per background tensor, not once per frame)."""
         key = (stamp(bg), device)
         if self._background is None or self._background[0] != key:
-            self._background = (key, bg, bg.to(device))
+            self._background = (key, bg, bg.to(device), None, None)
         return self._background[2]
+
+    def background_row(self, bg: Tensor) -> Tensor:
+        """``bg`` as :meth:`background` returned it, as gsplat takes backgrounds: [1,3] float32 (made once
+        per background)."""
+        b = self._background
+        if b is None or b[2] is not bg:
+            return bg.float().reshape(1, -1)
+        if b[3] is None:
+            row = bg.float().reshape(1, -1)
+            self._background = b = (*b[:3], row, torch.cat([row, row.new_zeros(1, 1)], dim=1))
+        return b[3]
+
+    def with_depth_channel(self, row: Tensor) -> Tensor:
+        """[1,D] backgrounds and a zero for an expected-depth channel: [1,D+1] (kept for
+        :meth:`background_row`'s row)."""
+        b = self._background
+        if b is not None and b[3] is row:
+            return b[4]
+        return torch.cat([row, row.new_zeros(1, 1)], dim=1)
 
     def geometry(self, model) -> GeometryCache:
         params = (model.means, model.quats, model.scales, model.opacities)
