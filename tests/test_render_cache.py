@@ -16,7 +16,7 @@ import torch
 from test_model_train import build, scene, train  # noqa: F401  (fixture re-exported)
 from virgi_ns.colour.field import view_directions
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead
-from virgi_ns.nerfstudio.render_cache import ViewColours, ViewOutputs
+from virgi_ns.nerfstudio.render_cache import ColourGraph, ViewColours, ViewOutputs
 from virgi_ns.raster import Cameras, Request, composite
 
 warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
@@ -670,4 +670,151 @@ def test_the_gsplat_pass_equals_gsplat_rasterization(spec_model):
                                     rasterize_mode="classic")
         assert (got2 - want2[0]).abs().max() <= 1e-6
     finally:
+        pipeline.to("cpu")
+
+
+# ------------------------------------------------------------- colours as a CUDA graph
+class _EagerGraph:
+    """A stand-in for :class:`ColourGraph` on a CPU with its interface and buffers: the static centre
+    and output, replayed by running the recorded function again (counts the recordings)."""
+
+    made: list = []
+
+    def __init__(self, gate, edits, centre):
+        self.centre = centre.detach().clone()
+        self.out = edits.diffuse.clone()
+        self._replay = lambda: ColourGraph._write(self, gate, edits)
+        _EagerGraph.made.append(self)
+
+    def __call__(self, centre):
+        self.centre.copy_(centre)
+        self._replay()
+        return self.out
+
+
+def _graph_frames(model, cam, n: int = 3) -> list:
+    """``n`` frames' colours as the render path takes them (transient), each checked against the
+    reference; returns the last."""
+    got = None
+    for _ in range(n):
+        got = model.view_colours(model.view_of(cam), gated=True, transient=True)
+        want = _reference(model, cam, model.spec_magnitude > model.config.gate_threshold)
+        assert (got.rgb - want["rgb"]).abs().max() <= TOL
+    return got
+
+
+def test_colour_graphs_are_recorded_once_per_cache_state(spec_model, monkeypatch):
+    """The graphed path's bookkeeping, with the graph stood in for on a CPU: a state is served eagerly
+    once, then recorded once and replayed; every change of the cache state (an edit, an undo, ``k``, a
+    live edit, the threshold) records again, the public call returns a copy that the next view does
+    not overwrite, and a failed recording warns once and leaves eager colours."""
+    import virgi_ns.nerfstudio.render_cache as rc
+
+    _, model, cams = spec_model
+    cam, other = cams[0:1], cams[1:2]
+    median = model.config.gate_threshold
+    monkeypatch.setattr(rc, "ColourGraph", _EagerGraph)
+    monkeypatch.setattr(rc, "_recordable", lambda centre: True)
+    _EagerGraph.made = []
+    model.render_cache.clear()
+    stack = EditStack(model.fingerprint())
+    model.set_edit_stack(stack)
+    try:
+        _graph_frames(model, cam, 1)
+        assert _EagerGraph.made == [] and model.render_cache.edit_level.frames == 1  # the first frame: eager
+        last = _graph_frames(model, cam, 3)
+        assert len(_EagerGraph.made) == 1 and last.rgb is _EagerGraph.made[0].out  # then recorded, replayed
+        public = model.view_colours(model.view_of(cam), gated=True)
+        assert public.rgb is not _EagerGraph.made[0].out
+        before = public.rgb.clone()
+        model.view_colours(model.view_of(other), gated=True, transient=True)  # another view replays
+        assert torch.equal(public.rgb, before)
+        changes = [lambda: stack.add(_edit(model, 21)), lambda: stack.add(_edit(model, 22)), stack.undo,
+                   lambda: stack.set_specular_strength(0.6), lambda: model.set_live_edit(_edit(model, 23)),
+                   lambda: model.set_live_edit(None),
+                   lambda: setattr(model.config, "gate_threshold", float(model.spec_magnitude.quantile(0.7)))]
+        ref = _reference(model, cam, model.spec_magnitude > model.config.gate_threshold)["rgb"]
+        for i, change in enumerate(changes):
+            change()
+            gc.collect()
+            now = _graph_frames(model, cam, 3)
+            assert len(_EagerGraph.made) == i + 2, i  # one recording per state
+            assert now.rgb is _EagerGraph.made[-1].out
+            assert (now.rgb - ref).abs().max() > 1e-3, i  # the change shows
+            ref = now.rgb.clone()
+        # no graphs asked for: eager colours, nothing recorded
+        model.config.render_cache_graphs = False
+        stack.set_specular_strength(0.3)
+        _graph_frames(model, cam, 3)
+        assert len(_EagerGraph.made) == len(changes) + 1
+        model.config.render_cache_graphs = True
+
+        def fail(*a):
+            raise RuntimeError("operation not permitted when stream is capturing")
+
+        monkeypatch.setattr(rc, "ColourGraph", fail)
+        stack.set_specular_strength(0.8)
+        with pytest.warns(UserWarning, match="without CUDA graphs"):
+            _graph_frames(model, cam, 2)
+        assert model.render_cache.graph_failed and model.render_cache.edit_level.graph is None
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # warned once
+            stack.set_specular_strength(0.9)
+            _graph_frames(model, cam, 3)
+    finally:
+        model.config.render_cache_graphs = True
+        model.config.gate_threshold = median
+        model.set_live_edit(None)
+        model.set_edit_stack(None)
+        model.render_cache.graph_failed = False
+        model.render_cache.clear()
+
+
+@pytest.mark.gpu
+def test_graphed_colours_equal_eager_colours_on_a_gpu(spec_model):
+    """On a GPU the graphed colours equal the eager ones (the same kernels) and the field's; after an
+    edit, an undo and a change of ``k`` the graph is recorded again and the render follows; the public
+    call's colours are not overwritten by the next view."""
+    pipeline, model, cams = spec_model
+    median = model.config.gate_threshold
+    pipeline.to("cuda")
+    model.render_cache.clear()
+    stack = EditStack(model.fingerprint())
+    model.set_edit_stack(stack)
+
+    def graphed_vs_eager(cam):
+        view = model.view_of(cam)
+        model.config.render_cache_graphs = False
+        eager = model.view_colours(view, gated=True).rgb
+        model.config.render_cache_graphs = True
+        for _ in range(3):
+            got = model.view_colours(view, gated=True, transient=True).rgb
+        assert model.render_cache.edit_level.graph is not None and got is model.render_cache.edit_level.graph.out
+        assert (got - eager).abs().max() <= 1e-6
+        want = _reference(model, cam, model.spec_magnitude > model.config.gate_threshold)["rgb"]
+        assert (got - want).abs().max() <= 1e-5
+        return got.clone(), model.render_cache.edit_level.graph
+
+    try:
+        cam = cams[0:1].to("cuda")
+        for i in range(2):
+            graphed_vs_eager(cams[i : i + 1].to("cuda"))
+        img, graph = graphed_vs_eager(cam)
+        frame = model.get_outputs_for_camera(cam)["rgb"].clone()
+        for change in (lambda: stack.add(_edit(model, 24)), stack.undo, lambda: stack.set_specular_strength(0.4)):
+            change()
+            now, g = graphed_vs_eager(cam)
+            assert g is not graph and (now - img).abs().max() > 1e-3
+            again = model.get_outputs_for_camera(cam)["rgb"]
+            assert (again - frame).abs().max() > 1e-3  # the render follows the new state
+            img, graph, frame = now, g, again.clone()
+        a = model.view_colours(model.view_of(cam), gated=True)
+        kept = a.rgb.clone()
+        model.view_colours(model.view_of(cams[1:2].to("cuda")), gated=True, transient=True)
+        assert torch.equal(a.rgb, kept)
+    finally:
+        model.config.gate_threshold = median
+        model.config.render_cache_graphs = True
+        model.set_edit_stack(None)
+        model.render_cache.clear()
         pipeline.to("cpu")

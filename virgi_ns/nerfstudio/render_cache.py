@@ -27,6 +27,7 @@ edits, and the gate threshold. Writes through ``.data`` bypass the version count
 from __future__ import annotations
 
 import struct
+import warnings
 from collections.abc import MutableMapping
 from dataclasses import dataclass, field
 from typing import Callable, Dict, Iterator, Optional
@@ -184,21 +185,68 @@ class EditCache:
     """[H,3] ``k B3`` on ``s2``."""
     segmentation: Dict[Optional[int], Tensor] = field(default_factory=dict)
     """Per-Gaussian alpha [N,1] by the shown edit (filled on first request)."""
+    frames: int = 0
+    """Views served eagerly from this state (see :data:`GRAPH_AFTER_FRAMES`)."""
+    graph: Optional["ColourGraph"] = None
+    """The state's colours as a CUDA graph, once recorded."""
 
     @property
     def matte(self) -> bool:
         return self.p3k is None
 
 
-def gated_colours(gate: GateCache, edits: EditCache, centre: Tensor) -> Tensor:
-    """[N,3] colours for a view from camera centre ``centre`` [1,3]: the cached diffuse colours with
-    the gated Gaussians' ``sigmoid(c_d'' + k c_s)`` written over them."""
+def gated_logits(gate: GateCache, edits: EditCache, centre: Tensor) -> Tensor:
+    """[M,3] ``sigmoid(c_d'' + k c_s)`` of the gated Gaussians for a view from ``centre`` [1,3]."""
     d = view_directions(gate.means, centre)
     mono = direction_monomials(d, gate.degree)
     s1 = torch.addmm(gate.p1.to(mono.dtype), mono, gate.w_mono).relu_()
     s2 = torch.addmm(gate.p2.to(mono.dtype), s1, gate.w_s1).relu_()
-    z = torch.addmm(edits.p3k, s2, edits.w_s2k).sigmoid_()
-    return edits.diffuse.index_copy(0, gate.index, z)
+    return torch.addmm(edits.p3k, s2, edits.w_s2k).sigmoid_()
+
+
+def gated_colours(gate: GateCache, edits: EditCache, centre: Tensor) -> Tensor:
+    """[N,3] colours for a view from camera centre ``centre`` [1,3]: the cached diffuse colours with
+    the gated Gaussians' ``sigmoid(c_d'' + k c_s)`` written over them (the specification that
+    :class:`ColourGraph` replays)."""
+    return edits.diffuse.index_copy(0, gate.index, gated_logits(gate, edits, centre))
+
+
+class ColourGraph:
+    """:func:`gated_colours` of one cache state recorded as a CUDA graph. Its inputs are the cache's
+    tensors (fixed while the state lasts: the graph lives on the :class:`EditCache` it reads) and a
+    static camera centre; its output is a static [N,3] buffer that holds the diffuse colours from the
+    start, so a replay writes the gated rows only. A replay overwrites the previous one's colours."""
+
+    def __init__(self, gate: GateCache, edits: EditCache, centre: Tensor) -> None:
+        self.centre = centre.detach().to(gate.means.dtype).clone()
+        self.out = edits.diffuse.clone()
+        self.graph = torch.cuda.CUDAGraph()
+        current = torch.cuda.current_stream(centre.device)
+        side = torch.cuda.Stream(centre.device)
+        side.wait_stream(current)
+        with torch.cuda.stream(side):  # once eagerly: the libraries' handles and workspaces
+            self._write(gate, edits)
+        current.wait_stream(side)
+        with torch.cuda.graph(self.graph, capture_error_mode="thread_local"):
+            self._write(gate, edits)
+
+    def _write(self, gate: GateCache, edits: EditCache) -> None:
+        self.out.index_copy_(0, gate.index, gated_logits(gate, edits, self.centre))
+
+    def __call__(self, centre: Tensor) -> Tensor:
+        self.centre.copy_(centre)
+        self.graph.replay()
+        return self.out
+
+
+def _recordable(centre: Tensor) -> bool:
+    """Whether colours for ``centre`` can be recorded as a CUDA graph (on a GPU, outside another capture)."""
+    return centre.is_cuda and not torch.cuda.is_current_stream_capturing()
+
+
+GRAPH_AFTER_FRAMES = 1
+"""Frames a cache state is served eagerly before its colours are recorded as a graph: a state that
+lasts one frame (a pick's colour being dragged) never pays for a recording."""
 
 
 class RenderCache:
@@ -209,6 +257,8 @@ class RenderCache:
         self.gate_level: Optional[GateCache] = None
         self.edit_level: Optional[EditCache] = None
         self._background: Optional[tuple] = None
+        self.graph_failed = False
+        """A recording failed once: colours are computed eagerly from then on."""
 
     def clear(self) -> None:
         self.geometry_level = self.gate_level = self.edit_level = None
@@ -222,7 +272,33 @@ class RenderCache:
         g, f, e = self.geometry_level, self.gate_level, self.edit_level
         return {"geometry": size(g.scales, g.opacities) if g else 0,
                 "gate": size(f.index, f.means, f.p1, f.p2, f.p3, f.w_mono, f.w_s1, f.w_s2) if f else 0,
-                "edits": size(e.diffuse, e.p3k, e.w_s2k, *e.segmentation.values()) if e else 0}
+                "edits": size(e.diffuse, e.p3k, e.w_s2k, *e.segmentation.values(),
+                              *((e.graph.out, e.graph.centre) if e.graph is not None else ())) if e else 0}
+
+    # ---------------------------------------------------------------- colours
+    def colours(self, gate: GateCache, edits: EditCache, centre: Tensor, graphs: bool = True,
+                transient: bool = False) -> Tensor:
+        """[N,3] colours of a view from ``centre`` [1,3] (:func:`gated_colours`; the cached tensor
+        itself for a matte state). On a GPU with ``graphs``, a state served eagerly
+        :data:`GRAPH_AFTER_FRAMES` times is then recorded as a :class:`ColourGraph` and replayed; its output
+        is returned as it is with ``transient`` (the caller composites it before the next view's
+        colours), else a copy. Where recording fails, a warning, and eager colours from then on."""
+        if edits.matte:
+            return edits.diffuse
+        g = edits.graph
+        record = g is None and graphs and edits.frames >= GRAPH_AFTER_FRAMES and not self.graph_failed
+        if record and _recordable(centre):
+            try:
+                g = edits.graph = ColourGraph(gate, edits, centre)
+            except Exception as e:  # noqa: BLE001 - any failure to record leaves the eager path
+                self.graph_failed = True
+                warnings.warn(f"virgi: render colours run without CUDA graphs: {type(e).__name__}: "
+                              f"{str(e).splitlines()[0] if str(e) else ''}")
+        if g is not None and graphs:
+            out = g(centre)
+            return out if transient else out.clone()
+        edits.frames += 1
+        return gated_colours(gate, edits, centre)
 
     # ---------------------------------------------------------------- levels
     def background(self, bg: Tensor, device: torch.device) -> Tensor:
@@ -402,5 +478,5 @@ class ViewOutputs(MutableMapping):
         return f"ViewOutputs({self._order}, computed={self.computed()})"
 
 
-__all__ = ["EditCache", "GateCache", "GeometryCache", "RenderCache", "View", "ViewColours", "ViewOutputs",
-           "edited_diffuse", "gated_colours", "stamp", "view_of"]
+__all__ = ["ColourGraph", "EditCache", "GateCache", "GeometryCache", "RenderCache", "View", "ViewColours",
+           "ViewOutputs", "edited_diffuse", "gated_colours", "gated_logits", "stamp", "view_of"]

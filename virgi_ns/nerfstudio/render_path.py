@@ -32,7 +32,6 @@ from virgi_ns.nerfstudio.render_cache import (
     ViewColours,
     ViewOutputs,
     edited_diffuse,
-    gated_colours,
     view_of,
 )
 from virgi_ns.raster import Cameras, Contributions, Request, composite, expected_depth
@@ -118,15 +117,17 @@ class RenderPath:
         return view_of(camera, self.device, self.means.dtype)
 
     @torch.no_grad()
-    def view_colours(self, view: View, gated: bool = False) -> ViewColours:
+    def view_colours(self, view: View, gated: bool = False, transient: bool = False) -> ViewColours:
         """One colour per Gaussian for ``view``. ``gated`` (and a current gate): from the render
-        cache; otherwise the full colour model over every Gaussian."""
+        cache; otherwise the full colour model over every Gaussian. ``transient``: ``rgb`` may be a
+        buffer that the next view's colours overwrite (a CUDA graph's output), for a caller that
+        composites it first."""
         params = tuple(self.field.parameters()) if gated and self.field.decoupled else ()
         if params and self._gate_current(params):
             cache = self.render_cache
             gate = cache.gate(self, params)
             edits = cache.edits(self, gate)
-            rgb = edits.diffuse if edits.matte else gated_colours(gate, edits, view.centre)
+            rgb = cache.colours(gate, edits, view.centre, getattr(self.config, "render_cache_graphs", True), transient)
             seg = (lambda: self._cached_segmentation(edits)) if self._with_segmentation() else None
             return ViewColours(rgb, None if edits.matte else edits.diffuse, seg)
         return self._full_colours(view.centre)
@@ -254,7 +255,7 @@ class RenderPath:
         ``accumulation`` and ``segmentation`` (zeros without edits) for the first camera of
         ``camera``, through the edit stack when one is set (see :meth:`render_view`)."""
         view = self.view_of(camera)
-        return self.render_view(view, self.view_colours(view, gated), max_pixels)
+        return self.render_view(view, self.view_colours(view, gated, transient=True), max_pixels)
 
     def render_view(self, view: View, colours: ViewColours, max_pixels: int = 1 << 20):
         """Composite one colour per Gaussian in ``view``. On a GPU (``whole_view_renderer="gsplat"``)
