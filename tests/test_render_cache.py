@@ -818,3 +818,36 @@ def test_graphed_colours_equal_eager_colours_on_a_gpu(spec_model):
         model.set_edit_stack(None)
         model.render_cache.clear()
         pipeline.to("cpu")
+
+
+def test_a_new_background_reaches_the_gsplat_pass(spec_model, monkeypatch):
+    """gsplat's backgrounds (the colour row and its zero-padded form for the depth channel) are kept per
+    background tensor: the same tensor gives the same rows, and a new one (the viewer sets one every
+    frame) or one changed in place shows in the next render."""
+    _, model, cams = spec_model
+    cam = cams[0:1]
+    cache = model.render_cache
+    old = model.background_color
+    passes: list = []
+    try:
+        bg = cache.background(model.background_color, model.device)
+        row = cache.background_row(bg)
+        assert row is cache.background_row(bg) and row.shape == (1, 3)
+        padded = cache.with_depth_channel(row)
+        assert padded is cache.with_depth_channel(row)
+        assert torch.equal(padded, torch.cat([row, row.new_zeros(1, 1)], 1))
+        other = torch.rand(1, 2)
+        assert torch.equal(cache.with_depth_channel(other), torch.cat([other, other.new_zeros(1, 1)], 1))
+        monkeypatch.setattr(model, "_renders_with_gsplat", lambda: True)
+        monkeypatch.setattr(model, "_splat", _splat_by_contributions(model, passes))
+        colour = torch.tensor([0.9, 0.4, 0.1])
+        for change in (lambda: model.set_background(colour), lambda: colour.copy_(torch.tensor([0.2, 0.7, 0.3])),
+                       lambda: model.set_background(torch.tensor([0.5, 0.5, 1.0]))):
+            change()
+            out = model.render_camera(cam, gated=True)
+            empty = out["accumulation"][..., 0] == 0
+            assert empty.any()
+            assert torch.equal(out["background"], model.background_color)
+            torch.testing.assert_close(out["rgb"][empty], model.background_color.expand(int(empty.sum()), 3))
+    finally:
+        model.set_background(old)

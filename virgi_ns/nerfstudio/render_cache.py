@@ -329,7 +329,7 @@ class RenderCache:
 
     def geometry(self, model) -> GeometryCache:
         params = (model.means, model.quats, model.scales, model.opacities)
-        key = tuple(stamp(p) for p in params)
+        key = tuple(map(stamp, params))
         g = self.geometry_level
         if g is None or g.key != key:
             with torch.no_grad():
@@ -343,7 +343,7 @@ class RenderCache:
         caller has checked that the gate is current and the field decoupled)."""
         fld = model.field
         half = bool(getattr(model.config, "render_cache_half", False))
-        key = (id(fld), tuple(stamp(p) for p in params), stamp(model.means), stamp(model.spec_magnitude),
+        key = (id(fld), tuple(map(stamp, params)), stamp(model.means), stamp(model.spec_magnitude),
                float(model.config.gate_threshold), half)
         g = self.gate_level
         if g is None or g.key != key:
