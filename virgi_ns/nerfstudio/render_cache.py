@@ -15,7 +15,9 @@ So :class:`RenderCache` keeps, each level rebuilt when what it was computed from
 
 A view then costs, for the gated Gaussians only: directions, their monomials, three small matrix
 products and a sigmoid, written over the cached diffuse colours (:func:`gated_colours`); nothing at
-all when the gate keeps no Gaussian or ``k = 0``.
+all when the gate keeps no Gaussian or ``k = 0``. On a GPU these dozen small kernels are recorded
+once per cache state as a CUDA graph (:class:`ColourGraph`, kept on the edit level, so that every
+rebuild of a level records anew) and replayed per view with the camera centre as its input.
 
 Validity is checked per frame by cheap keys: each tensor's identity, in-place version counter,
 storage and dtype (:func:`stamp`; optimizer steps and ``load_state_dict`` bump the version), the

@@ -201,7 +201,8 @@ class RenderPath:
 
     def _gate_current(self, params) -> bool:
         stamp = getattr(self, "_gate_stamp", None)
-        return (self.spec_magnitude.numel() == self.num_points and self.diffuse_cache.shape[0] == self.num_points
+        n = self.num_points
+        return (self.spec_magnitude.numel() == n and self.diffuse_cache.shape[0] == n
                 and (stamp is None or stamp == self._field_versions(params)))
 
     def drop_specular_gate(self) -> None:
