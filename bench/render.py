@@ -21,8 +21,9 @@ A virgi frame is what nerfstudio's viewer does with its default settings: ``get_
 (the model's render cache warm after the warm-up render) and reading ``rgb`` and ``depth`` (the
 viewer composites depth by default); outputs it does not read are computed on access. Per scene
 the JSON also splits the gated (default threshold) and matte frames into stages, each timed alone
-with a sync around it: the camera conversion, the colours per Gaussian, and gsplat's pass with
-reading rgb and depth; and it gives the render cache's memory.
+with a sync around it (:func:`stage_ms`: the camera conversion, the cache's validity checks, the
+colours per Gaussian graphed and eager, the gsplat pass alone and with the outputs around it, the
+whole frame and what the stages leave out of it); and it gives the render cache's memory.
 
 ``--cli`` also times, on the first scene, ``virgi-edit list / apply / undo``, ``virgi-export`` and
 ``virgi-render`` as fresh processes (wall time, what a person waits), with the edit's own setup and
@@ -131,20 +132,59 @@ def _ms(fn, repeats: int) -> float:
     return 1000.0 / _fps(fn, repeats)
 
 
+STAGES = ("camera", "keys", "colours", "colours_eager", "splat", "raster", "frame", "rest")
+"""The stage split of a frame (see :func:`stage_ms`)."""
+
+
 def stage_ms(model, cams, gated: bool, repeats: int) -> Dict[str, float]:
-    """Milliseconds per frame of each stage of a whole-view render, mean over ``cams``."""
-    split: Dict[str, List[float]] = {"camera": [], "colours": [], "raster": []}
+    """Milliseconds per frame of each stage of a whole-view render, mean over ``cams``, each timed alone
+    with a sync around it:
+
+    - camera: nerfstudio's camera to gsplat's (``view_of``);
+    - keys: the render cache's validity checks of a frame (field parameters, gate, edit and geometry
+      levels), no colour work;
+    - colours: the colours per Gaussian as the frame takes them (a CUDA graph's replay on a GPU once
+      the cache state has been seen; nothing for a matte view);
+    - colours_eager: the same with ``render_cache_graphs`` off (the kernels launched one by one);
+    - splat: the main gsplat pass alone (projection, tile sort, composite of colour + depth);
+    - raster: ``render_view`` with reading rgb and depth (the splat and the outputs around it);
+    - frame: the whole viewer frame (``get_outputs_for_camera``, reading rgb and depth);
+    - rest: frame - camera - colours - raster, what the stages above leave out (Python between them).
+    """
+    split: Dict[str, List[float]] = {k: [] for k in STAGES}
+    cfg = model.config
     for c in cams:
         view = model.view_of(c)
-        cols = model.view_colours(view, gated)
-        split["camera"].append(_ms(lambda: model.view_of(c), repeats))
-        split["colours"].append(_ms(lambda: model.view_colours(view, gated), repeats))
+        for _ in range(2):  # a cache state is recorded as a graph on its second frame
+            cols = model.view_colours(view, gated, transient=True)
+        row = model.render_cache.background_row(model.render_cache.background(model.background_color, model.device))
+
+        def keys():
+            params = tuple(model.field.parameters())
+            if gated and model.field.decoupled and model._gate_current(params):
+                model.render_cache.edits(model, model.render_cache.gate(model, params))
+            model.render_cache.geometry(model)
+
+        def eager():
+            cfg.render_cache_graphs = False
+            try:
+                return model.view_colours(view, gated, transient=True)
+            finally:
+                cfg.render_cache_graphs = True
 
         def raster():
             out = model.render_view(view, cols)
             return out["rgb"], out["depth"]
 
+        split["camera"].append(_ms(lambda: model.view_of(c), repeats))
+        split["keys"].append(_ms(keys, repeats))
+        split["colours"].append(_ms(lambda: model.view_colours(view, gated, transient=True), repeats))
+        split["colours_eager"].append(_ms(eager, repeats))
+        split["splat"].append(_ms(lambda: model._splat(view, cols.rgb.float(), row, "RGB+ED"), repeats)
+                              if model._renders_with_gsplat() else math.nan)
         split["raster"].append(_ms(raster, repeats))
+        split["frame"].append(_ms(lambda: viewer_frame(model, c), repeats))
+        split["rest"].append(split["frame"][-1] - split["camera"][-1] - split["colours"][-1] - split["raster"][-1])
     return {k: statistics.mean(v) for k, v in split.items()}
 
 
@@ -289,12 +329,15 @@ def print_tables(rows: List[dict], cli: Optional[dict], device: str) -> None:
                   f"{r.get('psnr_gated_vs_full', float('nan')):.1f}", f"{r['matte']['fps']:.0f}",
                   f"{r['matte']['fps'] / r['splat_sh0_fps']:.2f}", f"{sum(r.get('cache_mib', {}).values()):.1f}")
     console.print(t)
-    st = Table(title="stages of a frame, ms (each timed alone: camera conversion, colours per Gaussian, gsplat pass)")
-    for c in ("scene", "gated camera", "gated colours", "gated raster", "matte camera", "matte colours", "matte raster"):
-        st.add_column(c)
+    st = Table(title="stages of a frame, ms (each timed alone; rest = frame - camera - colours - raster)")
+    st.add_column("scene")
+    st.add_column("frame")
+    for k in STAGES:
+        st.add_column(k)
     for r in rows:
-        g, m = r.get("stages_ms", {}).get("gated", {}), r.get("stages_ms", {}).get("matte", {})
-        st.add_row(r["scene"], *(f"{d.get(k, float('nan')):.3f}" for d in (g, m) for k in ("camera", "colours", "raster")))
+        for name in ("gated", "matte"):
+            d = r.get("stages_ms", {}).get(name, {})
+            st.add_row(r["scene"], name, *(f"{d.get(k, float('nan')):.3f}" for k in STAGES))
     console.print(st)
     s = Table(title="gate threshold sweep: kept share, FPS, PSNR gated vs full")
     s.add_column("threshold")

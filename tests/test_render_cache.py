@@ -16,7 +16,7 @@ import torch
 from test_model_train import build, scene, train  # noqa: F401  (fixture re-exported)
 from virgi_ns.colour.field import view_directions
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead
-from virgi_ns.nerfstudio.render_cache import ViewColours, ViewOutputs
+from virgi_ns.nerfstudio.render_cache import ColourGraph, ViewColours, ViewOutputs
 from virgi_ns.raster import Cameras, Request, composite
 
 warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
@@ -445,12 +445,12 @@ def test_half_precision_cache_is_close(spec_model):
 
 # ------------------------------------------------- the GPU path's plumbing, on a CPU
 def _splat_by_contributions(model, passes: list):
-    """A stand-in for gsplat's rasterization with the same outputs (colours composited over the
+    """A stand-in for the model's gsplat pass with the same outputs (colours composited over the
     background, expected depth in RGB+ED), made of our contribution lists; records each pass's
-    colour channels and mode."""
+    colour channels, mode and whether it was given a projection."""
 
-    def splat(view, colours, backgrounds, mode):
-        passes.append((colours.shape[-1], mode))
+    def splat(view, colours, backgrounds, mode, projection=None):
+        passes.append((colours.shape[-1], mode, projection is not None))
         cams = Cameras(view.K, view.viewmat, [view.width], [view.height])
         contrib = model._raster(cams, Request(torch.zeros(1, dtype=torch.long), 0, 0, view.width, view.height))
         pg = contrib.pair_gaussian
@@ -462,7 +462,7 @@ def _splat_by_contributions(model, passes: list):
         acc = contrib.accumulation()[0, ..., None].to(img)
         if mode == "RGB+ED":
             img = torch.cat([img[..., :-1], img[..., -1:] / acc.clamp_min(1e-10)], -1)
-        return img, acc
+        return img, acc, "projection"
 
     return splat
 
@@ -490,11 +490,13 @@ def test_gpu_outputs_read_lazily_equal_the_contribution_render(spec_model, monke
         out = model.render_camera(cam, gated=gated)
         assert isinstance(out, ViewOutputs) and list(out.keys()) == list(want.keys())
         out["rgb"], out["depth"]
-        assert passes == [(3, "RGB+ED")]  # a plain splat's pass
+        assert passes == [(3, "RGB+ED", False)]  # a plain splat's pass
         for key in ("rgb", "depth", "accumulation", "diffuse", "specular", "segmentation"):
             assert out[key].shape == want[key].shape, key
             assert (out[key] - want[key]).abs().max() <= 1e-5, key
-        second = {"gated": [(3, "RGB")], "full": [(3, "RGB")], "gated_edits": [(4, "RGB")], "matte_edits": [(1, "RGB")]}
+        # (the second pass composites in the main pass's projection)
+        second = {"gated": [(3, "RGB", True)], "full": [(3, "RGB", True)], "gated_edits": [(4, "RGB", True)],
+                  "matte_edits": [(1, "RGB", True)]}
         assert passes[1:] == second.get(case, [])
         out["viewer_extra"] = out["depth"]  # the viewer adds its own keys
         assert "viewer_extra" in out and len(out) == len(want) + 1
@@ -534,3 +536,318 @@ def test_gpu_cached_render_equals_the_reference_colours_rendered(spec_model):
         model.set_edit_stack(None)
         model.config.gate_threshold = median
         pipeline.to("cpu")
+
+
+# ---------------------------------------------------------------- the camera conversion
+def _previous_view_of(camera, device, dtype):
+    """The conversion as it was before it gathered the camera's numbers as words (numpy on the host)."""
+    import numpy as np
+
+    from virgi_ns.nerfstudio.render_cache import View
+
+    host = torch.cat([camera.camera_to_worlds.reshape(-1, 12)[0]]
+                     + [getattr(camera, k).reshape(-1)[:1].to(camera.camera_to_worlds.dtype)
+                        for k in ("fx", "fy", "cx", "cy", "width", "height")]).cpu().double().numpy()
+    c2w = host[:12].reshape(3, 4)
+    rot = c2w[:, :3] * np.array([1.0, -1.0, -1.0])
+    t = c2w[:, 3]
+    vm = np.eye(4)
+    vm[:3, :3] = rot.T
+    vm[:3, 3] = -rot.T @ t
+    fx, fy, cx, cy, w, h = host[12:]
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    packed = torch.from_numpy(np.concatenate([vm.ravel(), K.ravel(), t]).astype(np.float32)).to(device)
+    return View(packed[:16].view(1, 4, 4), packed[16:25].view(1, 3, 3), packed[25:28].view(1, 3).to(dtype),
+                int(round(w)), int(round(h)))
+
+
+def _random_cameras(seed: int, n: int, c2w_dtype=torch.float32, size_dtype=torch.int64):
+    """``n`` nerfstudio pinhole cameras: random rotations and positions far from the origin,
+    non-square images, principal points off the centre, fx != fy."""
+    from nerfstudio.cameras.cameras import Cameras as NSCameras
+
+    g = torch.Generator().manual_seed(seed)
+    q, _ = torch.linalg.qr(torch.randn(n, 3, 3, generator=g, dtype=torch.float64))
+    q = q * torch.sign(torch.linalg.det(q))[:, None, None]  # proper rotations
+    t = torch.randn(n, 3, 1, generator=g, dtype=torch.float64) * 30.0
+    c2w = torch.cat([q, t], dim=-1).to(c2w_dtype)
+    w = torch.randint(64, 2000, (n, 1), generator=g)
+    h = torch.randint(64, 2000, (n, 1), generator=g)
+    f = torch.rand(n, 1, generator=g) * 1500 + 100
+    return NSCameras(camera_to_worlds=c2w, fx=f, fy=f * (0.8 + 0.4 * torch.rand(n, 1, generator=g)),
+                     cx=w * torch.rand(n, 1, generator=g), cy=h * torch.rand(n, 1, generator=g),
+                     width=w.to(size_dtype), height=h.to(size_dtype))
+
+
+def _oracle(camera):
+    """(viewmat [4,4], K [3,3], centre [3], width, height) of the first camera, in float64 through the
+    project's own batched conversion."""
+    from virgi_ns.nerfstudio.cameras import viewmats_from_c2w
+
+    c2w = camera.camera_to_worlds.reshape(-1, 3, 4)[:1].double()
+    K = torch.zeros(3, 3, dtype=torch.float64)
+    K[0, 0], K[1, 1] = camera.fx.reshape(-1)[0].double(), camera.fy.reshape(-1)[0].double()
+    K[0, 2], K[1, 2], K[2, 2] = camera.cx.reshape(-1)[0].double(), camera.cy.reshape(-1)[0].double(), 1.0
+    return (viewmats_from_c2w(c2w)[0], K, c2w[0, :, 3], int(camera.width.reshape(-1)[0]),
+            int(camera.height.reshape(-1)[0]))
+
+
+@pytest.mark.parametrize("c2w_dtype,size_dtype,batch", [(torch.float32, torch.int64, "one"),
+                                                         (torch.float32, torch.int64, "many"),
+                                                         (torch.float64, torch.int32, "one"),
+                                                         (torch.float32, torch.int64, "grid")])
+def test_view_of_equals_the_float64_oracle_and_the_previous_conversion(c2w_dtype, size_dtype, batch):
+    from virgi_ns.nerfstudio.render_cache import view_of
+
+    for seed in range(25):
+        cams = _random_cameras(seed, 3, c2w_dtype, size_dtype)
+        cam = {"one": cams[1:2], "many": cams, "grid": cams.reshape((3, 1))}[batch]
+        vm, K, centre, w, h = _oracle(cam)
+        for dtype in (torch.float32, torch.float64):
+            got = view_of(cam, torch.device("cpu"), dtype)
+            assert (got.width, got.height) == (w, h)
+            assert got.viewmat.shape == (1, 4, 4) and got.K.shape == (1, 3, 3) and got.centre.shape == (1, 3)
+            assert got.viewmat.dtype == torch.float32 and got.K.dtype == torch.float32 and got.centre.dtype == dtype
+            # float32 results of float64 algebra: within float32 rounding of the oracle
+            torch.testing.assert_close(got.viewmat[0].double(), vm, rtol=1e-6, atol=1e-6 * float(vm.abs().max()))
+            torch.testing.assert_close(got.K[0].double(), K, rtol=1e-6, atol=0.0)
+            torch.testing.assert_close(got.centre[0].double(), centre, rtol=1e-6, atol=1e-6)
+            # a point ahead of the camera lands on the principal point (to the float32 rounding of a
+            # translation of ~50 at a focal length of up to 1600 pixels)
+            ahead = centre - cam.camera_to_worlds.reshape(-1, 3, 4)[0, :, 2].double()  # OpenGL looks down -z
+            p = got.viewmat[0].double() @ torch.cat([ahead, ahead.new_ones(1)])
+            uv = (got.K[0].double() @ p[:3]) / p[2]
+            torch.testing.assert_close(uv[:2], K[:2, 2], rtol=0.0, atol=2e-2)
+            old = _previous_view_of(cam, torch.device("cpu"), dtype)
+            for a, b in ((got.viewmat, old.viewmat), (got.K, old.K), (got.centre, old.centre)):
+                torch.testing.assert_close(a, b, rtol=2e-7, atol=1e-6)
+            assert (got.width, got.height) == (old.width, old.height)
+
+
+@pytest.mark.gpu
+def test_view_of_on_the_gpu_equals_the_cpu_conversion():
+    """A camera on the GPU (as the viewer hands it over): the same View, on the GPU."""
+    from virgi_ns.nerfstudio.render_cache import view_of
+
+    for seed in range(5):
+        cam = _random_cameras(seed, 2)[0:1]
+        want = view_of(cam, torch.device("cpu"), torch.float32)
+        got = view_of(cam.to("cuda"), torch.device("cuda"), torch.float32)
+        assert got.viewmat.is_cuda and (got.width, got.height) == (want.width, want.height)
+        for a, b in ((got.viewmat, want.viewmat), (got.K, want.K), (got.centre, want.centre)):
+            assert torch.equal(a.cpu(), b)
+
+
+# ------------------------------------------------------------------ the gsplat pass
+@pytest.mark.gpu
+def test_the_gsplat_pass_equals_gsplat_rasterization(spec_model):
+    """The model's pass through gsplat's pieces gives what ``gsplat.rasterization`` gives as the
+    baseline calls it (RGB+ED, unpacked, classic), with the background composited in; a second pass
+    in the main pass's projection equals a fresh ``rasterization`` of its channels."""
+    from gsplat.rendering import rasterization
+
+    pipeline, model, cams = spec_model
+    pipeline.to("cuda")
+    try:
+        cam = cams[0:1].to("cuda")
+        view = model.view_of(cam)
+        g = model.render_cache.geometry(model)
+        n = g.means.shape[0]
+        colours = torch.rand(n, 3, device="cuda", generator=torch.Generator("cuda").manual_seed(0))
+        bg = torch.tensor([[0.2, 0.5, 0.9]], device="cuda")
+        got, acc, proj = model._splat(view, colours, bg, "RGB+ED")
+        want, want_acc, _ = rasterization(g.means, g.quats, g.scales, g.opacities, colours, view.viewmat, view.K,
+                                          view.width, view.height, render_mode="RGB+ED", backgrounds=bg,
+                                          packed=False, rasterize_mode="classic")
+        assert got.shape == want[0].shape and acc.shape == want_acc[0].shape
+        assert (got - want[0]).abs().max() <= 1e-6 and (acc - want_acc[0]).abs().max() <= 1e-6
+        assert acc.max() > 0.5  # the view sees the scene
+        extra = torch.rand(n, 4, device="cuda", generator=torch.Generator("cuda").manual_seed(1))
+        bg4 = torch.tensor([[0.1, 0.3, 0.7, 0.0]], device="cuda")
+        got2, _, _ = model._splat(view, extra, bg4, "RGB", proj)
+        want2, _, _ = rasterization(g.means, g.quats, g.scales, g.opacities, extra, view.viewmat, view.K,
+                                    view.width, view.height, render_mode="RGB", backgrounds=bg4, packed=False,
+                                    rasterize_mode="classic")
+        assert (got2 - want2[0]).abs().max() <= 1e-6
+    finally:
+        pipeline.to("cpu")
+
+
+# ------------------------------------------------------------- colours as a CUDA graph
+class _EagerGraph:
+    """A stand-in for :class:`ColourGraph` on a CPU with its interface and buffers: the static centre
+    and output, replayed by running the recorded function again (counts the recordings)."""
+
+    made: list = []
+
+    def __init__(self, gate, edits, centre):
+        self.centre = centre.detach().clone()
+        self.out = edits.diffuse.clone()
+        self._replay = lambda: ColourGraph._write(self, gate, edits)
+        _EagerGraph.made.append(self)
+
+    def __call__(self, centre):
+        self.centre.copy_(centre)
+        self._replay()
+        return self.out
+
+
+def _graph_frames(model, cam, n: int = 3) -> list:
+    """``n`` frames' colours as the render path takes them (transient), each checked against the
+    reference; returns the last."""
+    got = None
+    for _ in range(n):
+        got = model.view_colours(model.view_of(cam), gated=True, transient=True)
+        want = _reference(model, cam, model.spec_magnitude > model.config.gate_threshold)
+        assert (got.rgb - want["rgb"]).abs().max() <= TOL
+    return got
+
+
+def test_colour_graphs_are_recorded_once_per_cache_state(spec_model, monkeypatch):
+    """The graphed path's bookkeeping, with the graph stood in for on a CPU: a state is served eagerly
+    once, then recorded once and replayed; every change of the cache state (an edit, an undo, ``k``, a
+    live edit, the threshold) records again, the public call returns a copy that the next view does
+    not overwrite, and a failed recording warns once and leaves eager colours."""
+    import virgi_ns.nerfstudio.render_cache as rc
+
+    _, model, cams = spec_model
+    cam, other = cams[0:1], cams[1:2]
+    median = model.config.gate_threshold
+    monkeypatch.setattr(rc, "ColourGraph", _EagerGraph)
+    monkeypatch.setattr(rc, "_recordable", lambda centre: True)
+    _EagerGraph.made = []
+    model.render_cache.clear()
+    stack = EditStack(model.fingerprint())
+    model.set_edit_stack(stack)
+    try:
+        _graph_frames(model, cam, 1)
+        assert _EagerGraph.made == [] and model.render_cache.edit_level.frames == 1  # the first frame: eager
+        last = _graph_frames(model, cam, 3)
+        assert len(_EagerGraph.made) == 1 and last.rgb is _EagerGraph.made[0].out  # then recorded, replayed
+        public = model.view_colours(model.view_of(cam), gated=True)
+        assert public.rgb is not _EagerGraph.made[0].out
+        before = public.rgb.clone()
+        model.view_colours(model.view_of(other), gated=True, transient=True)  # another view replays
+        assert torch.equal(public.rgb, before)
+        changes = [lambda: stack.add(_edit(model, 21)), lambda: stack.add(_edit(model, 22)), stack.undo,
+                   lambda: stack.set_specular_strength(0.6), lambda: model.set_live_edit(_edit(model, 23)),
+                   lambda: model.set_live_edit(None),
+                   lambda: setattr(model.config, "gate_threshold", float(model.spec_magnitude.quantile(0.7)))]
+        ref = _reference(model, cam, model.spec_magnitude > model.config.gate_threshold)["rgb"]
+        for i, change in enumerate(changes):
+            change()
+            gc.collect()
+            now = _graph_frames(model, cam, 3)
+            assert len(_EagerGraph.made) == i + 2, i  # one recording per state
+            assert now.rgb is _EagerGraph.made[-1].out
+            assert (now.rgb - ref).abs().max() > 1e-3, i  # the change shows
+            ref = now.rgb.clone()
+        # no graphs asked for: eager colours, nothing recorded
+        model.config.render_cache_graphs = False
+        stack.set_specular_strength(0.3)
+        _graph_frames(model, cam, 3)
+        assert len(_EagerGraph.made) == len(changes) + 1
+        model.config.render_cache_graphs = True
+
+        def fail(*a):
+            raise RuntimeError("operation not permitted when stream is capturing")
+
+        monkeypatch.setattr(rc, "ColourGraph", fail)
+        stack.set_specular_strength(0.8)
+        with pytest.warns(UserWarning, match="without CUDA graphs"):
+            _graph_frames(model, cam, 2)
+        assert model.render_cache.graph_failed and model.render_cache.edit_level.graph is None
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # warned once
+            stack.set_specular_strength(0.9)
+            _graph_frames(model, cam, 3)
+    finally:
+        model.config.render_cache_graphs = True
+        model.config.gate_threshold = median
+        model.set_live_edit(None)
+        model.set_edit_stack(None)
+        model.render_cache.graph_failed = False
+        model.render_cache.clear()
+
+
+@pytest.mark.gpu
+def test_graphed_colours_equal_eager_colours_on_a_gpu(spec_model):
+    """On a GPU the graphed colours equal the eager ones (the same kernels) and the field's; after an
+    edit, an undo and a change of ``k`` the graph is recorded again and the render follows; the public
+    call's colours are not overwritten by the next view."""
+    pipeline, model, cams = spec_model
+    median = model.config.gate_threshold
+    pipeline.to("cuda")
+    model.render_cache.clear()
+    stack = EditStack(model.fingerprint())
+    model.set_edit_stack(stack)
+
+    def graphed_vs_eager(cam):
+        view = model.view_of(cam)
+        model.config.render_cache_graphs = False
+        eager = model.view_colours(view, gated=True).rgb
+        model.config.render_cache_graphs = True
+        for _ in range(3):
+            got = model.view_colours(view, gated=True, transient=True).rgb
+        assert model.render_cache.edit_level.graph is not None and got is model.render_cache.edit_level.graph.out
+        assert (got - eager).abs().max() <= 1e-6
+        want = _reference(model, cam, model.spec_magnitude > model.config.gate_threshold)["rgb"]
+        assert (got - want).abs().max() <= 1e-5
+        return got.clone(), model.render_cache.edit_level.graph
+
+    try:
+        cam = cams[0:1].to("cuda")
+        for i in range(2):
+            graphed_vs_eager(cams[i : i + 1].to("cuda"))
+        img, graph = graphed_vs_eager(cam)
+        frame = model.get_outputs_for_camera(cam)["rgb"].clone()
+        for change in (lambda: stack.add(_edit(model, 24)), stack.undo, lambda: stack.set_specular_strength(0.4)):
+            change()
+            now, g = graphed_vs_eager(cam)
+            assert g is not graph and (now - img).abs().max() > 1e-3
+            again = model.get_outputs_for_camera(cam)["rgb"]
+            assert (again - frame).abs().max() > 1e-3  # the render follows the new state
+            img, graph, frame = now, g, again.clone()
+        a = model.view_colours(model.view_of(cam), gated=True)
+        kept = a.rgb.clone()
+        model.view_colours(model.view_of(cams[1:2].to("cuda")), gated=True, transient=True)
+        assert torch.equal(a.rgb, kept)
+    finally:
+        model.config.gate_threshold = median
+        model.config.render_cache_graphs = True
+        model.set_edit_stack(None)
+        model.render_cache.clear()
+        pipeline.to("cpu")
+
+
+def test_a_new_background_reaches_the_gsplat_pass(spec_model, monkeypatch):
+    """gsplat's backgrounds (the colour row and its zero-padded form for the depth channel) are kept per
+    background tensor: the same tensor gives the same rows, and a new one (the viewer sets one every
+    frame) or one changed in place shows in the next render."""
+    _, model, cams = spec_model
+    cam = cams[0:1]
+    cache = model.render_cache
+    old = model.background_color
+    passes: list = []
+    try:
+        bg = cache.background(model.background_color, model.device)
+        row = cache.background_row(bg)
+        assert row is cache.background_row(bg) and row.shape == (1, 3)
+        padded = cache.with_depth_channel(row)
+        assert padded is cache.with_depth_channel(row)
+        assert torch.equal(padded, torch.cat([row, row.new_zeros(1, 1)], 1))
+        other = torch.rand(1, 2)
+        assert torch.equal(cache.with_depth_channel(other), torch.cat([other, other.new_zeros(1, 1)], 1))
+        monkeypatch.setattr(model, "_renders_with_gsplat", lambda: True)
+        monkeypatch.setattr(model, "_splat", _splat_by_contributions(model, passes))
+        colour = torch.tensor([0.9, 0.4, 0.1])
+        for change in (lambda: model.set_background(colour), lambda: colour.copy_(torch.tensor([0.2, 0.7, 0.3])),
+                       lambda: model.set_background(torch.tensor([0.5, 0.5, 1.0]))):
+            change()
+            out = model.render_camera(cam, gated=True)
+            empty = out["accumulation"][..., 0] == 0
+            assert empty.any()
+            assert torch.equal(out["background"], model.background_color)
+            torch.testing.assert_close(out["rgb"][empty], model.background_color.expand(int(empty.sum()), 3))
+    finally:
+        model.set_background(old)

@@ -73,6 +73,9 @@ class VirgiModelConfig(SplatfactoModelConfig):
     render_cache_half: bool = False
     """Keep the render cache's two per-Gaussian hidden-layer parts of MLP_spec in float16: half the
     cache's memory, colours no longer equal to the field's to float32 precision."""
+    render_cache_graphs: bool = True
+    """On a GPU, replay the gated colours of a view as a CUDA graph recorded once per render-cache state
+    (after its first frame), instead of launching their dozen small kernels every frame."""
     box_quantile: float = 0.01
     """The hash grid's box spans these quantiles of the frozen means (expanded by 10%)."""
     colour_init: Literal["geometry", "geometry_sh", "none"] = "geometry_sh"

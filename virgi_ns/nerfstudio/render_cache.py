@@ -15,7 +15,9 @@ So :class:`RenderCache` keeps, each level rebuilt when what it was computed from
 
 A view then costs, for the gated Gaussians only: directions, their monomials, three small matrix
 products and a sigmoid, written over the cached diffuse colours (:func:`gated_colours`); nothing at
-all when the gate keeps no Gaussian or ``k = 0``.
+all when the gate keeps no Gaussian or ``k = 0``. On a GPU these dozen small kernels are recorded
+once per cache state as a CUDA graph (:class:`ColourGraph`, kept on the edit level, so that every
+rebuild of a level records anew) and replayed per view with the camera centre as its input.
 
 Validity is checked per frame by cheap keys: each tensor's identity, in-place version counter,
 storage and dtype (:func:`stamp`; optimizer steps and ``load_state_dict`` bump the version), the
@@ -26,11 +28,12 @@ edits, and the gate threshold. Writes through ``.data`` bypass the version count
 
 from __future__ import annotations
 
+import struct
+import warnings
 from collections.abc import MutableMapping
 from dataclasses import dataclass, field
 from typing import Callable, Dict, Iterator, Optional
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -49,6 +52,13 @@ def stamp(t: Optional[Tensor]) -> tuple:
 
 
 # ------------------------------------------------------------------------------ a view
+_CAMERA_FIELDS = ("fx", "fy", "cx", "cy", "width", "height")
+_WORD_CODES = {torch.float32: "f", torch.float64: "d", torch.int32: "i", torch.int64: "q"}
+"""struct codes of the dtypes whose bytes :func:`_camera_numbers` moves as 32-bit words."""
+_CAMERA_FORMATS: Dict[tuple, str] = {}
+"""struct formats of single cameras by their fields' (dtype, shape, contiguity)."""
+
+
 @dataclass
 class View:
     """One pinhole view in gsplat's form: ``viewmat`` [1,4,4] (world-to-camera, OpenCV axes) and
@@ -61,23 +71,55 @@ class View:
     height: int
 
 
+def _camera_numbers(camera) -> list:
+    """The first camera's 12 camera-to-world entries, fx, fy, cx, cy, width and height as Python numbers,
+    gathered where they lie with one launch (each tensor's bytes taken as 32-bit words, so that float
+    and integer fields share one ``cat``) and one copy to the host; decoded there."""
+    fields = [camera.camera_to_worlds] + [getattr(camera, k) for k in _CAMERA_FIELDS]
+    key = tuple((t.dtype, t.shape, t.is_contiguous()) for t in fields)
+    fmt = _CAMERA_FORMATS.get(key)
+    if fmt is not None:  # one camera of nerfstudio's shapes: the words are views
+        words = [fields[0].view(1, 12).view(torch.int32)] + [t.view(torch.int32) for t in fields[1:]]
+    else:
+        words, fmt = [], "<"
+        for i, t in enumerate(fields):
+            n = 12 if i == 0 else 1
+            code = _WORD_CODES.get(t.dtype)
+            if code is None:  # an unusual dtype: as float64
+                t, code = t.double(), "d"
+            words.append(t.reshape(-1)[:n].reshape(1, n).contiguous().view(torch.int32))
+            fmt += f"{n}{code}"
+        if fields[0].shape == (1, 3, 4) and all(t.shape == (1, 1) for t in fields[1:]) and key[0][2]:
+            _CAMERA_FORMATS[key] = fmt
+    raw = torch.cat(words, dim=1).tolist()[0]
+    return list(struct.unpack(fmt, struct.pack(f"<{len(raw)}i", *raw)))
+
+
 def view_of(camera, device: torch.device, dtype: torch.dtype) -> View:
-    """The first camera of a nerfstudio ``Cameras`` as a :class:`View`: one copy to the host, the
-    4x4 algebra there, one copy back (where per-element tensor operations would each be a launch)."""
-    host = torch.cat([camera.camera_to_worlds.reshape(-1, 12)[0]]
-                     + [getattr(camera, k).reshape(-1)[:1].to(camera.camera_to_worlds.dtype)
-                        for k in ("fx", "fy", "cx", "cy", "width", "height")]).cpu().double().numpy()
-    c2w = host[:12].reshape(3, 4)
-    rot = c2w[:, :3] * np.array([1.0, -1.0, -1.0])  # OpenGL -> OpenCV axes
-    t = c2w[:, 3]
-    vm = np.eye(4)
-    vm[:3, :3] = rot.T
-    vm[:3, 3] = -rot.T @ t
-    fx, fy, cx, cy, w, h = host[12:]
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    packed = torch.from_numpy(np.concatenate([vm.ravel(), K.ravel(), t]).astype(np.float32)).to(device)
-    return View(packed[:16].view(1, 4, 4), packed[16:25].view(1, 3, 3), packed[25:28].view(1, 3).to(dtype),
-                int(round(w)), int(round(h)))
+    """The first camera of a nerfstudio ``Cameras`` as a :class:`View`. Per frame: one gather of the
+    camera's 18 numbers and one copy to the host (:func:`_camera_numbers`; the image size must be
+    known there), the 4x4 algebra in float64 on Python floats, and one copy of the 28 results to
+    ``device`` (on a GPU from pinned memory, without a sync)."""
+    h = _camera_numbers(camera)
+    # camera-to-world (OpenGL axes) -> world-to-camera (OpenCV axes): R' = R diag(1,-1,-1), viewmat = [R'^T, -R'^T t]
+    a0, a1, a2 = h[0], h[4], h[8]
+    b0, b1, b2 = -h[1], -h[5], -h[9]
+    c0, c1, c2 = -h[2], -h[6], -h[10]
+    tx, ty, tz = h[3], h[7], h[11]
+    fx, fy, cx, cy, w, hh = h[12:18]
+    vals = [a0, a1, a2, -(a0 * tx + a1 * ty + a2 * tz),
+            b0, b1, b2, -(b0 * tx + b1 * ty + b2 * tz),
+            c0, c1, c2, -(c0 * tx + c1 * ty + c2 * tz),
+            0.0, 0.0, 0.0, 1.0,
+            fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0,
+            tx, ty, tz]
+    if torch.device(device).type == "cuda":
+        packed = torch.tensor(vals, dtype=torch.float32, pin_memory=True).to(device, non_blocking=True)
+    else:
+        packed = torch.tensor(vals, dtype=torch.float32, device=device)
+    centre = packed[25:28].view(1, 3)
+    return View(packed[:16].view(1, 4, 4), packed[16:25].view(1, 3, 3),
+                centre if dtype == torch.float32 else centre.to(dtype), int(round(w)), int(round(hh)))
 
 
 @dataclass
@@ -145,21 +187,68 @@ class EditCache:
     """[H,3] ``k B3`` on ``s2``."""
     segmentation: Dict[Optional[int], Tensor] = field(default_factory=dict)
     """Per-Gaussian alpha [N,1] by the shown edit (filled on first request)."""
+    frames: int = 0
+    """Views served eagerly from this state (see :data:`GRAPH_AFTER_FRAMES`)."""
+    graph: Optional["ColourGraph"] = None
+    """The state's colours as a CUDA graph, once recorded."""
 
     @property
     def matte(self) -> bool:
         return self.p3k is None
 
 
-def gated_colours(gate: GateCache, edits: EditCache, centre: Tensor) -> Tensor:
-    """[N,3] colours for a view from camera centre ``centre`` [1,3]: the cached diffuse colours with
-    the gated Gaussians' ``sigmoid(c_d'' + k c_s)`` written over them."""
+def gated_logits(gate: GateCache, edits: EditCache, centre: Tensor) -> Tensor:
+    """[M,3] ``sigmoid(c_d'' + k c_s)`` of the gated Gaussians for a view from ``centre`` [1,3]."""
     d = view_directions(gate.means, centre)
     mono = direction_monomials(d, gate.degree)
     s1 = torch.addmm(gate.p1.to(mono.dtype), mono, gate.w_mono).relu_()
     s2 = torch.addmm(gate.p2.to(mono.dtype), s1, gate.w_s1).relu_()
-    z = torch.addmm(edits.p3k, s2, edits.w_s2k).sigmoid_()
-    return edits.diffuse.index_copy(0, gate.index, z)
+    return torch.addmm(edits.p3k, s2, edits.w_s2k).sigmoid_()
+
+
+def gated_colours(gate: GateCache, edits: EditCache, centre: Tensor) -> Tensor:
+    """[N,3] colours for a view from camera centre ``centre`` [1,3]: the cached diffuse colours with
+    the gated Gaussians' ``sigmoid(c_d'' + k c_s)`` written over them (the specification that
+    :class:`ColourGraph` replays)."""
+    return edits.diffuse.index_copy(0, gate.index, gated_logits(gate, edits, centre))
+
+
+class ColourGraph:
+    """:func:`gated_colours` of one cache state recorded as a CUDA graph. Its inputs are the cache's
+    tensors (fixed while the state lasts: the graph lives on the :class:`EditCache` it reads) and a
+    static camera centre; its output is a static [N,3] buffer that holds the diffuse colours from the
+    start, so a replay writes the gated rows only. A replay overwrites the previous one's colours."""
+
+    def __init__(self, gate: GateCache, edits: EditCache, centre: Tensor) -> None:
+        self.centre = centre.detach().to(gate.means.dtype).clone()
+        self.out = edits.diffuse.clone()
+        self.graph = torch.cuda.CUDAGraph()
+        current = torch.cuda.current_stream(centre.device)
+        side = torch.cuda.Stream(centre.device)
+        side.wait_stream(current)
+        with torch.cuda.stream(side):  # once eagerly: the libraries' handles and workspaces
+            self._write(gate, edits)
+        current.wait_stream(side)
+        with torch.cuda.graph(self.graph, capture_error_mode="thread_local"):
+            self._write(gate, edits)
+
+    def _write(self, gate: GateCache, edits: EditCache) -> None:
+        self.out.index_copy_(0, gate.index, gated_logits(gate, edits, self.centre))
+
+    def __call__(self, centre: Tensor) -> Tensor:
+        self.centre.copy_(centre)
+        self.graph.replay()
+        return self.out
+
+
+def _recordable(centre: Tensor) -> bool:
+    """Whether colours for ``centre`` can be recorded as a CUDA graph (on a GPU, outside another capture)."""
+    return centre.is_cuda and not torch.cuda.is_current_stream_capturing()
+
+
+GRAPH_AFTER_FRAMES = 1
+"""Frames a cache state is served eagerly before its colours are recorded as a graph: a state that
+lasts one frame (a pick's colour being dragged) never pays for a recording."""
 
 
 class RenderCache:
@@ -170,6 +259,8 @@ class RenderCache:
         self.gate_level: Optional[GateCache] = None
         self.edit_level: Optional[EditCache] = None
         self._background: Optional[tuple] = None
+        self.graph_failed = False
+        """A recording failed once: colours are computed eagerly from then on."""
 
     def clear(self) -> None:
         self.geometry_level = self.gate_level = self.edit_level = None
@@ -183,19 +274,64 @@ class RenderCache:
         g, f, e = self.geometry_level, self.gate_level, self.edit_level
         return {"geometry": size(g.scales, g.opacities) if g else 0,
                 "gate": size(f.index, f.means, f.p1, f.p2, f.p3, f.w_mono, f.w_s1, f.w_s2) if f else 0,
-                "edits": size(e.diffuse, e.p3k, e.w_s2k, *e.segmentation.values()) if e else 0}
+                "edits": size(e.diffuse, e.p3k, e.w_s2k, *e.segmentation.values(),
+                              *((e.graph.out, e.graph.centre) if e.graph is not None else ())) if e else 0}
+
+    # ---------------------------------------------------------------- colours
+    def colours(self, gate: GateCache, edits: EditCache, centre: Tensor, graphs: bool = True,
+                transient: bool = False) -> Tensor:
+        """[N,3] colours of a view from ``centre`` [1,3] (:func:`gated_colours`; the cached tensor
+        itself for a matte state). On a GPU with ``graphs``, a state served eagerly
+        :data:`GRAPH_AFTER_FRAMES` times is then recorded as a :class:`ColourGraph` and replayed; its output
+        is returned as it is with ``transient`` (the caller composites it before the next view's
+        colours), else a copy. Where recording fails, a warning, and eager colours from then on."""
+        if edits.matte:
+            return edits.diffuse
+        g = edits.graph
+        record = g is None and graphs and edits.frames >= GRAPH_AFTER_FRAMES and not self.graph_failed
+        if record and _recordable(centre):
+            try:
+                g = edits.graph = ColourGraph(gate, edits, centre)
+            except Exception as e:  # noqa: BLE001 - any failure to record leaves the eager path
+                self.graph_failed = True
+                warnings.warn(f"virgi: render colours run without CUDA graphs: {type(e).__name__}: "
+                              f"{str(e).splitlines()[0] if str(e) else ''}")
+        if g is not None and graphs:
+            out = g(centre)
+            return out if transient else out.clone()
+        edits.frames += 1
+        return gated_colours(gate, edits, centre)
 
     # ---------------------------------------------------------------- levels
     def background(self, bg: Tensor, device: torch.device) -> Tensor:
         """``bg`` on ``device`` (copied once per background tensor, not once per frame)."""
         key = (stamp(bg), device)
         if self._background is None or self._background[0] != key:
-            self._background = (key, bg, bg.to(device))
+            self._background = (key, bg, bg.to(device), None, None)
         return self._background[2]
+
+    def background_row(self, bg: Tensor) -> Tensor:
+        """``bg`` as :meth:`background` returned it, as gsplat takes backgrounds: [1,3] float32 (made once
+        per background)."""
+        b = self._background
+        if b is None or b[2] is not bg:
+            return bg.float().reshape(1, -1)
+        if b[3] is None:
+            row = bg.float().reshape(1, -1)
+            self._background = b = (*b[:3], row, torch.cat([row, row.new_zeros(1, 1)], dim=1))
+        return b[3]
+
+    def with_depth_channel(self, row: Tensor) -> Tensor:
+        """[1,D] backgrounds and a zero for an expected-depth channel: [1,D+1] (kept for
+        :meth:`background_row`'s row)."""
+        b = self._background
+        if b is not None and b[3] is row:
+            return b[4]
+        return torch.cat([row, row.new_zeros(1, 1)], dim=1)
 
     def geometry(self, model) -> GeometryCache:
         params = (model.means, model.quats, model.scales, model.opacities)
-        key = tuple(stamp(p) for p in params)
+        key = tuple(map(stamp, params))
         g = self.geometry_level
         if g is None or g.key != key:
             with torch.no_grad():
@@ -209,7 +345,7 @@ class RenderCache:
         caller has checked that the gate is current and the field decoupled)."""
         fld = model.field
         half = bool(getattr(model.config, "render_cache_half", False))
-        key = (id(fld), tuple(stamp(p) for p in params), stamp(model.means), stamp(model.spec_magnitude),
+        key = (id(fld), tuple(map(stamp, params)), stamp(model.means), stamp(model.spec_magnitude),
                float(model.config.gate_threshold), half)
         g = self.gate_level
         if g is None or g.key != key:
@@ -344,5 +480,5 @@ class ViewOutputs(MutableMapping):
         return f"ViewOutputs({self._order}, computed={self.computed()})"
 
 
-__all__ = ["EditCache", "GateCache", "GeometryCache", "RenderCache", "View", "ViewColours", "ViewOutputs",
-           "edited_diffuse", "gated_colours", "stamp", "view_of"]
+__all__ = ["ColourGraph", "EditCache", "GateCache", "GeometryCache", "RenderCache", "View", "ViewColours",
+           "ViewOutputs", "edited_diffuse", "gated_colours", "gated_logits", "stamp", "view_of"]

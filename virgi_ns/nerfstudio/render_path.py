@@ -16,7 +16,7 @@ the rest, and nothing per frame for a matte scene.
 
 from __future__ import annotations
 
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import torch
 from nerfstudio.cameras.cameras import Cameras as NSCameras
@@ -24,6 +24,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from torch import Tensor
 
 from virgi_ns.colour.field import view_directions
+from virgi_ns.nerfstudio.gsplat_pass import Projection, project, rasterize
 from virgi_ns.nerfstudio.render_cache import (
     CHUNK,
     RenderCache,
@@ -31,7 +32,6 @@ from virgi_ns.nerfstudio.render_cache import (
     ViewColours,
     ViewOutputs,
     edited_diffuse,
-    gated_colours,
     view_of,
 )
 from virgi_ns.raster import Cameras, Contributions, Request, composite, expected_depth
@@ -117,15 +117,17 @@ class RenderPath:
         return view_of(camera, self.device, self.means.dtype)
 
     @torch.no_grad()
-    def view_colours(self, view: View, gated: bool = False) -> ViewColours:
+    def view_colours(self, view: View, gated: bool = False, transient: bool = False) -> ViewColours:
         """One colour per Gaussian for ``view``. ``gated`` (and a current gate): from the render
-        cache; otherwise the full colour model over every Gaussian."""
+        cache; otherwise the full colour model over every Gaussian. ``transient``: ``rgb`` may be a
+        buffer that the next view's colours overwrite (a CUDA graph's output), for a caller that
+        composites it first."""
         params = tuple(self.field.parameters()) if gated and self.field.decoupled else ()
         if params and self._gate_current(params):
             cache = self.render_cache
             gate = cache.gate(self, params)
             edits = cache.edits(self, gate)
-            rgb = edits.diffuse if edits.matte else gated_colours(gate, edits, view.centre)
+            rgb = cache.colours(gate, edits, view.centre, getattr(self.config, "render_cache_graphs", True), transient)
             seg = (lambda: self._cached_segmentation(edits)) if self._with_segmentation() else None
             return ViewColours(rgb, None if edits.matte else edits.diffuse, seg)
         return self._full_colours(view.centre)
@@ -199,7 +201,8 @@ class RenderPath:
 
     def _gate_current(self, params) -> bool:
         stamp = getattr(self, "_gate_stamp", None)
-        return (self.spec_magnitude.numel() == self.num_points and self.diffuse_cache.shape[0] == self.num_points
+        n = self.num_points
+        return (self.spec_magnitude.numel() == n and self.diffuse_cache.shape[0] == n
                 and (stamp is None or stamp == self._field_versions(params)))
 
     def drop_specular_gate(self) -> None:
@@ -253,7 +256,7 @@ class RenderPath:
         ``accumulation`` and ``segmentation`` (zeros without edits) for the first camera of
         ``camera``, through the edit stack when one is set (see :meth:`render_view`)."""
         view = self.view_of(camera)
-        return self.render_view(view, self.view_colours(view, gated), max_pixels)
+        return self.render_view(view, self.view_colours(view, gated, transient=True), max_pixels)
 
     def render_view(self, view: View, colours: ViewColours, max_pixels: int = 1 << 20):
         """Composite one colour per Gaussian in ``view``. On a GPU (``whole_view_renderer="gsplat"``)
@@ -303,22 +306,30 @@ class RenderPath:
         """Whole views on a GPU go through gsplat's forward rasterizer (``whole_view_renderer``)."""
         return self.config.whole_view_renderer == "gsplat" and self.device.type == "cuda"
 
-    def _splat(self, view: View, colours: Tensor, backgrounds: Tensor, mode: str):
-        """gsplat's forward rasterization of the frozen Gaussians with one colour per Gaussian."""
-        from gsplat.rendering import rasterization
-
-        g = self.render_cache.geometry(self)
-        img, alpha, _ = rasterization(g.means, g.quats, g.scales, g.opacities, colours, view.viewmat, view.K,
-                                      view.width, view.height, render_mode=mode, backgrounds=backgrounds,
-                                      packed=False, rasterize_mode="classic")
-        return img[0], alpha[0]
+    @torch.no_grad()
+    def _splat(self, view: View, colours: Tensor, backgrounds: Tensor, mode: str,
+               projection: Optional[Projection] = None) -> Tuple[Tensor, Tensor, Projection]:
+        """gsplat's forward rasterization of the frozen Gaussians with one colour per Gaussian
+        (:mod:`~virgi_ns.nerfstudio.gsplat_pass`: ``gsplat.rasterization``'s work for one camera):
+        ([H,W,D] image, or [H,W,D+1] ending in the expected depth for ``mode="RGB+ED"``; [H,W,1]
+        accumulation; the projection, which a later pass of the same view passes back)."""
+        if projection is None:
+            g = self.render_cache.geometry(self)
+            projection = project(g.means, g.quats, g.scales, g.opacities, view.viewmat, view.K, view.width,
+                                 view.height)
+        if mode == "RGB+ED":
+            img, alpha = rasterize(projection, colours, self.render_cache.with_depth_channel(backgrounds), True)
+        else:
+            img, alpha = rasterize(projection, colours, backgrounds, False)
+        return img, alpha, projection
 
     def _render_view_gsplat(self, view: View, colours: ViewColours, bg: Tensor) -> ViewOutputs:
         """:meth:`render_view` on a GPU. The main pass is a plain splat's (colour + expected depth);
-        diffuse and segmentation take a second pass of their own when read, and a matte view (no
-        specular term anywhere) has diffuse = rgb and specular = 0 without one."""
-        background, bg = bg, bg.float()
-        img, acc = self._splat(view, colours.rgb.float(), bg[None], "RGB+ED")
+        diffuse and segmentation take a second pass of their own when read (the main pass's projection
+        again), and a matte view (no specular term anywhere) has diffuse = rgb and specular = 0
+        without one."""
+        row = self.render_cache.background_row(bg)
+        img, acc, proj = self._splat(view, colours.rgb.float(), row, "RGB+ED")
         rgb_raw = img[..., 0:3]
         rgb = rgb_raw.clamp(0, 1)
         H, W = view.height, view.width
@@ -329,11 +340,11 @@ class RenderPath:
                 chans, bgs = [], []
                 if colours.diffuse is not None:
                     chans.append(colours.diffuse.float())
-                    bgs.append(bg)
+                    bgs.append(row)
                 if colours.segmentation is not None:
                     chans.append(colours.segmentation().float())
-                    bgs.append(bg.new_zeros(1))
-                img2, _ = self._splat(view, torch.cat(chans, -1), torch.cat(bgs)[None], "RGB")
+                    bgs.append(row.new_zeros(1, 1))
+                img2, _, _ = self._splat(view, torch.cat(chans, -1), torch.cat(bgs, -1), "RGB", proj)
                 i = 0
                 if colours.diffuse is not None:
                     second["diffuse_raw"], i = img2[..., 0:3], 3
@@ -342,13 +353,14 @@ class RenderPath:
             return second
 
         lazy = {
-            "depth": lambda: img[..., 3:4] * (acc > 1e-10),
             "specular": (lambda: rgb_raw - pass2()["diffuse_raw"]) if colours.diffuse is not None
             else (lambda: rgb.new_zeros(H, W, 3)),
             "segmentation": (lambda: pass2()["segmentation"]) if colours.segmentation is not None
             else (lambda: rgb.new_zeros(H, W, 1)),
         }
-        ready = {"rgb": rgb, "accumulation": acc, "background": background}
+        # expected depth: gsplat's, 0 where nothing is drawn (every drawn Gaussian's alpha is at least
+        # 1/255, so the accumulation is 0 exactly there, and the composited depth with it)
+        ready = {"rgb": rgb, "depth": img[..., 3:4], "accumulation": acc, "background": bg}
         if colours.diffuse is not None:
             lazy["diffuse"] = lambda: pass2()["diffuse_raw"].clamp(0, 1)
         else:
