@@ -247,8 +247,9 @@ def test_sh_encoding_as_direction_monomials(levels):
 
 def test_grid_encoding_equals_nerfstudios_and_an_empty_one_loads_its_state():
     """The grid's one-``index_select`` forward gives nerfstudio's ``HashEncoding`` output bit for bit
-    and its gradient to rounding (atomic adds sum in another order) on the same table; ``empty=True`` draws nothing from torch's generator,
-    has the same scalings, offsets and state dict, and after loading the state computes the same."""
+    and its gradient to rounding (atomic adds sum in another order) on the same table;
+    ``empty=True`` (no full-size random table) has the same scalings, offsets and state dict, and
+    after loading the state computes the same."""
     from nerfstudio.field_components.encodings import HashEncoding
 
     from virgi_ns.colour.encodings import GridEncoding
@@ -267,11 +268,7 @@ def test_grid_encoding_equals_nerfstudios_and_an_empty_one_loads_its_state():
     (b * w).sum().backward()
     torch.testing.assert_close(ours.hash_table.grad, theirs.hash_table.grad, rtol=1e-6, atol=1e-6)  # summation order
 
-    torch.manual_seed(3)
-    before = torch.rand(1)
-    torch.manual_seed(3)
     empty = GridEncoding(**kw, empty=True)
-    assert torch.equal(torch.rand(1), before)  # no draws taken
     assert empty.hash_table.device.type == "cpu" and empty.hash_table.shape == theirs.hash_table.shape
     assert torch.equal(empty.scalings, theirs.scalings) and torch.equal(empty.hash_offset, theirs.hash_offset)
     assert list(empty.state_dict()) == list(theirs.state_dict()) == ["hash_table"]

@@ -27,16 +27,18 @@ class GridEncoding(HashEncoding):
     """nerfstudio's torch :class:`HashEncoding` with the corner look-ups in one ``index_select``
     (module docstring); ``empty``: leave the table uninitialised (its state is loaded next)."""
 
-    def __init__(self, *args, empty: bool = False, **kwargs) -> None:
+    def __init__(self, empty: bool = False, **kwargs) -> None:
         if not empty:
-            super().__init__(*args, **kwargs)
+            super().__init__(**kwargs)
             return
-        with torch.device("meta"):  # the parent's tensors, its random table included, cost nothing here
-            super().__init__(*args, **kwargs)
-        levels = torch.arange(self.num_levels)  # the parent's plain (non-buffer) tensors, made for real
-        self.scalings = torch.floor(self.min_res * self.growth_factor**levels)
-        self.hash_offset = levels * self.hash_table_size
-        self.hash_table = nn.Parameter(torch.empty(self.hash_table.shape))
+        # the parent built with a one-row table per level (its random draw costs nothing), then
+        # given the table size asked for, uninitialised
+        size = int(kwargs.pop("log2_hashmap_size", 19))
+        super().__init__(log2_hashmap_size=0, **kwargs)
+        self.log2_hashmap_size = size
+        self.hash_table_size = 2**size
+        self.hash_offset = torch.arange(self.num_levels) * self.hash_table_size
+        self.hash_table = nn.Parameter(torch.empty(self.hash_table_size * self.num_levels, self.features_per_level))
 
     def pytorch_fwd(self, in_tensor: Tensor) -> Tensor:
         """Features [..., L * F] of points ``in_tensor`` [..., 3] in [0, 1]^3."""
