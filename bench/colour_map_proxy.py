@@ -42,7 +42,10 @@ only), ``current`` (the 17-grid map with its spread check, the engine's default)
   fitted as an affine function of colour over the pixels in its tent (slope ridge-regularised
   towards 0), read back at a colour as the support-weighted blend of the 8 corners' affine models;
   its spread is that of the residuals (pooled over the corners) plus the corners' disagreement at
-  the colour, so a smooth change's own slope is not counted as spread while a threshold is.
+  the colour, so a smooth change's own slope is not counted as spread while a threshold is;
+- ``multires_lib``: the library's multi-level map (``fit_colour_change(..., levels=3)``,
+  ``EditConfig.map_levels=3``), added after the candidates were run: the same numbers as
+  ``multires`` show that the library implements the measured candidate.
 
 Decision rule (fixed before the candidates were run)
 ----------------------------------------------------
@@ -51,6 +54,9 @@ than current's by more than 0.1 dB and its ``leak`` not lower by more than 0.1 d
 ``target`` is higher than current's. The proxy is trusted only if it reproduces the known GPU
 outcomes first: on cup ``no_spread`` beats ``current`` on ``target``, and on fern ``no_spread`` is
 worse than ``current`` on ``target`` or ``leak``.
+
+The script prints the table, the reproduction checks and each candidate's failures of the rule
+(:func:`verdict`), and writes them to ``--out``.
 
     PYTHONPATH=. python bench/colour_map_proxy.py --out bench/results/colour_map_proxy.json [--synthetic]
 """
@@ -219,6 +225,7 @@ def variants(P, E):
         "no_spread": lambda: NoSpread(base),
         "current": lambda: base,
         "multires": lambda: MultiRes(P, E),
+        "multires_lib": lambda: fit_colour_change(P, E, levels=3),  # the library's (EditConfig.map_levels=3)
         "loclin": lambda: LocalLinear(P, E),
     }
 
@@ -245,6 +252,35 @@ def figures(m, P, E, R, rule: RecolorRule, changed) -> dict:
         leaked = torch.where(one[:, None], mapped, flat_r)
     return {"use": float(use[ch].float().mean()), "target": psnr(target, T, ch),
             "leak": psnr(leaked, flat_r, unchanged_r)}
+
+
+def verdict(rows: list[dict]) -> dict:
+    """The reproduction checks and, per candidate, the decision rule's failures (module docstring)."""
+    by = {(r["scene"], r["variant"]): r for r in rows}
+    scenes = sorted({r["scene"] for r in rows}, key=[r["scene"] for r in rows].index)
+    keys = [f"s{s:g}" for s in BLURS]
+    out = {}
+    if ("cup", "no_spread") in by and ("cup", "current") in by:
+        out["cup: no_spread beats current on target"] = all(
+            by["cup", "no_spread"][f"target_{k}"] > by["cup", "current"][f"target_{k}"] for k in keys)
+    if ("fern", "no_spread") in by and ("fern", "current") in by:
+        out["fern: no_spread worse than current on target or leak"] = {
+            fig: any(by["fern", "no_spread"][f"{fig}_{k}"] < by["fern", "current"][f"{fig}_{k}"] for k in keys)
+            for fig in ("target", "leak")}
+    for cand in sorted({r["variant"] for r in rows} - {"edited", "no_spread", "current"}):
+        fails = []
+        for sc in scenes:
+            c, cur = by.get((sc, cand)), by.get((sc, "current"))
+            if c is None or cur is None:
+                continue
+            for k in keys:
+                for fig in ("target", "leak"):
+                    if c[f"{fig}_{k}"] < cur[f"{fig}_{k}"] - 0.1:
+                        fails.append(f"{sc} {fig} {k}: {c[f'{fig}_{k}']:.2f} < {cur[f'{fig}_{k}']:.2f} - 0.1")
+                if sc == "cup" and not c[f"target_{k}"] > cur[f"target_{k}"]:
+                    fails.append(f"cup target {k} not higher")
+        out[cand] = {"wins": not fails, "fails": fails}
+    return out
 
 
 def main(argv=None) -> dict:
@@ -282,9 +318,11 @@ def main(argv=None) -> dict:
             print(f"{scene.name:16s} {name_v:10s} " + "  ".join(
                 f"s{s:g}: use {row[f'use_s{s:g}']:.3f} target {row[f'target_s{s:g}']:6.2f} leak {row[f'leak_s{s:g}']:6.2f}"
                 for s in BLURS), flush=True)
+    v = verdict(rows)
+    print(json.dumps(v, indent=1))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"blurs": BLURS, "rows": rows}, indent=1))
-    return {"rows": rows}
+    args.out.write_text(json.dumps({"blurs": BLURS, "rows": rows, "verdict": v}, indent=1))
+    return {"rows": rows, "verdict": v}
 
 
 if __name__ == "__main__":
