@@ -83,3 +83,57 @@ def test_the_spread_marks_colours_whose_pixels_were_changed_two_ways():
     # one change, though it varies over the kernel's width (a rotation of hue moves each colour its own way)
     assert bool(change.one_change(_colours(200, 220, 230, 9)).all())
     assert float(spread_blue.max()) < 0.6 * EXPLAIN_TOL
+
+
+FERN = RecolorRule(h0=60, h1=160, shift=120, s_min=0.12, v_min=0.1)  # leaves -> blue, as the fern's
+
+
+def test_finer_levels_hold_apart_two_dark_colours_that_share_a_coarse_cell():
+    """A hue threshold through dark colours: a dark green (hue ~111, changed) and a dark brown (hue ~22,
+    kept) 0.03 apart, inside one cell of the 17 grid. One level mixes them (neither is one change);
+    with the 33 and 65 levels each gets its own change: the rule's for the green, none for the brown."""
+    g = torch.Generator().manual_seed(11)
+    n = 3000
+    green = torch.tensor([0.08, 0.11, 0.075]) + 0.002 * torch.randn(n, 3, generator=g)
+    brown = torch.tensor([0.11, 0.085, 0.07]) + 0.002 * torch.randn(n, 3, generator=g)
+    photo = torch.cat([green, brown])
+    edited, mask = recolor(photo, FERN)
+    assert bool(mask[:n].all()) and not bool(mask[n:].any())  # the rule splits the two as intended
+    probe = torch.tensor([[0.08, 0.11, 0.075], [0.11, 0.085, 0.07]])
+    want = recolor(probe, FERN)[0]
+    assert float((want[0] - probe[0]).abs().max()) > 0.02  # the green really moves
+    coarse = fit_colour_change(photo, edited)
+    assert not bool(coarse.one_change(probe).any())
+    fine = fit_colour_change(photo, edited, levels=3)
+    assert bool(fine.one_change(probe).all())
+    torch.testing.assert_close(fine.apply(probe), want, atol=0.005, rtol=0)
+    assert bool(fine.explains(photo, edited).all())
+
+
+def test_a_smooth_hue_rotation_is_one_change_nearly_everywhere():
+    """Warm colours all rotated by one rule (no threshold among them): with three levels, new colours of
+    that range are one change almost everywhere and get the rule's colour. (One level refuses a few
+    per cent, darker colours, where the rotation's own variation over the wide kernel passes the
+    spread share: a finer level's kernel sees less of it.)"""
+    rule = RecolorRule(h0=0, h1=90, shift=120, s_min=0.1, v_min=0.1)
+    photo = _colours(30000, 5, 85, 12)
+    edited = recolor(photo, rule)[0]
+    new = _colours(3000, 10, 80, 13)
+    want = recolor(new, rule)[0]
+    coarse, fine = fit_colour_change(photo, edited), fit_colour_change(photo, edited, levels=3)
+    assert float(fine.one_change(new).float().mean()) > 0.99
+    assert float(fine.one_change(new).float().mean()) >= float(coarse.one_change(new).float().mean())
+    err = (fine.apply(new) - want).abs().amax(-1)
+    assert float(err.mean()) < 0.02 and float(err.max()) < EXPLAIN_TOL, (float(err.mean()), float(err.max()))
+
+
+def test_finer_levels_answer_only_where_the_coarse_level_is_not_one_change():
+    """Among blues alone (one change at the 17 grid) three levels give the 17 grid's lookup exactly."""
+    photo = _colours(20000, 200, 250, 14)
+    edited = _rule(photo)
+    probe = _colours(2000, 205, 245, 15)
+    coarse, fine = fit_colour_change(photo, edited), fit_colour_change(photo, edited, levels=3)
+    one = coarse.one_change(probe)
+    assert float(one.float().mean()) > 0.97
+    for a, b in zip(coarse.lookup(probe[one]), fine.lookup(probe[one])):
+        torch.testing.assert_close(a, b, atol=0, rtol=0)

@@ -14,11 +14,21 @@ and a render pixel gets the change the user gave to its own colour (a blended ed
 gets the change of a blended colour, not that of the sharp photo pixel behind it). Where an edit is
 not one function of colour (two objects of one colour changed differently, or one changed and one
 not) :meth:`ColourChange.explains` says so per pixel and the engine keeps the edited pixel itself.
+
+A map may have finer levels (``fit_colour_change(..., levels=3)``: grids of 17, 33 and 65 points):
+at each colour the coarsest level that has support and whose change is one change gives the change.
+A rule's threshold (of hue, saturation or value) makes the change a step in colour; a coarse cell
+that the step runs through mixes changed and unchanged colours (dark colours of several hues share
+a cell), and a finer level's narrower kernel can hold the two apart, so more of the changed pixels
+use the map. The cost: a colour just past a threshold, with few photo pixels of its own side near
+it, takes its changed neighbours' change at a fine level where the coarse one refused it. Off by
+default (``EditConfig.map_levels``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from jaxtyping import Float
@@ -49,6 +59,11 @@ the mean change, 1 for an even split and 0.25 for 94 / 6, while a smooth recolou
 over the kernel's width stays near a tenth of it (a hue rotation)."""
 
 
+def _one(delta: Tensor, support: Tensor, spread: Tensor) -> Tensor:
+    """Covered, and one change: the spread within :data:`SPREAD_SHARE` of the mean change's largest channel."""
+    return (support >= MIN_SUPPORT) & (spread <= SPREAD_SHARE * delta.abs().amax(-1))
+
+
 def _corners(colours: Float[Tensor, "N 3"], grid: int) -> tuple[Tensor, Tensor]:
     """The 8 grid points around each colour: flat indices [N,8] and trilinear weights [N,8]."""
     x = colours.clamp(0.0, 1.0) * (grid - 1)
@@ -69,6 +84,8 @@ class ColourChange:
     square: Tensor
     weight: Tensor
     grid: int = GRID
+    finer: Optional["ColourChange"] = None
+    """The next finer level (grid ``2 * grid - 1``), consulted where this one is not one change."""
 
     def support(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N"]:
         """Kernel weight of the photo's pixels near each colour."""
@@ -91,7 +108,13 @@ class ColourChange:
         mean = (self.change[idx] * w[..., None]).sum(1) / safe
         var = ((self.square[idx] * w[..., None]).sum(1) / safe - mean ** 2).clamp_min(0.0)
         zero = torch.zeros_like(mean)
-        return torch.where(covered, mean, zero), den, torch.where(covered, var, zero).amax(-1).sqrt()
+        out = torch.where(covered, mean, zero), den, torch.where(covered, var, zero).amax(-1).sqrt()
+        if self.finer is None:
+            return out
+        # where this level is not one change, a finer level that is (the finer's own choice) answers
+        fine = self.finer.lookup(colours)
+        take = ~_one(*out) & _one(*fine)
+        return tuple(torch.where(take[:, None] if a.dim() == 2 else take, b, a) for a, b in zip(out, fine))
 
     def one_change(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N"]:
         """Per colour: covered, and the changes near it are one change (spread within
@@ -101,8 +124,7 @@ class ColourChange:
     def apply_where_one_change(self, colours: Float[Tensor, "N 3"]) -> tuple[Tensor, Tensor]:
         """(:meth:`apply`, :meth:`one_change`) of ``colours`` from one lookup."""
         delta, support, spread = self.lookup(colours)
-        one = (support >= MIN_SUPPORT) & (spread <= SPREAD_SHARE * delta.abs().amax(-1))
-        return (colours + delta).clamp(0.0, 1.0), one
+        return (colours + delta).clamp(0.0, 1.0), _one(delta, support, spread)
 
     def apply(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
         """``colours`` changed as the user changed such colours (clamped to [0, 1])."""
@@ -114,8 +136,12 @@ class ColourChange:
         return (self.apply(original) - edited).abs().amax(-1) <= tol
 
 
-def fit_colour_change(original: Float[Tensor, "N 3"], edited: Float[Tensor, "N 3"], grid: int = GRID) -> ColourChange:
-    """The change ``edited - original`` as a function of the original colour (module docstring)."""
+def fit_colour_change(original: Float[Tensor, "N 3"], edited: Float[Tensor, "N 3"], grid: int = GRID,
+                      levels: int = 1) -> ColourChange:
+    """The change ``edited - original`` as a function of the original colour (module docstring), on
+    ``grid`` points per axis and ``levels - 1`` finer levels, each of twice the cells."""
+    if levels < 1:
+        raise ValueError(f"fit_colour_change: levels must be >= 1, got {levels}")
     original, edited = original.reshape(-1, 3).float(), edited.reshape(-1, 3).float()
     idx, w = _corners(original, grid)
     d = (edited - original)[:, None, :]
@@ -124,7 +150,8 @@ def fit_colour_change(original: Float[Tensor, "N 3"], edited: Float[Tensor, "N 3
     def splat(values: Tensor) -> Tensor:
         return torch.zeros(grid ** 3, values.shape[-1], device=original.device).index_add_(0, flat, values.reshape(-1, values.shape[-1]))
 
-    return ColourChange(splat(d * w[..., None]), splat(d * d * w[..., None]), splat(w[..., None])[:, 0], grid)
+    finer = fit_colour_change(original, edited, 2 * grid - 1, levels - 1) if levels > 1 else None
+    return ColourChange(splat(d * w[..., None]), splat(d * d * w[..., None]), splat(w[..., None])[:, 0], grid, finer)
 
 
 __all__ = ["ColourChange", "EXPLAIN_TOL", "GRID", "MIN_SUPPORT", "SPREAD_SHARE", "fit_colour_change"]

@@ -110,6 +110,11 @@ class EditConfig:
     where the two differ; ``transfer`` helps the edits that cover most of the view and loses on
     small ones).
     The same thing for an edited render (original = render); no effect with ``whole_image``."""
+    map_levels: int = 1
+    """``changed_target="map"``: grid levels of the colour map, 1 (17 points per axis) to 3 (17, 33
+    and 65: at each colour the coarsest level that is one change answers, so a colour that a coarse
+    cell mixes with others changed differently, near a rule's threshold, can still use the map;
+    :mod:`virgi_ns.edit.colour_change`). Off until measured on the GPU benchmark."""
     whole_image: bool = False
     """Fit every pixel to the edited image (no original, no edited-render detection)."""
     map_init: bool = True
@@ -164,6 +169,8 @@ class EditConfig:
         if self.changed_target not in ("change", "transfer", "map", "edited"):
             raise ValueError(f"EditConfig.changed_target must be 'change', 'transfer', 'map' or 'edited', "
                              f"got {self.changed_target!r}")
+        if not 1 <= self.map_levels <= 3:
+            raise ValueError(f"EditConfig.map_levels must be 1, 2 or 3, got {self.map_levels}")
         if self.recipe not in ("joint", "staged"):
             raise ValueError(f"EditConfig.recipe must be 'joint' or 'staged', got {self.recipe!r}")
         if self.seg_steps < 0 or self.seg_samples < 2:
@@ -413,7 +420,7 @@ class EditEngine:
         """``changed_target="map"``: the render changed by the colour map of the user's change
         where the map explains that pixel's change and is one change at the render's colour
         (:mod:`virgi_ns.edit.colour_change`), the edited pixel elsewhere."""
-        change = fit_colour_change(original, edited)
+        change = fit_colour_change(original, edited, levels=self.cfg.map_levels)
         flat_o, flat_e, flat_r = original.reshape(-1, 3), edited.reshape(-1, 3), self.current.reshape(-1, 3)
         mapped, one = change.apply_where_one_change(flat_r)
         use = change.explains(flat_o, flat_e) & one
