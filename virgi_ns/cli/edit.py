@@ -71,6 +71,9 @@ class Apply:
     brighter or darker than the render) or to the render moved by your change in logits
     (``transfer``: helps when the edit covers most of the view). No effect with --whole-image or for
     an edited render."""
+    map_levels: Literal[1, 2, 3] = 1
+    """With ``--changed-target map``: grid levels of the colour map (3: finer grids answer near a
+    rule's threshold, where a coarse cell mixes colours changed differently)."""
     recipe: Literal["joint", "staged"] = "joint"
     """``joint``: the segmentation and the new colour are fitted together (the paper's recipe);
     ``staged``: the segmentation first, from which Gaussians your change covers, so parts of another
@@ -364,6 +367,7 @@ def apply(args: Apply, console: "Console", pipeline=None) -> str:
         cfg.steps = args.steps
     cfg.whole_image = args.whole_image
     cfg.changed_target = args.changed_target
+    cfg.map_levels = args.map_levels
     cfg.recipe = args.recipe
     cfg.map_init = args.map_init
     with torch.no_grad():

@@ -114,7 +114,7 @@ class EditConfig:
     """``changed_target="map"``: grid levels of the colour map, 1 (17 points per axis) to 3 (17, 33
     and 65: at each colour the coarsest level that is one change answers, so a colour that a coarse
     cell mixes with others changed differently, near a rule's threshold, can still use the map;
-    :mod:`virgi_ns.edit.colour_change`). Off until measured on the GPU benchmark."""
+    :mod:`virgi_ns.edit.colour_change`). Selectable, not the default (bench/RESULTS.md, "Edit")."""
     whole_image: bool = False
     """Fit every pixel to the edited image (no original, no edited-render detection)."""
     map_init: bool = True
