@@ -181,6 +181,12 @@ class PixelBatch:
             return self.op(colours)
         return SparseRender.apply(colours, self.A, self.At)
 
+    def render_transpose(self, grad: Tensor) -> Tensor:
+        """``A^T @ grad`` [U, 3]: what :meth:`render`'s backward pass computes (for benchmarks)."""
+        if self.op is not None:
+            return _apply(self.op.bwd, self.op.backward_side, grad.contiguous())
+        return self.At @ grad.contiguous()
+
 
 def _group_weights(changed: Optional[Tensor], share: float) -> Optional[Tensor]:
     """Per-pixel loss weights [p] summing to 1: the ``changed`` pixels carry ``share`` of the loss and
