@@ -162,3 +162,30 @@ def test_retarget_rebuilds_batches_for_another_kind(tiny):
         eng.retarget(edited)
         assert all(b.composite == "index_add" for b in eng.batches)
         eng.fit()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.parametrize("kind", KINDS)
+def test_every_kind_records_as_cuda_graphs(tiny, kind):
+    """On a GPU each kind's steps record as CUDA graphs (no host sync, no fallback warning) and give
+    the eager steps' edit."""
+    import copy
+    import warnings
+
+    from virgi_ns.edit.scene import FrozenScene
+
+    S, cam, edited = tiny
+    sc = S.scene
+    gpu = FrozenScene(sc.means.cuda(), sc.quats.cuda(), sc.scales.cuda(), sc.opacities.cuda(),
+                      copy.deepcopy(sc.field).cuda(), sc.background.cuda(), backend="auto")
+    fits = {}
+    for graphs in (True, False):
+        cfg = EditConfig(steps=20, cuda_graphs=graphs, batch_composite=kind, whole_image=True)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("error", message=".*CUDA graphs.*")
+            fits[graphs] = EditEngine(gpu, cam, edited.cuda(), cfg=cfg).fit()
+        assert cfg.cuda_graphs == graphs
+    (e_g, t_g), (e_e, t_e) = fits[True], fits[False]
+    torch.testing.assert_close(e_g.head_bias, e_e.head_bias, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(e_g.head_weight, e_e.head_weight, atol=1e-4, rtol=1e-4)
+    assert t_g.final_loss == pytest.approx(t_e.final_loss, rel=1e-4)
