@@ -58,7 +58,7 @@ from torch import Tensor
 
 from virgi_ns.colour.field import view_directions
 from virgi_ns.edit.colour_change import fit_colour_change
-from virgi_ns.edit.pixels import PixelBatch, SparseRender, pixel_batches
+from virgi_ns.edit.pixels import PixelBatch, parse_composite, pixel_batches
 from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead, new_edit_info
 from virgi_ns.errors import InputError
@@ -82,6 +82,15 @@ class EditConfig:
     pixel_batches: int = 4
     """Split the view's pixels into this many random sets and use one per step (1: the whole
     image every step); 4 is as accurate as 1 and cheaper per step (bench/RESULTS.md, "Edit")."""
+    batch_composite: str = "csr"
+    """How a step applies its pixel set's sparse matrix ``A`` (pixels x Gaussians) to the colours, and
+    ``A^T`` to the gradient (:mod:`virgi_ns.edit.pixels`): ``csr`` (cuSPARSE, int64 indices),
+    ``csr32`` (int32 indices), ``csr4`` (int32, colours padded to 4 columns), ``csr_cm`` (int32,
+    colours column-major), ``segment`` (gather, weight, ``torch.segment_reduce`` per pixel / per
+    Gaussian), ``index_add`` (gather, weight, ``index_add_``: atomics), ``embedding_bag`` (one fused
+    gather-weight-sum kernel each way); or ``FWD/BWD``, one kind per pass (e.g.
+    ``embedding_bag/index_add``). All give the same edit up to float rounding; ``bench/edit_step.py``
+    times them."""
     seed: int = 0
     """Seeds the segmentation head's initialisation and the pixel sets."""
     unchanged_tol: float = 3.0 / 255.0
@@ -171,6 +180,7 @@ class EditConfig:
                              f"got {self.changed_target!r}")
         if not 1 <= self.map_levels <= 3:
             raise ValueError(f"EditConfig.map_levels must be 1, 2 or 3, got {self.map_levels}")
+        parse_composite(self.batch_composite)  # ValueError naming the kinds
         if self.recipe not in ("joint", "staged"):
             raise ValueError(f"EditConfig.recipe must be 'joint' or 'staged', got {self.recipe!r}")
         if self.seg_steps < 0 or self.seg_samples < 2:
@@ -380,14 +390,14 @@ class EditEngine:
             edited = torch.where(changed, edited, current)
             self.changed_fraction = float(changed.float().mean())
         flat = None if changed is None else changed.reshape(-1)
-        same = warm and self.batches and (flat is None) == (self._changed is None) and (
-            flat is None or torch.equal(flat, self._changed))
+        same = warm and self.batches and self.batches[0].composite == cfg.batch_composite and (
+            flat is None) == (self._changed is None) and (flat is None or torch.equal(flat, self._changed))
         if same:  # the same pixel sets and weights: only the targets move
             for b in self.batches:
                 b.target = edited.reshape(-1, 3) if b.pixels is None else edited.reshape(-1, 3)[b.pixels]
         else:
             self.batches = pixel_batches(self.contrib, edited.reshape(-1, 3), self.background, cfg.pixel_batches,
-                                         cfg.seed, flat, cfg.changed_share)
+                                         cfg.seed, flat, cfg.changed_share, cfg.batch_composite)
         self.recipe = cfg.recipe if changed is not None else "joint"
         staged = self.recipe == "staged"
         # the copied layer: from the colour map of the changed pixels (EditConfig.map_init), else
@@ -503,7 +513,7 @@ class EditEngine:
     def step(self, batch: PixelBatch) -> Tensor:
         self.opt.zero_grad(set_to_none=True)
         C, _ = self.colours()
-        img = SparseRender.apply(C, batch.A, batch.At) + batch.background
+        img = batch.render(C) + batch.background
         err = (img - batch.target).abs()
         loss = err.mean() if batch.weight is None else (err.mean(-1) * batch.weight).sum()
         loss.backward()

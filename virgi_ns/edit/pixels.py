@@ -4,13 +4,17 @@ Geometry is frozen, so a view's pixels are ``A C + T bg`` with ``A`` fixed
 (:mod:`virgi_ns.raster.contract`). :func:`pixel_batches` cuts the view into random pixel sets,
 each with its own rows of ``A`` as a CSR matrix and its transpose; :class:`SparseRender` applies
 ``A`` with the transpose precomputed for the backward pass, so no scatter with atomics runs.
+
+How a batch applies ``A`` (and ``A^T`` in the backward pass) is ``EditConfig.batch_composite``, one
+of :data:`COMPOSITES` (or ``"FWD/BWD"``: one kind for each pass). Every kind is built once per batch
+and then runs without a host sync and with shapes fixed, so a step can be recorded as a CUDA graph.
 """
 
 from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import torch
 from torch import Tensor
@@ -41,14 +45,147 @@ def _csr(rows: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int]) -> Te
         return torch.sparse_csr_tensor(crow, cols, vals, shape, check_invariants=False)
 
 
+COMPOSITES = {
+    "csr": "cuSPARSE CSR x dense: A and a precomputed A^T, int64 indices (the original)",
+    "csr32": "as csr with int32 indices (half the index traffic)",
+    "csr4": "as csr32 with the dense operand padded to 4 columns (16-byte rows)",
+    "csr_cm": "as csr32 with the dense operand column-major",
+    "segment": "gather x[cols] * vals, then torch.segment_reduce over each row's entries (A^T: by Gaussian)",
+    "index_add": "gather x[cols] * vals, then index_add_ by row (atomics; A^T: the same entries, by Gaussian)",
+    "embedding_bag": "torch.embedding_bag, mode sum with per-sample weights: gather, weight and sum in one kernel",
+}
+"""The kinds of :attr:`EditConfig.batch_composite` (a name, or ``"FWD/BWD"`` for one kind per pass)."""
+
+_CSR_KINDS = ("csr", "csr32", "csr4", "csr_cm")
+
+
+def parse_composite(name: str) -> tuple[str, str]:
+    """``"segment"`` -> ``("segment", "segment")``; ``"embedding_bag/index_add"`` -> the forward and the
+    backward kind. Raises ValueError for a kind not in :data:`COMPOSITES`."""
+    parts = str(name).split("/")
+    if len(parts) == 1:
+        parts = parts * 2
+    if len(parts) != 2 or any(p not in COMPOSITES for p in parts):
+        raise ValueError(f"EditConfig.batch_composite must be one of {', '.join(COMPOSITES)} (or 'FWD/BWD', "
+                         f"one of them for each pass), got {name!r}")
+    return parts[0], parts[1]
+
+
+class _Side(NamedTuple):
+    """One ordering of a sparse map's entries, out[target[j]] += vals[j] * x[gather[j]], out [n, k]."""
+
+    n: int
+    gather: Tensor  # [nnz] rows of x
+    vals: Tensor  # [nnz]
+    target: Optional[Tensor] = None  # [nnz] rows of out, sorted (segment, embedding_bag) or any (index_add)
+    offsets: Optional[Tensor] = None  # [n+1] where each row of out starts (entries sorted by target)
+    csr: Optional[Tensor] = None  # the map as a CSR matrix [n, len(x)]
+
+
+def _apply(kind: str, side: _Side, x: Tensor) -> Tensor:
+    """``out = M @ x`` for the map ``side`` by ``kind`` (no host sync, shapes fixed by ``side``)."""
+    if kind in ("csr", "csr32"):
+        return side.csr @ x
+    if kind == "csr4":
+        return (side.csr @ torch.nn.functional.pad(x, (0, 1)))[:, : x.shape[1]]
+    if kind == "csr_cm":
+        return side.csr @ x.t().contiguous().t()
+    if side.gather.numel() == 0:  # no entry: nothing to gather (segment_reduce refuses empty data on some builds)
+        return x.new_zeros(side.n, x.shape[1])
+    if kind == "embedding_bag":
+        return torch.embedding_bag(x, side.gather, side.offsets, False, 0, False, side.vals, True, None)[0]
+    terms = x.index_select(0, side.gather) * side.vals[:, None]
+    if kind == "segment":
+        return torch.segment_reduce(terms, "sum", offsets=side.offsets, unsafe=True)
+    if kind == "index_add":
+        return x.new_zeros(side.n, x.shape[1]).index_add_(0, side.target, terms)
+    raise ValueError(f"unknown composite kind {kind!r}")
+
+
+class _BatchRender(torch.autograd.Function):
+    """``A @ C`` by the operator's forward kind; the backward pass ``A^T @ grad`` by its backward kind."""
+
+    @staticmethod
+    def forward(ctx, colours: Tensor, op: "CompositeOp") -> Tensor:  # type: ignore[override]
+        ctx.op = op
+        return _apply(op.fwd, op.forward_side, colours)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):  # type: ignore[override]
+        op = ctx.op
+        return _apply(op.bwd, op.backward_side, grad.contiguous()), None
+
+
+class CompositeOp:
+    """A batch's constant ``A`` [p, U] applied by the kinds ``kind`` names (:func:`parse_composite`),
+    with every index array the two passes need built here, once: ``op(C)`` is ``A @ C`` with an
+    explicit backward. ``rows``, ``cols``, ``vals``: the entries, sorted by row (pixel)."""
+
+    def __init__(self, kind: str, rows: Tensor, cols: Tensor, vals: Tensor, p: int, U: int) -> None:
+        self.kind = kind
+        self.fwd, self.bwd = parse_composite(kind)
+        self.shape = (p, U)
+        nnz = rows.numel()
+        small = max(nnz, p, U) < 2**31 - 1
+        idx = torch.int64 if "csr" in (self.fwd, self.bwd) or not small else torch.int32
+        rows, cols = rows.to(idx), cols.to(idx)
+        crow = _offsets(rows, p, idx)
+        if self.fwd == "index_add":
+            self.forward_side = _Side(p, cols, vals, target=rows)
+        else:
+            self.forward_side = _Side(p, cols, vals, rows, crow,
+                                      _csr_of(crow, cols, vals, (p, U)) if self.fwd in _CSR_KINDS else None)
+        if self.bwd == "index_add":  # the same entries, the roles of rows and columns swapped
+            self.backward_side = _Side(U, rows, vals, target=cols)
+        else:  # the entries sorted by Gaussian (pixels ascending within one: rows are sorted already)
+            t_order = torch.argsort(cols, stable=True)
+            rows_t, cols_t, vals_t = rows[t_order], cols[t_order], vals[t_order]
+            ccol = _offsets(cols_t, U, idx)
+            self.backward_side = _Side(U, rows_t, vals_t, cols_t, ccol,
+                                       _csr_of(ccol, rows_t, vals_t, (U, p)) if self.bwd in _CSR_KINDS else None)
+
+    def __call__(self, colours: Tensor) -> Tensor:
+        return _BatchRender.apply(colours, self)
+
+
+def _offsets(sorted_rows: Tensor, n: int, dtype: torch.dtype) -> Tensor:
+    """[n+1] start of each row's entries in ``sorted_rows`` (and the end)."""
+    out = torch.zeros(n + 1, dtype=torch.long, device=sorted_rows.device)
+    out[1:] = torch.cumsum(torch.bincount(sorted_rows, minlength=n), 0)
+    return out.to(dtype)
+
+
+def _csr_of(crow: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int]) -> Tensor:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return torch.sparse_csr_tensor(crow, cols, vals, shape, check_invariants=False)
+
+
 @dataclass
 class PixelBatch:
-    A: Tensor  # [p, U] CSR
-    At: Tensor  # [U, p] CSR
+    A: Optional[Tensor]  # [p, U] CSR ("csr" composite; else None)
+    At: Optional[Tensor]  # [U, p] CSR ("csr" composite; else None)
     background: Tensor  # [p, 3] T * bg
     target: Tensor  # [p, 3]
     weight: Optional[Tensor] = None  # [p] per-pixel loss weights summing to 1 (None: the plain mean)
     pixels: Optional[Tensor] = None  # [p] the view's pixels in this batch (None: all, in order)
+    op: Optional[CompositeOp] = None  # A by another kind than "csr" (None: SparseRender with A, At)
+
+    @property
+    def composite(self) -> str:
+        return "csr" if self.op is None else self.op.kind
+
+    def render(self, colours: Tensor) -> Tensor:
+        """``A @ colours`` [p, 3] by the batch's composite kind, differentiable in ``colours``."""
+        if self.op is not None:
+            return self.op(colours)
+        return SparseRender.apply(colours, self.A, self.At)
+
+    def render_transpose(self, grad: Tensor) -> Tensor:
+        """``A^T @ grad`` [U, 3]: what :meth:`render`'s backward pass computes (for benchmarks)."""
+        if self.op is not None:
+            return _apply(self.op.bwd, self.op.backward_side, grad.contiguous())
+        return self.At @ grad.contiguous()
 
 
 def _group_weights(changed: Optional[Tensor], share: float) -> Optional[Tensor]:
@@ -63,13 +200,24 @@ def _group_weights(changed: Optional[Tensor], share: float) -> Optional[Tensor]:
     return torch.where(changed, share / n_c, (1.0 - share) / n_u).float()
 
 
+def _batch_maps(kind: str, rows: Tensor, cols: Tensor, vals: Tensor, p: int, U: int
+                ) -> tuple[Optional[Tensor], Optional[Tensor], Optional[CompositeOp]]:
+    """(A, At, None) for ``"csr"`` (entries sorted by row), else (None, None, the operator)."""
+    if kind == "csr":
+        t_order = torch.argsort(cols * max(p, 1) + rows)
+        return _csr(rows, cols, vals, (p, U)), _csr(cols[t_order], rows[t_order], vals[t_order], (U, p)), None
+    return None, None, CompositeOp(kind, rows, cols, vals, p, U)
+
+
 def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches: int, seed: int,
-                   changed: Optional[Tensor] = None, share: float = 0.5) -> list[PixelBatch]:
+                   changed: Optional[Tensor] = None, share: float = 0.5, composite: str = "csr") -> list[PixelBatch]:
     """Split the view's pixels into ``n_batches`` random, equally sized sets, each with its own
     rows of ``A`` (pixels ascending within a set) and its own ``A^T``. With ``changed`` [P] (the
     pixels an edit changed) the changed and the other pixels are each spread evenly over the sets,
-    and within every set the changed ones carry ``share`` of the loss (:func:`_group_weights`)."""
+    and within every set the changed ones carry ``share`` of the loss (:func:`_group_weights`).
+    ``composite``: how each batch applies ``A`` (:data:`COMPOSITES`, :func:`parse_composite`)."""
 
+    parse_composite(composite)
     dev, dt = target.device, target.dtype
     P = contrib.num_pixels
     U = int(contrib.pair_gaussian.shape[0])
@@ -77,10 +225,9 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
     if n_batches == 1:  # the whole image: entries are already grouped by pixel
         pix, pair = contrib.pixel.to(dev).long(), contrib.pair.to(dev).long()
         w = contrib.weight.detach().to(dev, dt)
-        t_order = torch.argsort(pair * P + pix)
         T = contrib.transmittance.detach().to(dev, dt)
-        return [PixelBatch(_csr(pix, pair, w, (P, U)), _csr(pair[t_order], pix[t_order], w[t_order], (U, P)),
-                            T[:, None] * bg[None, :], target, _group_weights(changed, share))]
+        A, At, op = _batch_maps(composite, pix, pair, w, P, U)
+        return [PixelBatch(A, At, T[:, None] * bg[None, :], target, _group_weights(changed, share), op=op)]
     # drawn on the view's device (a CPU permutation of a megapixel view costs tens of milliseconds)
     gen = torch.Generator(device=dev).manual_seed(seed)
     batch_of = torch.empty(P, dtype=torch.long, device=dev)
@@ -110,14 +257,12 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
         e0 += e_counts[b]
         rows, cols, vals = local[pix[sel]], pair[sel], w[sel]
         p_b = int(counts[b])
-        A = _csr(rows, cols, vals, (p_b, U))
-        t_order = torch.argsort(cols * max(p_b, 1) + rows)
-        At = _csr(cols[t_order], rows[t_order], vals[t_order], (U, p_b))
+        A, At, op = _batch_maps(composite, rows, cols, vals, p_b, U)
         pixels = order[int(starts[b]) : int(starts[b]) + p_b]
         out.append(PixelBatch(A, At, T[pixels, None] * bg[None, :], target[pixels],
-                               None if changed is None else _group_weights(changed[pixels], share), pixels))
+                               None if changed is None else _group_weights(changed[pixels], share), pixels, op))
     return out
 
 
 
-__all__ = ["PixelBatch", "SparseRender", "pixel_batches"]
+__all__ = ["COMPOSITES", "CompositeOp", "PixelBatch", "SparseRender", "parse_composite", "pixel_batches"]

@@ -1,0 +1,30 @@
+"""``bench/edit_step.py --cpu-smoke``: every composite kind checked against csr and timed on a tiny
+scene (CPU), a kind that fails reported in its row while the others go on."""
+
+from __future__ import annotations
+
+import json
+
+from script_module import script_module
+
+
+def test_edit_step_bench_cpu_smoke(tmp_path):
+    with script_module("bench/edit_step.py", "bench_edit_step") as mod:
+        args = mod.Args(out=tmp_path / "es", cpu_smoke=True, variants=["segment", "no_such_kind", "embedding_bag",
+                                                                        "index_add", "csr4"])
+        res = mod.main(args)
+    saved = json.loads((tmp_path / "es" / "results.json").read_text())
+    assert saved["device"] == "cpu" and saved["image"] == "40x24"
+    rows = {r["variant"]: r for r in saved["rows"]}
+    assert list(rows)[:5] == ["csr", "segment", "no_such_kind", "embedding_bag", "index_add"]
+    assert "batch_composite" in rows["no_such_kind"]["error"]
+    for kind in ("csr", "segment", "embedding_bag", "index_add", "csr4"):
+        r = rows[kind]
+        assert "error" not in r, r.get("traceback")
+        assert r["passed"] and r["fwd_rel_diff"] <= 1e-5 and r["bwd_rel_diff"] <= 1e-5, kind
+        assert r["fwd_s"] > 0 and r["bwd_s"] > 0 and r["steps_s"] > 0 and r["steps"] == 6
+        assert r["preview_max_diff_vs_csr"] < 1e-3 and r["batch_entries"] > 0
+    assert rows["csr"]["preview_max_diff_vs_csr"] == 0.0
+    best = saved["fastest"]
+    assert best["edit"] in rows and best["edit"] != "no_such_kind" and best["fwd"] in rows and best["bwd"] in rows
+    assert res["fastest"] == best

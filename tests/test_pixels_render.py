@@ -1,0 +1,191 @@
+"""Every way a pixel batch applies its sparse matrix (``EditConfig.batch_composite``) against a dense
+float64 oracle, through :func:`pixel_batches`, and in a whole edit against the original CSR (CPU)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import edit_scene as es  # noqa: E402
+
+from virgi_ns.edit.engine import EditConfig, EditEngine  # noqa: E402
+from virgi_ns.edit.pixels import COMPOSITES, CompositeOp, parse_composite, pixel_batches  # noqa: E402
+from virgi_ns.edit.recolor import RecolorRule, recolor  # noqa: E402
+from virgi_ns.edit.scene import render_view  # noqa: E402
+
+KINDS = list(COMPOSITES) + ["embedding_bag/index_add", "segment/csr32"]
+
+
+def random_entries(p: int = 200, U: int = 150, used: int = 120, max_per_row: int = 30, seed: int = 0):
+    """Entries of a random sparse [p, U] matrix sorted by row: 0..max_per_row distinct Gaussians a row
+    (some rows empty), drawn from the first ``used`` Gaussians only (the rest have no entry)."""
+    g = torch.Generator().manual_seed(seed)
+    n = torch.randint(0, max_per_row + 1, (p,), generator=g)
+    n[::7] = 0
+    rows = torch.repeat_interleave(torch.arange(p), n)
+    cols = torch.cat([torch.randperm(used, generator=g)[: int(k)] for k in n])
+    vals = torch.rand(rows.numel(), generator=g) * 0.9 + 0.05
+    return rows, cols, vals
+
+
+def dense(rows, cols, vals, p, U) -> torch.Tensor:
+    return torch.zeros(p, U, dtype=torch.float64).index_put_((rows, cols), vals.double(), accumulate=True)
+
+
+def rel_err(got: torch.Tensor, ref: torch.Tensor) -> float:
+    return float((got.detach().double() - ref).abs().max() / ref.abs().max())
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_composite_matches_dense_oracle(kind):
+    """Forward ``A @ C`` and the gradient ``A^T @ g`` equal a float64 dense product to float32 rounding."""
+    p, U = 200, 150
+    rows, cols, vals = random_entries(p, U)
+    assert (rows.bincount(minlength=p) == 0).any() and (cols.bincount(minlength=U) == 0).any()
+    A = dense(rows, cols, vals, p, U)
+    op = CompositeOp(kind, rows, cols, vals, p, U)
+    g = torch.Generator().manual_seed(1)
+    C = torch.rand(U, 3, generator=g, requires_grad=True)
+    w = torch.randn(p, 3, generator=g)
+    out = op(C)
+    assert out.shape == (p, 3) and out.dtype == torch.float32
+    assert rel_err(out, A @ C.detach().double()) < 2e-6
+    (grad,) = torch.autograd.grad((out * w).sum(), C)
+    assert grad.shape == (U, 3)
+    assert rel_err(grad, A.T @ w.double()) < 2e-6
+    unused = cols.bincount(minlength=U) == 0
+    assert bool((grad[unused] == 0).all())
+
+
+def test_composite_without_entries():
+    """A batch that meets no Gaussian renders zeros and passes a zero gradient, whatever the kind."""
+    e = torch.zeros(0, dtype=torch.long)
+    for kind in KINDS:
+        op = CompositeOp(kind, e, e, torch.zeros(0), 4, 5)
+        C = torch.rand(5, 3, requires_grad=True)
+        out = op(C)
+        assert out.shape == (4, 3) and bool((out == 0).all()), kind
+        (grad,) = torch.autograd.grad(out.sum(), C)
+        assert bool((grad == 0).all()), kind
+
+
+def test_composite_names_are_checked():
+    assert parse_composite("segment") == ("segment", "segment")
+    assert parse_composite("embedding_bag/index_add") == ("embedding_bag", "index_add")
+    for bad in ("cusparse", "segment/", "a/b/c", ""):
+        with pytest.raises(ValueError, match="batch_composite"):
+            EditConfig(batch_composite=bad)
+    cfg = EditConfig()
+    cfg.batch_composite = "nope"
+    with pytest.raises(ValueError, match="batch_composite must be one of csr"):
+        cfg.check()
+
+
+@pytest.mark.parametrize("n_batches", [1, 3])
+def test_pixel_batches_of_every_kind_agree(n_batches):
+    """:func:`pixel_batches` cuts the same pixel sets whatever the kind; each batch's render and
+    gradient equal the original CSR's."""
+    P, U = 300, 150
+    rows, cols, vals = random_entries(P, U, seed=4)
+    contrib = SimpleNamespace(num_pixels=P, pair_gaussian=torch.arange(U), pixel=rows, pair=cols, weight=vals,
+                              transmittance=torch.rand(P))
+    g = torch.Generator().manual_seed(2)
+    target, bg = torch.rand(P, 3, generator=g), torch.tensor([0.2, 0.3, 0.4])
+    changed = torch.rand(P, generator=g) < 0.2
+    ref = pixel_batches(contrib, target, bg, n_batches, 7, changed, 0.5)
+    C = torch.rand(U, 3, generator=g, requires_grad=True)
+    for kind in KINDS[1:]:
+        got = pixel_batches(contrib, target, bg, n_batches, 7, changed, 0.5, composite=kind)
+        assert len(got) == len(ref)
+        for a, b in zip(ref, got):
+            assert b.composite == kind and a.composite == "csr"
+            torch.testing.assert_close(b.target, a.target, rtol=0, atol=0)
+            torch.testing.assert_close(b.weight, a.weight, rtol=0, atol=0)
+            ra, rb = a.render(C), b.render(C)
+            torch.testing.assert_close(rb, ra, rtol=1e-5, atol=1e-6)
+            w = torch.randn(ra.shape, generator=g)
+            (ga,) = torch.autograd.grad((ra * w).sum(), C)
+            (gb,) = torch.autograd.grad((rb * w).sum(), C)
+            torch.testing.assert_close(gb, ga, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="batch_composite"):
+        pixel_batches(contrib, target, bg, n_batches, 7, composite="dense")
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    with es.one_thread():
+        S = es.build(per_object=150, fit_steps=40)
+        cam = S.cameras.index(0)
+        before = render_view(S.scene, S.cameras, 0)["rgb"]
+        edited, _ = recolor(before, RecolorRule(h0=190, h1=260, shift=135, s_min=0.3, v_min=0.1))
+        # noise keeps every pixel off its target: at a zero residual the L1 gradient's sign is float
+        # rounding, and Adam would turn the kinds' different summation orders into different steps
+        noise = torch.rand(edited.shape, generator=torch.Generator().manual_seed(0)) - 0.5
+        yield S, cam, (edited + 0.05 * noise).clamp(0.0, 1.0)
+
+
+def _fit(tiny, kind: str, **kw):
+    S, cam, edited = tiny
+    with es.one_thread():
+        eng = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=8, batch_composite=kind, whole_image=True, **kw))
+        edit, timing = eng.fit()
+        return eng, edit, timing
+
+
+@pytest.mark.parametrize("kind", KINDS[1:])
+def test_edit_with_every_kind_matches_csr(tiny, kind):
+    """A few Adam steps with each kind give the edit the original CSR gives (float rounding apart)."""
+    _, ref, t_ref = _fit(tiny, "csr")
+    eng, got, t_got = _fit(tiny, kind)
+    assert all(b.composite == kind for b in eng.batches)
+    assert t_got.final_loss == pytest.approx(t_ref.final_loss, rel=1e-4)
+    torch.testing.assert_close(got.head_weight, ref.head_weight, rtol=0, atol=1e-4)
+    torch.testing.assert_close(got.head_bias, ref.head_bias, rtol=0, atol=1e-4)
+    for (name, a), b in zip(ref.seg.state_dict().items(), got.seg.state_dict().values()):
+        torch.testing.assert_close(b, a, rtol=0, atol=1e-4, msg=name)
+    # and the fit moved the heads: the comparison is not between two untouched starts
+    assert float((ref.head_bias - tiny[0].scene.field.diffuse_head.bias.float()).abs().max()) > 1e-3
+
+
+def test_retarget_rebuilds_batches_for_another_kind(tiny):
+    """A warm retarget keeps its batches only when the kind is still the same."""
+    S, cam, edited = tiny
+    with es.one_thread():
+        eng = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=2))
+        eng.fit()
+        eng.cfg.batch_composite = "index_add"
+        eng.retarget(edited)
+        assert all(b.composite == "index_add" for b in eng.batches)
+        eng.fit()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.parametrize("kind", KINDS)
+def test_every_kind_records_as_cuda_graphs(tiny, kind):
+    """On a GPU each kind's steps record as CUDA graphs (no host sync, no fallback warning) and give
+    the eager steps' edit."""
+    import copy
+    import warnings
+
+    from virgi_ns.edit.scene import FrozenScene
+
+    S, cam, edited = tiny
+    sc = S.scene
+    gpu = FrozenScene(sc.means.cuda(), sc.quats.cuda(), sc.scales.cuda(), sc.opacities.cuda(),
+                      copy.deepcopy(sc.field).cuda(), sc.background.cuda(), backend="auto")
+    fits = {}
+    for graphs in (True, False):
+        cfg = EditConfig(steps=20, cuda_graphs=graphs, batch_composite=kind, whole_image=True)
+        with warnings.catch_warnings():
+            warnings.filterwarnings("error", message=".*CUDA graphs.*")
+            fits[graphs] = EditEngine(gpu, cam, edited.cuda(), cfg=cfg).fit()
+        assert cfg.cuda_graphs == graphs
+    (e_g, t_g), (e_e, t_e) = fits[True], fits[False]
+    torch.testing.assert_close(e_g.head_bias, e_e.head_bias, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(e_g.head_weight, e_e.head_weight, atol=1e-4, rtol=1e-4)
+    assert t_g.final_loss == pytest.approx(t_e.final_loss, rel=1e-4)
