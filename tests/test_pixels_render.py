@@ -82,7 +82,7 @@ def test_composite_names_are_checked():
             EditConfig(batch_composite=bad)
     cfg = EditConfig()
     cfg.batch_composite = "nope"
-    with pytest.raises(ValueError, match="batch_composite must be one of csr"):
+    with pytest.raises(ValueError, match="batch_composite must be 'auto' or one of csr"):
         cfg.check()
 
 
@@ -189,3 +189,13 @@ def test_every_kind_records_as_cuda_graphs(tiny, kind):
     torch.testing.assert_close(e_g.head_bias, e_e.head_bias, atol=1e-4, rtol=1e-4)
     torch.testing.assert_close(e_g.head_weight, e_e.head_weight, atol=1e-4, rtol=1e-4)
     assert t_g.final_loss == pytest.approx(t_e.final_loss, rel=1e-4)
+
+
+def test_auto_is_csr_on_a_cpu_and_the_measured_kinds_on_a_gpu():
+    from virgi_ns.edit.pixels import AUTO_GPU, resolve_composite
+
+    assert resolve_composite("auto", torch.device("cpu")) == "csr"
+    assert resolve_composite("auto", torch.device("cuda")) == AUTO_GPU
+    assert parse_composite(AUTO_GPU) == tuple(AUTO_GPU.split("/"))
+    assert resolve_composite("index_add", torch.device("cuda")) == "index_add"
+    assert EditConfig().batch_composite == "auto"

@@ -58,7 +58,7 @@ from torch import Tensor
 
 from virgi_ns.colour.field import view_directions
 from virgi_ns.edit.colour_change import fit_colour_change
-from virgi_ns.edit.pixels import PixelBatch, parse_composite, pixel_batches
+from virgi_ns.edit.pixels import PixelBatch, parse_composite, pixel_batches, resolve_composite
 from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead, new_edit_info
 from virgi_ns.errors import InputError
@@ -82,15 +82,15 @@ class EditConfig:
     pixel_batches: int = 4
     """Split the view's pixels into this many random sets and use one per step (1: the whole
     image every step); 4 is as accurate as 1 and cheaper per step (bench/RESULTS.md, "Edit")."""
-    batch_composite: str = "csr"
+    batch_composite: str = "auto"
     """How a step applies its pixel set's sparse matrix ``A`` (pixels x Gaussians) to the colours, and
     ``A^T`` to the gradient (:mod:`virgi_ns.edit.pixels`): ``csr`` (cuSPARSE, int64 indices),
     ``csr32`` (int32 indices), ``csr4`` (int32, colours padded to 4 columns), ``csr_cm`` (int32,
     colours column-major), ``segment`` (gather, weight, ``torch.segment_reduce`` per pixel / per
     Gaussian), ``index_add`` (gather, weight, ``index_add_``: atomics), ``embedding_bag`` (one fused
     gather-weight-sum kernel each way); or ``FWD/BWD``, one kind per pass (e.g.
-    ``embedding_bag/index_add``). All give the same edit up to float rounding; ``bench/edit_step.py``
-    times them."""
+    ``embedding_bag/index_add``); ``auto`` (the default): the fastest on a GPU by ``bench/edit_step.py``,
+    ``csr`` on a CPU. All give the same edit up to float rounding."""
     seed: int = 0
     """Seeds the segmentation head's initialisation and the pixel sets."""
     unchanged_tol: float = 3.0 / 255.0
@@ -390,7 +390,8 @@ class EditEngine:
             edited = torch.where(changed, edited, current)
             self.changed_fraction = float(changed.float().mean())
         flat = None if changed is None else changed.reshape(-1)
-        same = warm and self.batches and self.batches[0].composite == cfg.batch_composite and (
+        kind = resolve_composite(cfg.batch_composite, edited.device)
+        same = warm and self.batches and self.batches[0].composite == kind and (
             flat is None) == (self._changed is None) and (flat is None or torch.equal(flat, self._changed))
         if same:  # the same pixel sets and weights: only the targets move
             for b in self.batches:

@@ -59,14 +59,28 @@ COMPOSITES = {
 _CSR_KINDS = ("csr", "csr32", "csr4", "csr_cm")
 
 
+AUTO_GPU = "segment/csr32"
+"""What ``"auto"`` picks on a GPU: the fastest kinds that gave csr's edit in ``bench/edit_step.py``
+(bench/RESULTS.md, "Edit"); on a CPU ``"auto"`` is ``"csr"``."""
+
+
+def resolve_composite(name: str, device: torch.device) -> str:
+    """``name`` with ``"auto"`` replaced by the kinds for ``device``."""
+    if name != "auto":
+        return name
+    return AUTO_GPU if torch.device(device).type == "cuda" else "csr"
+
+
 def parse_composite(name: str) -> tuple[str, str]:
     """``"segment"`` -> ``("segment", "segment")``; ``"embedding_bag/index_add"`` -> the forward and the
     backward kind. Raises ValueError for a kind not in :data:`COMPOSITES`."""
+    if name == "auto":
+        return parse_composite(AUTO_GPU)
     parts = str(name).split("/")
     if len(parts) == 1:
         parts = parts * 2
     if len(parts) != 2 or any(p not in COMPOSITES for p in parts):
-        raise ValueError(f"EditConfig.batch_composite must be one of {', '.join(COMPOSITES)} (or 'FWD/BWD', "
+        raise ValueError(f"EditConfig.batch_composite must be 'auto' or one of {', '.join(COMPOSITES)} (or 'FWD/BWD', "
                          f"one of them for each pass), got {name!r}")
     return parts[0], parts[1]
 
@@ -217,6 +231,7 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
     and within every set the changed ones carry ``share`` of the loss (:func:`_group_weights`).
     ``composite``: how each batch applies ``A`` (:data:`COMPOSITES`, :func:`parse_composite`)."""
 
+    composite = resolve_composite(composite, target.device)
     parse_composite(composite)
     dev, dt = target.device, target.dtype
     P = contrib.num_pixels
@@ -265,4 +280,4 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
 
 
 
-__all__ = ["COMPOSITES", "CompositeOp", "PixelBatch", "SparseRender", "parse_composite", "pixel_batches"]
+__all__ = ["AUTO_GPU", "COMPOSITES", "CompositeOp", "PixelBatch", "SparseRender", "parse_composite", "pixel_batches", "resolve_composite"]
