@@ -286,33 +286,52 @@ def bench_cli(scene, cfg_path: Path, data: Path, out: Path) -> dict:
     if run_info == "bench":
         write_run_info(run_info_of(dm, pipeline.model), ckpt_dir, cfg_path)
     del pipeline, dm
-    env = dict(os.environ)
     py = [sys.executable, "-m"]
     cfg = str(cfg_path)
-    walls: Dict[str, float] = {}
     slow: List[str] = []  # commands that loaded the run through nerfstudio (their note on stderr)
 
-    def wall(name: str, cmd: List[str]) -> str:
-        walls[name], line, err = _wall(py + cmd, env)
-        if "through nerfstudio" in err:
-            slow.append(name)
-        return line
+    def walls_in(env: dict) -> tuple[Dict[str, float], tuple[float, float]]:
+        walls: Dict[str, float] = {}
 
-    wall("list", ["virgi_ns.cli.edit", "list", "--load-config", cfg])
-    line = wall("apply", ["virgi_ns.cli.edit", "apply", "--load-config", cfg, "--image", str(image),
-                          "--image-name", names[view]])
-    m = re.search(r"setup ([0-9.]+) s \+ steps ([0-9.]+) s", line)
-    edit_setup, edit_steps = (float(m.group(1)), float(m.group(2))) if m else (float("nan"), float("nan"))
-    wall("export", ["virgi_ns.cli.export", "--load-config", cfg, "--out", str(out / "cli.ply")])
-    wall("render", ["virgi_ns.cli.render", str(out / "cli.ply"), "--camera", str(out / "cli_camera.json"), "--out",
-                    str(out / "cli_render.png")])
-    wall("undo", ["virgi_ns.cli.edit", "undo", "--load-config", cfg])
-    for name, code in (("python_torch_import", "import torch"),
-                       ("python_torch_nerfstudio_import", "import torch, nerfstudio.pipelines.base_pipeline")):
-        t = time.perf_counter()
-        subprocess.run([sys.executable, "-c", code], check=True)
-        walls[name] = time.perf_counter() - t
+        def wall(name: str, cmd: List[str]) -> str:
+            walls[name], line, err = _wall(py + cmd, env)
+            if "through nerfstudio" in err and name not in slow:
+                slow.append(name)
+            return line
+
+        wall("list", ["virgi_ns.cli.edit", "list", "--load-config", cfg])
+        line = wall("apply", ["virgi_ns.cli.edit", "apply", "--load-config", cfg, "--image", str(image),
+                              "--image-name", names[view]])
+        m = re.search(r"setup ([0-9.]+) s \+ steps ([0-9.]+) s", line)
+        edit = (float(m.group(1)), float(m.group(2))) if m else (float("nan"), float("nan"))
+        wall("export", ["virgi_ns.cli.export", "--load-config", cfg, "--out", str(out / "cli.ply")])
+        wall("render", ["virgi_ns.cli.render", str(out / "cli.ply"), "--camera", str(out / "cli_camera.json"),
+                        "--out", str(out / "cli_render.png")])
+        wall("undo", ["virgi_ns.cli.edit", "undo", "--load-config", cfg])
+        for name, code in (("python_torch_import", "import torch"),
+                           ("python_torch_nerfstudio_import", "import torch, nerfstudio.pipelines.base_pipeline")):
+            t = time.perf_counter()
+            subprocess.run([sys.executable, "-c", code], check=True, env=env)
+            walls[name] = time.perf_counter() - t
+        return walls, edit
+
+    # as this machine is, and with a bytecode cache: an interpreter that cannot write its packages'
+    # __pycache__ (a read-only or --no-compile install) compiles every module it imports in every
+    # process; pip's usual install keeps compiled bytecode, which PYTHONPYCACHEPREFIX stands in for
+    # here (one unmeasured pass fills it)
+    env = dict(os.environ)
+    walls, (edit_setup, edit_steps) = walls_in(env)
+    cached_env = {k: v for k, v in env.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    cached_env["PYTHONPYCACHEPREFIX"] = str(out / "pycache")
+    walls_in(cached_env)
+    cached, (cached_setup, cached_steps) = walls_in(cached_env)
+    probe = subprocess.run([sys.executable, "-c", "import sys, os, torch; print(int(sys.flags.dont_write_bytecode), "
+                            "int(os.access(os.path.join(os.path.dirname(torch.__file__), '__pycache__'), os.W_OK)))"],
+                           capture_output=True, text=True, env=env).stdout.split()
     return {"scene": scene.name, "walls_s": walls, "edit_setup_s": edit_setup, "edit_steps_s": edit_steps,
+            "walls_with_bytecode_cache_s": cached, "edit_setup_with_bytecode_cache_s": cached_setup,
+            "edit_steps_with_bytecode_cache_s": cached_steps,
+            "python_writes_bytecode": probe[:1] == ["0"], "torch_pycache_writable": probe[1:2] == ["1"],
             "run_info_written_by": run_info, "loaded_through_nerfstudio": slow}
 
 
@@ -348,11 +367,18 @@ def print_tables(rows: List[dict], cli: Optional[dict], device: str) -> None:
                                               f"{r['sweep'][i]['psnr_vs_full']:.1f} dB" for r in rows))
     console.print(s)
     if cli is not None:
-        c = Table(title=f"CLIs in a fresh process, wall seconds ({cli['scene']})")
+        c = Table(title=f"CLIs in a fresh process, wall seconds ({cli['scene']}; python writes bytecode: "
+                        f"{cli.get('python_writes_bytecode')}, torch's __pycache__ writable: "
+                        f"{cli.get('torch_pycache_writable')})")
+        c.add_column("environment")
         for k in cli["walls_s"]:
             c.add_column(k)
         c.add_column("edit setup + steps")
-        c.add_row(*(f"{v:.2f}" for v in cli["walls_s"].values()), f"{cli['edit_setup_s']:.2f} + {cli['edit_steps_s']:.2f}")
+        c.add_row("as is", *(f"{v:.2f}" for v in cli["walls_s"].values()),
+                  f"{cli['edit_setup_s']:.2f} + {cli['edit_steps_s']:.2f}")
+        if "walls_with_bytecode_cache_s" in cli:
+            c.add_row("bytecode cache", *(f"{v:.2f}" for v in cli["walls_with_bytecode_cache_s"].values()),
+                      f"{cli['edit_setup_with_bytecode_cache_s']:.2f} + {cli['edit_steps_with_bytecode_cache_s']:.2f}")
         console.print(c)
 
 
