@@ -136,6 +136,15 @@ STAGES = ("camera", "keys", "colours", "colours_eager", "splat", "raster", "fram
 """The stage split of a frame (see :func:`stage_ms`)."""
 
 
+def frame_keys(model, gated: bool) -> None:
+    """The render cache's validity checks of one frame (as :meth:`view_colours` and the gsplat pass make
+    them), no colour work."""
+    params = tuple(model.field.parameters())
+    if gated and model.field.decoupled and model._gate_current(params):
+        model.render_cache.edits(model, model.render_cache.gate(model, params))
+    model.render_cache.geometry(model)
+
+
 def stage_ms(model, cams, gated: bool, repeats: int) -> Dict[str, float]:
     """Milliseconds per frame of each stage of a whole-view render, mean over ``cams``, each timed alone
     with a sync around it:
@@ -159,12 +168,6 @@ def stage_ms(model, cams, gated: bool, repeats: int) -> Dict[str, float]:
             cols = model.view_colours(view, gated, transient=True)
         row = model.render_cache.background_row(model.render_cache.background(model.background_color, model.device))
 
-        def keys():
-            params = tuple(model.field.parameters())
-            if gated and model.field.decoupled and model._gate_current(params):
-                model.render_cache.edits(model, model.render_cache.gate(model, params))
-            model.render_cache.geometry(model)
-
         def eager():
             cfg.render_cache_graphs = False
             try:
@@ -177,7 +180,7 @@ def stage_ms(model, cams, gated: bool, repeats: int) -> Dict[str, float]:
             return out["rgb"], out["depth"]
 
         split["camera"].append(_ms(lambda: model.view_of(c), repeats))
-        split["keys"].append(_ms(keys, repeats))
+        split["keys"].append(_ms(lambda: frame_keys(model, gated), repeats))
         split["colours"].append(_ms(lambda: model.view_colours(view, gated, transient=True), repeats))
         split["colours_eager"].append(_ms(eager, repeats))
         split["splat"].append(_ms(lambda: model._splat(view, cols.rgb.float(), row, "RGB+ED"), repeats)
