@@ -139,9 +139,8 @@ STAGES = ("camera", "keys", "colours", "colours_eager", "splat", "raster", "fram
 def frame_keys(model, gated: bool) -> None:
     """The render cache's validity checks of one frame (as :meth:`view_colours` and the gsplat pass make
     them), no colour work."""
-    params = tuple(model.field.parameters())
-    if gated and model.field.decoupled and model._gate_current(params):
-        model.render_cache.edits(model, model.render_cache.gate(model, params))
+    if gated and model.field.decoupled:
+        model.render_cache.levels(model)
     model.render_cache.geometry(model)
 
 

@@ -122,11 +122,10 @@ class RenderPath:
         cache; otherwise the full colour model over every Gaussian. ``transient``: ``rgb`` may be a
         buffer that the next view's colours overwrite (a CUDA graph's output), for a caller that
         composites it first."""
-        params = tuple(self.field.parameters()) if gated and self.field.decoupled else ()
-        if params and self._gate_current(params):
-            cache = self.render_cache
-            gate = cache.gate(self, params)
-            edits = cache.edits(self, gate)
+        cache = self.render_cache
+        levels = cache.levels(self) if gated and self.field.decoupled else None
+        if levels is not None:
+            gate, edits = levels
             rgb = cache.colours(gate, edits, view.centre, getattr(self.config, "render_cache_graphs", True), transient)
             seg = (lambda: self._cached_segmentation(edits)) if self._with_segmentation() else None
             return ViewColours(rgb, None if edits.matte else edits.diffuse, seg)
@@ -191,19 +190,24 @@ class RenderPath:
         return edits.segmentation[index]
 
     # ----------------------------------------------------------- specular gate
-    def _field_versions(self, params=None) -> tuple:
-        """The in-place version counter of every field parameter (optimizer steps and loads bump them)."""
-        return tuple(p._version for p in (params if params is not None else self.field.parameters()))
+    def _field_stamp(self) -> tuple:
+        """The field's parameters' identities and in-place version counters (optimizer steps and loads
+        bump them; a parameter set anew is another tensor), in ``parameters()``'s order."""
+        params = tuple(self.field.parameters())
+        return tuple(map(id, params)), tuple(p._version for p in params)
 
     def gate_ready(self) -> bool:
         """A gate is built for these Gaussians and the field has not changed since."""
         return self._gate_current(None)
 
-    def _gate_current(self, params) -> bool:
-        stamp = getattr(self, "_gate_stamp", None)
-        n = self.num_points
-        return (self.spec_magnitude.numel() == n and self.diffuse_cache.shape[0] == n
-                and (stamp is None or stamp == self._field_versions(params)))
+    def _gate_current(self, field_stamp: Optional[tuple], n: Optional[int] = None) -> bool:
+        """Whether the gate was measured for these Gaussians and this field (``field_stamp``: the field's
+        :meth:`_field_stamp` now, or None to take it; ``n``: the number of Gaussians, or None)."""
+        built = getattr(self, "_gate_stamp", None)
+        n = self.num_points if n is None else n
+        if self.spec_magnitude.numel() != n or self.diffuse_cache.shape[0] != n:
+            return False
+        return built is None or built == (field_stamp if field_stamp is not None else self._field_stamp())
 
     def drop_specular_gate(self) -> None:
         """Forget the gate, the cached diffuse colours and the render cache (the field changes;
@@ -243,7 +247,7 @@ class RenderPath:
             mag.fill_(float("inf"))
         self.spec_magnitude = mag
         self.diffuse_cache = cache
-        self._gate_stamp = self._field_versions()
+        self._gate_stamp = self._field_stamp()
         self.render_cache.clear()  # its colours were computed from the previous field
         kept = float(self.spec_gate.float().mean()) if self.num_points else 0.0
         CONSOLE.log(f"virgi: specular gate keeps {kept:.1%} of {self.num_points:,} Gaussians")
