@@ -950,3 +950,38 @@ def test_a_matte_frame_runs_no_tensor_operation(spec_model):
         assert count.ops
     finally:
         model.config.gate_threshold = median
+
+
+def test_per_frame_methods_run_without_gradients_inside_and_outside_no_grad(spec_model):
+    """The per-frame methods enter ``no_grad`` only where gradients are on (a cheaper decorator); either
+    way their outputs carry no autograd graph, and the caller's grad mode is left as it was."""
+    _, model, cams = spec_model
+    cam = cams[0:1]
+    with torch.enable_grad():
+        view = model.view_of(cam)
+        assert not model.view_colours(view, gated=False).rgb.requires_grad
+        assert not model.render_camera(cam, gated=True)["rgb"].requires_grad
+        assert not model.get_outputs_for_camera(cam)["rgb"].requires_grad
+        assert torch.is_grad_enabled()
+    with torch.no_grad():
+        assert not model.get_outputs_for_camera(cam)["rgb"].requires_grad
+        assert not torch.is_grad_enabled()
+
+
+@pytest.mark.gpu
+def test_a_camera_on_the_cpu_is_rendered_without_moving_it(spec_model, monkeypatch):
+    """With frozen geometry, a camera on the CPU is read where it lies (no copy to the GPU and back): the
+    frame equals the frame of the same camera on the GPU."""
+    from nerfstudio.cameras.cameras import Cameras as NSCameras
+
+    pipeline, model, cams = spec_model
+    pipeline.to("cuda")
+    try:
+        cam = cams[0:1]
+        want = model.get_outputs_for_camera(cam.to("cuda"))["rgb"].clone()
+        monkeypatch.setattr(NSCameras, "to", lambda self, device: pytest.fail("the camera was moved"))
+        got = model.get_outputs_for_camera(cam)["rgb"]
+        assert got.is_cuda and torch.equal(got, want)
+    finally:
+        monkeypatch.undo()
+        pipeline.to("cpu")

@@ -16,6 +16,7 @@ the rest, and nothing per frame for a matte scene.
 
 from __future__ import annotations
 
+import functools
 from typing import Dict, List, Optional, Tuple
 
 import torch
@@ -37,6 +38,21 @@ from virgi_ns.nerfstudio.render_cache import (
 from virgi_ns.raster import Cameras, Contributions, Request, composite, expected_depth
 
 OUTPUTS = ("rgb", "diffuse", "specular", "depth", "accumulation", "segmentation", "background")
+
+
+def _no_grad(fn):
+    """``torch.no_grad()`` as a decorator of a method called per frame, entered only where gradients are on:
+    a frame's calls nest (the viewer's own ``no_grad``, then four of ours), and each ``no_grad`` entered
+    costs its context object's set-up in Python."""
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        if not torch.is_grad_enabled():
+            return fn(*args, **kwargs)
+        with torch.no_grad():
+            return fn(*args, **kwargs)
+
+    return call
 
 
 class RenderPath:
@@ -116,7 +132,7 @@ class RenderPath:
         """The first camera of ``camera`` as a :class:`~virgi_ns.nerfstudio.render_cache.View`."""
         return view_of(camera, self.device, self.means.dtype)
 
-    @torch.no_grad()
+    @_no_grad
     def view_colours(self, view: View, gated: bool = False, transient: bool = False) -> ViewColours:
         """One colour per Gaussian for ``view``. ``gated`` (and a current gate): from the render
         cache; otherwise the full colour model over every Gaussian. ``transient``: ``rgb`` may be a
@@ -254,7 +270,7 @@ class RenderPath:
         return {"kept_fraction": kept}
 
     # ------------------------------------------------------------------ renders
-    @torch.no_grad()
+    @_no_grad
     def render_camera(self, camera: NSCameras, gated: bool = False, max_pixels: int = 1 << 20):
         """Whole-image ``rgb``, ``diffuse``, ``specular`` (rgb - diffuse, no background), ``depth``,
         ``accumulation`` and ``segmentation`` (zeros without edits) for the first camera of
@@ -310,7 +326,7 @@ class RenderPath:
         """Whole views on a GPU go through gsplat's forward rasterizer (``whole_view_renderer``)."""
         return self.config.whole_view_renderer == "gsplat" and self.device.type == "cuda"
 
-    @torch.no_grad()
+    @_no_grad
     def _splat(self, view: View, colours: Tensor, backgrounds: Tensor, mode: str,
                projection: Optional[Projection] = None) -> Tuple[Tensor, Tensor, Projection]:
         """gsplat's forward rasterization of the frozen Gaussians with one colour per Gaussian
@@ -371,13 +387,18 @@ class RenderPath:
             ready["diffuse"] = rgb
         return ViewOutputs(OUTPUTS, ready, lazy)
 
-    @torch.no_grad()
+    @_no_grad
     def get_outputs_for_camera(self, camera: NSCameras, obb_box=None):
         if obb_box is not None and self.geometry_frozen and not getattr(self, "_crop_notice", False):
             self._crop_notice = True
             CONSOLE.log("virgi: crop boxes are ignored when rendering the colour field")
-        self.set_crop(None if self.geometry_frozen else obb_box)
-        if camera.camera_to_worlds.device != self.device:
+        crop = None if self.geometry_frozen else obb_box
+        if crop is not None or self.crop_box is not None:
+            self.set_crop(crop)
+        # frozen geometry renders a camera wherever its numbers lie (view_of reads them there: a camera on
+        # the CPU is read without a device sync and not copied to the device and back); splatfacto's
+        # geometry stage needs it on the device
+        if not self.geometry_frozen and camera.camera_to_worlds.device != self.device:
             camera = camera.to(self.device)
         return self.get_outputs(camera)  # type: ignore[return-value]
 
