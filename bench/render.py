@@ -193,11 +193,13 @@ def stage_ms(model, cams, gated: bool, repeats: int) -> Dict[str, float]:
     """Milliseconds per frame of each stage of a whole-view render, mean over ``cams``, each timed alone
     with a sync around it:
 
-    - camera: nerfstudio's camera to gsplat's (``view_of``);
-    - keys: the render cache's validity checks of a frame (field parameters, gate, edit and geometry
-      levels), no colour work;
+    - camera: nerfstudio's camera to gsplat's (``view_of``; on a GPU one gather, one copy to the host
+      and its sync, one copy back);
+    - keys: the render cache's validity checks of a frame (:func:`frame_keys`: the field's
+      :class:`~virgi_ns.nerfstudio.render_cache.ModuleWatch`, the gate, edit and geometry levels), no
+      colour work; ``colours`` and ``raster`` include them;
     - colours: the colours per Gaussian as the frame takes them (a CUDA graph's replay on a GPU once
-      the cache state has been seen; nothing for a matte view);
+      the cache state has been seen; for a matte view the checks alone: no tensor operation);
     - colours_eager: the same with ``render_cache_graphs`` off (the kernels launched one by one);
     - splat: the main gsplat pass alone (projection, tile sort, composite of colour + depth);
     - raster: ``render_view`` with reading rgb and depth (the splat and the outputs around it);

@@ -158,8 +158,8 @@ def view_of(camera, device: torch.device, dtype: torch.dtype) -> View:
         packed = torch.tensor(vals, dtype=torch.float32, pin_memory=True).to(device, non_blocking=True)
     else:
         packed = torch.tensor(vals, dtype=torch.float32, device=device)
-    centre = packed[25:28].view(1, 3)
-    return View(packed[:16].view(1, 4, 4), packed[16:25].view(1, 3, 3),
+    centre = packed.as_strided((1, 3), (3, 1), 25)  # (one call per view where slicing and viewing take two)
+    return View(packed.as_strided((1, 4, 4), (16, 4, 1), 0), packed.as_strided((1, 3, 3), (9, 3, 1), 16),
                 centre if dtype == torch.float32 else centre.to(dtype), int(round(w)), int(round(hh)))
 
 
