@@ -4,13 +4,20 @@ take in a fresh process.
 For each real capture of the evaluation set (trained as ``bench/edit.py`` trains it; a run under
 ``--train-out`` is reused), at the held-out views' own resolution:
 
-  splat SH3 / SH0   gsplat's rasterization of the same Gaussians as splatfacto calls it (RGB+ED):
-                    with degree-3 SH (splatfacto's render cost) and with one colour per Gaussian
-                    (a plain SH-0 splat, the cost of a matte scene)
+  splatfacto SH3 / SH0  nerfstudio's own ``SplatfactoModel`` on the same Gaussians (the run's geometry SH),
+                    a viewer frame of it (``get_outputs_for_camera`` on the same camera, reading rgb and
+                    depth): what splatfacto's viewer pays per frame, its camera conversion and size reads,
+                    Python and background handling included (:func:`splatfacto_model`)
+  gsplat SH3 / SH0  gsplat's ``rasterization`` alone as splatfacto calls it (RGB+ED), the camera converted
+                    outside the timed region: with degree-3 SH (splatfacto's render cost) and with one
+                    colour per Gaussian (a plain SH-0 splat, the cost of a matte scene); a stricter bar
   virgi full        the model's render without the gate (MLP_spec for every visible Gaussian)
   virgi gated       the model's render (what the viewer shows) at each ``--thresholds`` value:
                     kept share, FPS, and PSNR of the gated render against the full one
   matte             the gate keeping no Gaussian (a scene the gate calls matte), against SH0
+
+The JSON's ``ratios`` hold virgi's FPS over each baseline's: gated against splatfacto SH3 and gsplat SH3,
+matte against splatfacto SH0 and gsplat SH0.
 
 Rules chosen before measuring, with their reasons: FPS is the median over ``--repeats`` renders of
 every held-out view after one warm-up render each (a viewer re-renders the same views); the
@@ -121,6 +128,44 @@ def splat_fps(model, cam, sh_degree: Optional[int], repeats: int) -> float:
     return _fps(once, repeats)
 
 
+def splatfacto_model(model, sh_degree: int = 3):
+    """nerfstudio's own ``SplatfactoModel`` on the model's Gaussians, in eval mode on its device, for the
+    baseline of what a viewer frame of splatfacto costs (:func:`splatfacto_frame`). It shares the
+    model's Gaussian tensors (no copy); its colours are the run's own geometry SH (``features_dc`` /
+    ``features_rest``, the splat the colour stage started from; zero-padded or cut to ``sh_degree``: a
+    frame's cost does not depend on their values), at full degree from the first frame. Built
+    offline: splatfacto constructs torchmetrics' LPIPS, which downloads AlexNet's weights where they
+    are not cached (:func:`~virgi_ns.metrics.offline_splatfacto_lpips` puts a stand-in there)."""
+    from nerfstudio.models.splatfacto import SplatfactoModel, SplatfactoModelConfig
+
+    from virgi_ns.metrics import offline_splatfacto_lpips
+
+    offline_splatfacto_lpips()
+    cfg = SplatfactoModelConfig(sh_degree=sh_degree, background_color=model.config.background_color,
+                                rasterize_mode="classic", random_init=True, num_random=64)
+    sf = SplatfactoModel(config=cfg, scene_box=model.scene_box, num_train_data=1)
+    n, rest = model.num_points, (sh_degree + 1) ** 2 - 1
+    have = model.features_rest.detach()
+    features_rest = have.new_zeros(n, rest, 3)
+    features_rest[:, : min(rest, have.shape[1])] = have[:, :rest]
+    tensors = {"means": model.means, "scales": model.scales, "quats": model.quats, "opacities": model.opacities,
+               "features_dc": model.features_dc, "features_rest": features_rest}
+    sf.gauss_params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.detach(), requires_grad=False)
+                                              for k, v in tensors.items()})
+    sf.to(model.device).eval()
+    if sh_degree > 0:
+        sf.step = sh_degree * cfg.sh_degree_interval  # every SH band on, as after training
+    sf.background_color = model.background_color.to(model.device)
+    return sf
+
+
+def splatfacto_frame(sf, cam):
+    """One viewer frame of nerfstudio's splatfacto: ``get_outputs_for_camera`` (its camera conversion,
+    size reads, rasterization, background and depth handling), reading rgb and depth."""
+    out = sf.get_outputs_for_camera(cam)
+    return out["rgb"], out["depth"]
+
+
 def viewer_frame(model, cam):
     """One frame as nerfstudio's viewer renders it by default: the outputs, of which it reads rgb
     and depth."""
@@ -136,15 +181,25 @@ STAGES = ("camera", "keys", "colours", "colours_eager", "splat", "raster", "fram
 """The stage split of a frame (see :func:`stage_ms`)."""
 
 
+def frame_keys(model, gated: bool) -> None:
+    """The render cache's validity checks of one frame (as :meth:`view_colours` and the gsplat pass make
+    them), no colour work."""
+    if gated and model.field.decoupled:
+        model.render_cache.levels(model)
+    model.render_cache.geometry(model)
+
+
 def stage_ms(model, cams, gated: bool, repeats: int) -> Dict[str, float]:
     """Milliseconds per frame of each stage of a whole-view render, mean over ``cams``, each timed alone
     with a sync around it:
 
-    - camera: nerfstudio's camera to gsplat's (``view_of``);
-    - keys: the render cache's validity checks of a frame (field parameters, gate, edit and geometry
-      levels), no colour work;
+    - camera: nerfstudio's camera to gsplat's (``view_of``; on a GPU one gather, one copy to the host
+      and its sync, one copy back);
+    - keys: the render cache's validity checks of a frame (:func:`frame_keys`: the field's
+      :class:`~virgi_ns.nerfstudio.render_cache.ModuleWatch`, the gate, edit and geometry levels), no
+      colour work; ``colours`` and ``raster`` include them;
     - colours: the colours per Gaussian as the frame takes them (a CUDA graph's replay on a GPU once
-      the cache state has been seen; nothing for a matte view);
+      the cache state has been seen; for a matte view the checks alone: no tensor operation);
     - colours_eager: the same with ``render_cache_graphs`` off (the kernels launched one by one);
     - splat: the main gsplat pass alone (projection, tile sort, composite of colour + depth);
     - raster: ``render_view`` with reading rgb and depth (the splat and the outputs around it);
@@ -159,12 +214,6 @@ def stage_ms(model, cams, gated: bool, repeats: int) -> Dict[str, float]:
             cols = model.view_colours(view, gated, transient=True)
         row = model.render_cache.background_row(model.render_cache.background(model.background_color, model.device))
 
-        def keys():
-            params = tuple(model.field.parameters())
-            if gated and model.field.decoupled and model._gate_current(params):
-                model.render_cache.edits(model, model.render_cache.gate(model, params))
-            model.render_cache.geometry(model)
-
         def eager():
             cfg.render_cache_graphs = False
             try:
@@ -177,7 +226,7 @@ def stage_ms(model, cams, gated: bool, repeats: int) -> Dict[str, float]:
             return out["rgb"], out["depth"]
 
         split["camera"].append(_ms(lambda: model.view_of(c), repeats))
-        split["keys"].append(_ms(keys, repeats))
+        split["keys"].append(_ms(lambda: frame_keys(model, gated), repeats))
         split["colours"].append(_ms(lambda: model.view_colours(view, gated, transient=True), repeats))
         split["colours_eager"].append(_ms(eager, repeats))
         split["splat"].append(_ms(lambda: model._splat(view, cols.rgb.float(), row, "RGB+ED"), repeats)
@@ -208,6 +257,10 @@ def bench_scene(args: Args, scene, cfg_path: Path) -> dict:
     on_gpu = model.device.type == "cuda"  # gsplat has no CPU path: the splat columns stay empty on a CPU
     row["splat_sh3_fps"] = statistics.mean(splat_fps(model, c, 3, args.repeats) for c in cams) if on_gpu else math.nan
     row["splat_sh0_fps"] = statistics.mean(splat_fps(model, c, None, args.repeats) for c in cams) if on_gpu else math.nan
+    for degree in (3, 0):  # splatfacto's own model on the same Gaussians (its get_outputs needs CUDA)
+        sf = splatfacto_model(model, degree)
+        row[f"splatfacto_sh{degree}_fps"] = mean_fps(lambda c: splatfacto_frame(sf, c)) if on_gpu else math.nan
+        del sf
     fulls = [model.render_camera(c, gated=False)["rgb"] for c in cams]
 
     def full_frame(c):
@@ -236,9 +289,23 @@ def bench_scene(args: Args, scene, cfg_path: Path) -> dict:
     at = next(s for s in sweep if s["threshold"] == default) if default in args.thresholds else None
     if at is not None:
         row.update(gated_fps=at["fps"], kept=at["kept"], psnr_gated_vs_full=at["psnr_vs_full"])
+    row["ratios"] = ratios(row)
     del pipeline, model
     torch.cuda.empty_cache()
     return row
+
+
+def ratios(row: dict) -> Dict[str, float]:
+    """virgi's FPS over each baseline's: the gated frame against splatfacto's model (SH3) and raw gsplat SH3,
+    the matte frame against splatfacto's model with SH0 and raw gsplat SH0 (NaN where one is missing)."""
+    def over(a, b):
+        return a / b if a is not None and b and not math.isnan(b) else math.nan
+
+    gated, matte = row.get("gated_fps"), row["matte"]["fps"]
+    return {"gated_x_splatfacto_sh3": over(gated, row.get("splatfacto_sh3_fps")),
+            "gated_x_gsplat_sh3": over(gated, row.get("splat_sh3_fps")),
+            "matte_x_splatfacto_sh0": over(matte, row.get("splatfacto_sh0_fps")),
+            "matte_x_gsplat_sh0": over(matte, row.get("splat_sh0_fps"))}
 
 
 # ---------------------------------------------------------------------------- CLIs
@@ -338,15 +405,20 @@ def bench_cli(scene, cfg_path: Path, data: Path, out: Path) -> dict:
 # --------------------------------------------------------------------------- report
 def print_tables(rows: List[dict], cli: Optional[dict], device: str) -> None:
     t = Table(title=f"render at the held-out views' size ({device})")
-    for c in ("scene", "Gaussians", "size", "splat SH3 FPS", "splat SH0 FPS", "virgi full FPS", "virgi gated FPS",
-              "x vs SH3", "kept", "gated vs full dB", "matte FPS", "matte x vs SH0", "cache MiB"):
+    for c in ("scene", "Gaussians", "size", "splatfacto SH3 FPS", "gsplat SH3 FPS", "splatfacto SH0 FPS",
+              "gsplat SH0 FPS", "virgi full FPS", "virgi gated FPS", "x vs splatfacto SH3", "x vs gsplat SH3", "kept",
+              "gated vs full dB", "matte FPS", "matte x vs splatfacto SH0", "matte x vs gsplat SH0", "cache MiB"):
         t.add_column(c)
+    nan = float("nan")
     for r in rows:
-        t.add_row(r["scene"], f"{r['gaussians']:,}", "x".join(map(str, r["size"])), f"{r['splat_sh3_fps']:.0f}",
-                  f"{r['splat_sh0_fps']:.0f}", f"{r['full_fps']:.0f}", f"{r.get('gated_fps', float('nan')):.0f}",
-                  f"{r.get('gated_fps', float('nan')) / r['splat_sh3_fps']:.2f}", f"{r.get('kept', float('nan')):.1%}",
-                  f"{r.get('psnr_gated_vs_full', float('nan')):.1f}", f"{r['matte']['fps']:.0f}",
-                  f"{r['matte']['fps'] / r['splat_sh0_fps']:.2f}", f"{sum(r.get('cache_mib', {}).values()):.1f}")
+        x = r.get("ratios") or ratios(r)
+        t.add_row(r["scene"], f"{r['gaussians']:,}", "x".join(map(str, r["size"])),
+                  f"{r.get('splatfacto_sh3_fps', nan):.0f}", f"{r['splat_sh3_fps']:.0f}",
+                  f"{r.get('splatfacto_sh0_fps', nan):.0f}", f"{r['splat_sh0_fps']:.0f}", f"{r['full_fps']:.0f}",
+                  f"{r.get('gated_fps', nan):.0f}", f"{x['gated_x_splatfacto_sh3']:.2f}", f"{x['gated_x_gsplat_sh3']:.2f}",
+                  f"{r.get('kept', nan):.1%}", f"{r.get('psnr_gated_vs_full', nan):.1f}", f"{r['matte']['fps']:.0f}",
+                  f"{x['matte_x_splatfacto_sh0']:.2f}", f"{x['matte_x_gsplat_sh0']:.2f}",
+                  f"{sum(r.get('cache_mib', {}).values()):.1f}")
     console.print(t)
     st = Table(title="stages of a frame, ms (each timed alone; rest = frame - camera - colours - raster)")
     st.add_column("scene")

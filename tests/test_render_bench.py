@@ -32,6 +32,9 @@ def test_render_bench_row_on_a_cpu(scene, bench_render, monkeypatch):  # noqa: F
     args = bench_render.Args(thresholds=[0.0, 1 / 255], repeats=1, views=1)
     row = bench_render.bench_scene(args, SimpleNamespace(name="tiny"), Path("unused"))
     assert math.isnan(row["splat_sh3_fps"])  # no gsplat on a CPU
+    assert math.isnan(row["splatfacto_sh3_fps"]) and math.isnan(row["splatfacto_sh0_fps"])  # (its frame needs CUDA)
+    assert set(row["ratios"]) == {"gated_x_splatfacto_sh3", "gated_x_gsplat_sh3", "matte_x_splatfacto_sh0",
+                                  "matte_x_gsplat_sh0"}
     assert [s["threshold"] for s in row["sweep"]] == [0.0, 1 / 255] and row["matte"]["kept"] == 0.0
     assert row["psnr_gated_vs_full"] > 45.0 and row["gated_fps"] > 0 and row["matte"]["fps"] > 0
     for name in ("gated", "matte"):
@@ -42,3 +45,33 @@ def test_render_bench_row_on_a_cpu(scene, bench_render, monkeypatch):  # noqa: F
         assert math.isclose(st["rest"], st["frame"] - st["camera"] - st["colours"] - st["raster"], abs_tol=1e-9)
     assert row["cache_mib"]["gate"] > 0 and row["cache_mib"]["edits"] > 0 and row["cache_served"]
     bench_render.print_tables([row], None, "cpu")
+
+
+def test_the_splatfacto_baseline_is_splatfacto_on_the_same_gaussians_built_offline(scene, bench_render,  # noqa: F811
+                                                                                   monkeypatch):
+    """The baseline is nerfstudio's own SplatfactoModel (not ours), sharing the run's Gaussian tensors, with
+    the geometry's SH at the asked degree, every band on, the run's background; built with downloads
+    refused (splatfacto's LPIPS would fetch AlexNet's weights where they are not cached)."""
+    import torch
+    from nerfstudio.models.splatfacto import SplatfactoModel
+
+    from virgi_ns.nerfstudio.model import VirgiModel
+
+    _, pipeline, optimizers, cbs = build(scene, steps=1)
+    model = pipeline.model
+
+    def refuse(url, *a, **k):
+        raise AssertionError(f"download of {url}")
+
+    monkeypatch.setattr(torch.hub, "download_url_to_file", refuse)
+    for degree in (3, 0):
+        sf = bench_render.splatfacto_model(model, degree)
+        assert isinstance(sf, SplatfactoModel) and not isinstance(sf, VirgiModel) and not sf.training
+        for k in ("means", "scales", "quats", "opacities", "features_dc"):
+            assert sf.gauss_params[k].data_ptr() == model.gauss_params[k].data_ptr(), k  # shared, not copied
+        n = model.num_points
+        assert sf.features_rest.shape == (n, (degree + 1) ** 2 - 1, 3)
+        if degree == 3:
+            assert torch.equal(sf.features_rest[:, : model.features_rest.shape[1]], model.features_rest.detach())
+            assert min(sf.step // sf.config.sh_degree_interval, sf.config.sh_degree) == 3
+        assert torch.equal(sf.background_color, model.background_color)

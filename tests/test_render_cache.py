@@ -851,3 +851,137 @@ def test_a_new_background_reaches_the_gsplat_pass(spec_model, monkeypatch):
             torch.testing.assert_close(out["rgb"][empty], model.background_color.expand(int(empty.sum()), 3))
     finally:
         model.set_background(old)
+
+
+# ------------------------------------------------------------ cheap keys per frame
+def test_the_module_watch_sees_every_change_of_the_field():
+    """:class:`ModuleWatch` replaces a walk of the field's parameters per frame: its structure check fails
+    for a parameter, buffer or submodule set, added or removed, and its versions and storages move with
+    in-place writes and ``.data`` assignments; its parameters are ``parameters()``'s, in order."""
+    from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
+    from virgi_ns.nerfstudio.render_cache import ModuleWatch
+
+    def field():
+        return DecoupledColorField(ColorFieldConfig(log2_hashmap_size=10, levels=4), torch.tensor([[-1.0] * 3, [1.0] * 3]))
+
+    fld = field()
+    w = ModuleWatch(fld)
+    assert w.current(fld) and not w.current(field())
+    assert [id(p) for p in w.params] == [id(p) for p in fld.parameters()] and w.ids == tuple(map(id, w.params))
+    assert len(w.tensors) == len(w.params) + len(list(fld.buffers()))
+    v, s = w.versions(), w.storages()
+    with torch.no_grad():
+        fld.spec_l2.bias += 1.0  # an in-place write
+    assert w.current(fld) and w.versions() != v and w.storages() == s
+    v = w.versions()
+    fld.spec_l2.bias.data = fld.spec_l2.bias.detach().clone()  # new storage, same version
+    assert w.current(fld) and w.versions() == v and w.storages() != s
+    changes = [lambda m: setattr(m.spec_l2, "bias", torch.nn.Parameter(m.spec_l2.bias.detach().clone())),
+               lambda m: setattr(m, "spec_l1", torch.nn.Linear(m.spec_l1.in_features, m.spec_l1.out_features)),
+               lambda m: m.spec_l3.register_parameter("extra", torch.nn.Parameter(torch.zeros(1))),
+               lambda m: m.register_buffer("extra", torch.zeros(1)),
+               lambda m: setattr(m, "aabb", m.aabb.clone()),
+               lambda m: m.add_module("extra", torch.nn.Linear(1, 1)),
+               lambda m: delattr(m.spec_l3, "bias")]
+    for i, change in enumerate(changes):
+        fld = field()
+        w = ModuleWatch(fld)
+        change(fld)
+        assert not w.current(fld), i
+        assert ModuleWatch(fld).current(fld), i
+
+
+def test_a_field_parameter_or_layer_set_anew_is_never_served_from_the_cache(scene):  # noqa: F811
+    """A field parameter or a whole layer replaced by a new one (not written in place: no version
+    counter moves) makes the gate stale, as a training step does; the rebuilt gate serves the new field
+    from the cache."""
+    pipeline = _gated_specular_pipeline(scene, steps=4, seed=2)
+    model = pipeline.model
+    cam = pipeline.datamanager.eval_dataset.cameras[0:1]
+    fld = model.field
+    ref = _check_colours(model, cam)
+    fld.spec_l2.bias = torch.nn.Parameter(fld.spec_l2.bias.detach() + 0.5)
+    assert not model.gate_ready()
+    ref = _check_colours(model, cam, gate=None, previous=ref)
+    model.build_specular_gate(model._train_cameras_fn())
+    ref = _check_colours(model, cam, previous=ref)
+    assert model.render_cache.edit_level is not None  # served from the cache again
+    layer = torch.nn.Linear(fld.spec_l1.in_features, fld.spec_l1.out_features)
+    with torch.no_grad():
+        layer.weight.copy_(fld.spec_l1.weight * 1.5)
+        layer.bias.copy_(fld.spec_l1.bias)
+    fld.spec_l1 = layer
+    assert not model.gate_ready()
+    ref = _check_colours(model, cam, gate=None, previous=ref)
+    model.build_specular_gate(model._train_cameras_fn())
+    _check_colours(model, cam, previous=ref)
+    edits = model.render_cache.edit_level
+    assert edits is not None and model.render_cache.levels(model)[1] is edits  # a frame unchanged: the same levels
+
+
+def test_a_matte_frame_runs_no_tensor_operation(spec_model):
+    """A matte view's colours are the cached tensor: the validity checks and the colours dispatch no tensor
+    operation (so launch no kernel on a GPU); neither do the geometry level's checks."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Count(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.ops = []
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.ops.append(func)
+            return func(*args, **(kwargs or {}))
+
+    _, model, cams = spec_model
+    median = model.config.gate_threshold
+    try:
+        model.config.gate_threshold = float("inf")
+        view = model.view_of(cams[0:1])
+        first = model.view_colours(view, gated=True)
+        model.render_cache.geometry(model)
+        with Count() as count:
+            got = model.view_colours(view, gated=True, transient=True)
+            model.render_cache.geometry(model)
+        assert count.ops == [] and got.rgb is first.rgb
+        model.config.gate_threshold = median  # (the counter sees a gated frame's operations)
+        with Count() as count:
+            model.view_colours(view, gated=True, transient=True)
+        assert count.ops
+    finally:
+        model.config.gate_threshold = median
+
+
+def test_per_frame_methods_run_without_gradients_inside_and_outside_no_grad(spec_model):
+    """The per-frame methods enter ``no_grad`` only where gradients are on (a cheaper decorator); either
+    way their outputs carry no autograd graph, and the caller's grad mode is left as it was."""
+    _, model, cams = spec_model
+    cam = cams[0:1]
+    with torch.enable_grad():
+        view = model.view_of(cam)
+        assert not model.view_colours(view, gated=False).rgb.requires_grad
+        assert not model.render_camera(cam, gated=True)["rgb"].requires_grad
+        assert not model.get_outputs_for_camera(cam)["rgb"].requires_grad
+        assert torch.is_grad_enabled()
+    with torch.no_grad():
+        assert not model.get_outputs_for_camera(cam)["rgb"].requires_grad
+        assert not torch.is_grad_enabled()
+
+
+@pytest.mark.gpu
+def test_a_camera_on_the_cpu_is_rendered_without_moving_it(spec_model, monkeypatch):
+    """With frozen geometry, a camera on the CPU is read where it lies (no copy to the GPU and back): the
+    frame equals the frame of the same camera on the GPU."""
+    from nerfstudio.cameras.cameras import Cameras as NSCameras
+
+    pipeline, model, cams = spec_model
+    pipeline.to("cuda")
+    try:
+        cam = cams[0:1]
+        want = model.get_outputs_for_camera(cam.to("cuda"))["rgb"].clone()
+        monkeypatch.setattr(NSCameras, "to", lambda self, device: pytest.fail("the camera was moved"))
+        got = model.get_outputs_for_camera(cam)["rgb"]
+        assert got.is_cuda and torch.equal(got, want)
+    finally:
+        monkeypatch.undo()
+        pipeline.to("cpu")

@@ -169,7 +169,7 @@ class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
         # computed from, so nothing here has to be cleared by hand
         self._render_cache = RenderCache()
         self._live_revision = 0  # counts set_live_edit calls (the render cache's key for the live edit)
-        self._gate_stamp: Optional[tuple] = None  # the field's parameter versions when the gate was built
+        self._gate_stamp: Optional[tuple] = None  # the field's parameters (identities, versions) when the gate was built
         if self.imported:
             self.freeze_geometry()
         from virgi_ns.nerfstudio.viewer.panel import VirgiPanel
@@ -225,7 +225,7 @@ class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
         out = super().load_state_dict(state_dict, **kwargs)
         for p in self.gauss_params.values():
             p.requires_grad_(not self.geometry_frozen)
-        self._gate_stamp = self._field_versions()  # a saved gate belongs to the saved field
+        self._gate_stamp = self._field_stamp()  # a saved gate belongs to the saved field
         self.render_cache.clear()
         return out
 

@@ -22,8 +22,10 @@ rebuild of a level records anew) and replayed per view with the camera centre as
 Validity is checked per frame by cheap keys: each tensor's identity, in-place version counter,
 storage and dtype (:func:`stamp`; optimizer steps and ``load_state_dict`` bump the version), the
 edit stack's identity and :attr:`~virgi_ns.edit.stack.EditStack.revision`, a counter of live
-edits, and the gate threshold. Writes through ``.data`` bypass the version counter: call
-:meth:`RenderCache.clear` after those.
+edits, and the gate threshold. The field's parameters are not walked per frame: a
+:class:`ModuleWatch` keeps them and checks that the field's structure is unchanged (no parameter,
+buffer or submodule set, added or removed), and the key takes their version counters and storages.
+Writes through ``.data`` bypass the version counter: call :meth:`RenderCache.clear` after those.
 """
 
 from __future__ import annotations
@@ -49,6 +51,45 @@ def stamp(t: Optional[Tensor]) -> tuple:
     if t is None:
         return (None,)
     return (id(t), t._version, t.data_ptr(), t.dtype)
+
+
+class ModuleWatch:
+    """A module's parameters and buffers, kept so that a frame need not walk the module for them:
+    :meth:`current` checks (with dictionary look-ups, no walk) that the module still holds exactly
+    them and the same submodules; :meth:`versions` and :meth:`storages` give what changes with their
+    values (see :func:`stamp`). ``params`` are in ``module.parameters()``'s order."""
+
+    def __init__(self, module: torch.nn.Module) -> None:
+        mods = list(module.modules())
+        self.module = module
+        self._dicts = tuple(d for m in mods for d in (m._parameters, m._buffers, m._modules))
+        self._sizes = tuple(map(len, self._dicts))
+        self._entries = tuple((d, k, v) for d in self._dicts for k, v in d.items())
+        self.params = tuple(dict.fromkeys(p for m in mods for p in m._parameters.values() if p is not None))
+        self.ids = tuple(map(id, self.params))
+        buffers = dict.fromkeys(b for m in mods for b in m._buffers.values() if b is not None)  # (by identity)
+        self.tensors = self.params + tuple(b for b in buffers if id(b) not in self.ids)
+        self._n = len(self.params)
+
+    def current(self, module: torch.nn.Module) -> bool:
+        """Whether ``module`` is the watched module with the same parameters, buffers and submodules."""
+        if module is not self.module or tuple(map(len, self._dicts)) != self._sizes:
+            return False
+        for d, k, v in self._entries:
+            if d.get(k) is not v:
+                return False
+        return True
+
+    def versions(self) -> tuple:
+        """In-place version counters: the parameters' (in order), then the buffers'."""
+        return tuple([t._version for t in self.tensors])
+
+    def param_stamp(self, versions: tuple) -> tuple:
+        """(identities, versions) of the parameters, as :meth:`RenderPath._field_stamp` gives them."""
+        return self.ids, versions[: self._n]
+
+    def storages(self) -> tuple:
+        return tuple([t.data_ptr() for t in self.tensors])
 
 
 # ------------------------------------------------------------------------------ a view
@@ -117,8 +158,8 @@ def view_of(camera, device: torch.device, dtype: torch.dtype) -> View:
         packed = torch.tensor(vals, dtype=torch.float32, pin_memory=True).to(device, non_blocking=True)
     else:
         packed = torch.tensor(vals, dtype=torch.float32, device=device)
-    centre = packed[25:28].view(1, 3)
-    return View(packed[:16].view(1, 4, 4), packed[16:25].view(1, 3, 3),
+    centre = packed.as_strided((1, 3), (3, 1), 25)  # (one call per view where slicing and viewing take two)
+    return View(packed.as_strided((1, 4, 4), (16, 4, 1), 0), packed.as_strided((1, 3, 3), (9, 3, 1), 16),
                 centre if dtype == torch.float32 else centre.to(dtype), int(round(w)), int(round(hh)))
 
 
@@ -259,12 +300,34 @@ class RenderCache:
         self.gate_level: Optional[GateCache] = None
         self.edit_level: Optional[EditCache] = None
         self._background: Optional[tuple] = None
+        self._watch: Optional[ModuleWatch] = None
         self.graph_failed = False
         """A recording failed once: colours are computed eagerly from then on."""
 
     def clear(self) -> None:
         self.geometry_level = self.gate_level = self.edit_level = None
         self._background = None
+        self._watch = None
+
+    def watch(self, module: torch.nn.Module) -> ModuleWatch:
+        """The :class:`ModuleWatch` of ``module`` (the model's field), made again when the module or its
+        structure changed."""
+        w = self._watch
+        if w is None or not w.current(module):
+            w = self._watch = ModuleWatch(module)
+        return w
+
+    def levels(self, model) -> Optional[tuple]:
+        """(gate level, edit level) for the model's field, gate and edits, each rebuilt if stale; None
+        when the gate is not current (the field changed since it was measured: the caller takes the
+        full colour model). The caller has checked that the field is decoupled."""
+        w = self.watch(model.field)
+        versions = w.versions()
+        means = _gaussian_params(model)["means"]
+        if not model._gate_current(w.param_stamp(versions), int(means.shape[0])):
+            return None
+        gate = self.gate(model, w, versions, means)
+        return gate, self.edits(model, gate)
 
     def nbytes(self) -> Dict[str, int]:
         """Bytes held per level (what the cache adds to the model's own tensors)."""
@@ -330,7 +393,8 @@ class RenderCache:
         return torch.cat([row, row.new_zeros(1, 1)], dim=1)
 
     def geometry(self, model) -> GeometryCache:
-        params = (model.means, model.quats, model.scales, model.opacities)
+        gp = _gaussian_params(model)
+        params = (gp["means"], gp["quats"], gp["scales"], gp["opacities"])
         key = tuple(map(stamp, params))
         g = self.geometry_level
         if g is None or g.key != key:
@@ -340,18 +404,19 @@ class RenderCache:
             self.geometry_level = g
         return g
 
-    def gate(self, model, params: tuple) -> GateCache:
-        """The gate level for the model's field (``params``: its parameters), gate and threshold (the
-        caller has checked that the gate is current and the field decoupled)."""
-        fld = model.field
-        half = bool(getattr(model.config, "render_cache_half", False))
-        key = (id(fld), tuple(map(stamp, params)), stamp(model.means), stamp(model.spec_magnitude),
-               float(model.config.gate_threshold), half)
+    def gate(self, model, watch: ModuleWatch, versions: tuple, means: Tensor) -> GateCache:
+        """The gate level for the model's field (``watch``: its :class:`ModuleWatch`, current;
+        ``versions``: its :meth:`~ModuleWatch.versions` now), Gaussians (``means``: the model's), gate
+        and threshold (the caller has checked that the gate is current and the field decoupled)."""
+        cfg = model.config
+        mag = model.spec_magnitude
+        key = (watch, versions, watch.storages(), stamp(means), stamp(mag), float(cfg.gate_threshold),
+               bool(getattr(cfg, "render_cache_half", False)))
         g = self.gate_level
         if g is None or g.key != key:
             self.gate_level = None  # free the old level before the new one is filled
             self.edit_level = None
-            g = _build_gate(model, key, (fld, params, model.means, model.spec_magnitude), half)
+            g = _build_gate(model, key, (watch.module, watch.tensors, means, mag), key[-1])
             self.gate_level = g
         return g
 
@@ -365,6 +430,13 @@ class RenderCache:
             e = _build_edits(model, key, (gate, model.diffuse_cache, stack), gate)
             self.edit_level = e
         return e
+
+
+def _gaussian_params(model) -> dict:
+    """The model's Gaussian parameters by name: its ``gauss_params`` ParameterDict's own entries (a
+    ParameterDict look-up takes a ``getattr``, and the model's ``means`` property one more)."""
+    gp = model.gauss_params
+    return getattr(gp, "_parameters", gp)
 
 
 @torch.no_grad()
@@ -480,5 +552,5 @@ class ViewOutputs(MutableMapping):
         return f"ViewOutputs({self._order}, computed={self.computed()})"
 
 
-__all__ = ["ColourGraph", "EditCache", "GateCache", "GeometryCache", "RenderCache", "View", "ViewColours",
+__all__ = ["ColourGraph", "EditCache", "GateCache", "GeometryCache", "ModuleWatch", "RenderCache", "View", "ViewColours",
            "ViewOutputs", "edited_diffuse", "gated_colours", "gated_logits", "stamp", "view_of"]

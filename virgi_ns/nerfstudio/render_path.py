@@ -16,6 +16,7 @@ the rest, and nothing per frame for a matte scene.
 
 from __future__ import annotations
 
+import functools
 from typing import Dict, List, Optional, Tuple
 
 import torch
@@ -37,6 +38,21 @@ from virgi_ns.nerfstudio.render_cache import (
 from virgi_ns.raster import Cameras, Contributions, Request, composite, expected_depth
 
 OUTPUTS = ("rgb", "diffuse", "specular", "depth", "accumulation", "segmentation", "background")
+
+
+def _no_grad(fn):
+    """``torch.no_grad()`` as a decorator of a method called per frame, entered only where gradients are on:
+    a frame's calls nest (the viewer's own ``no_grad``, then four of ours), and each ``no_grad`` entered
+    costs its context object's set-up in Python."""
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        if not torch.is_grad_enabled():
+            return fn(*args, **kwargs)
+        with torch.no_grad():
+            return fn(*args, **kwargs)
+
+    return call
 
 
 class RenderPath:
@@ -116,17 +132,16 @@ class RenderPath:
         """The first camera of ``camera`` as a :class:`~virgi_ns.nerfstudio.render_cache.View`."""
         return view_of(camera, self.device, self.means.dtype)
 
-    @torch.no_grad()
+    @_no_grad
     def view_colours(self, view: View, gated: bool = False, transient: bool = False) -> ViewColours:
         """One colour per Gaussian for ``view``. ``gated`` (and a current gate): from the render
         cache; otherwise the full colour model over every Gaussian. ``transient``: ``rgb`` may be a
         buffer that the next view's colours overwrite (a CUDA graph's output), for a caller that
         composites it first."""
-        params = tuple(self.field.parameters()) if gated and self.field.decoupled else ()
-        if params and self._gate_current(params):
-            cache = self.render_cache
-            gate = cache.gate(self, params)
-            edits = cache.edits(self, gate)
+        cache = self.render_cache
+        levels = cache.levels(self) if gated and self.field.decoupled else None
+        if levels is not None:
+            gate, edits = levels
             rgb = cache.colours(gate, edits, view.centre, getattr(self.config, "render_cache_graphs", True), transient)
             seg = (lambda: self._cached_segmentation(edits)) if self._with_segmentation() else None
             return ViewColours(rgb, None if edits.matte else edits.diffuse, seg)
@@ -191,19 +206,24 @@ class RenderPath:
         return edits.segmentation[index]
 
     # ----------------------------------------------------------- specular gate
-    def _field_versions(self, params=None) -> tuple:
-        """The in-place version counter of every field parameter (optimizer steps and loads bump them)."""
-        return tuple(p._version for p in (params if params is not None else self.field.parameters()))
+    def _field_stamp(self) -> tuple:
+        """The field's parameters' identities and in-place version counters (optimizer steps and loads
+        bump them; a parameter set anew is another tensor), in ``parameters()``'s order."""
+        params = tuple(self.field.parameters())
+        return tuple(map(id, params)), tuple(p._version for p in params)
 
     def gate_ready(self) -> bool:
         """A gate is built for these Gaussians and the field has not changed since."""
         return self._gate_current(None)
 
-    def _gate_current(self, params) -> bool:
-        stamp = getattr(self, "_gate_stamp", None)
-        n = self.num_points
-        return (self.spec_magnitude.numel() == n and self.diffuse_cache.shape[0] == n
-                and (stamp is None or stamp == self._field_versions(params)))
+    def _gate_current(self, field_stamp: Optional[tuple], n: Optional[int] = None) -> bool:
+        """Whether the gate was measured for these Gaussians and this field (``field_stamp``: the field's
+        :meth:`_field_stamp` now, or None to take it; ``n``: the number of Gaussians, or None)."""
+        built = getattr(self, "_gate_stamp", None)
+        n = self.num_points if n is None else n
+        if self.spec_magnitude.numel() != n or self.diffuse_cache.shape[0] != n:
+            return False
+        return built is None or built == (field_stamp if field_stamp is not None else self._field_stamp())
 
     def drop_specular_gate(self) -> None:
         """Forget the gate, the cached diffuse colours and the render cache (the field changes;
@@ -243,14 +263,14 @@ class RenderPath:
             mag.fill_(float("inf"))
         self.spec_magnitude = mag
         self.diffuse_cache = cache
-        self._gate_stamp = self._field_versions()
+        self._gate_stamp = self._field_stamp()
         self.render_cache.clear()  # its colours were computed from the previous field
         kept = float(self.spec_gate.float().mean()) if self.num_points else 0.0
         CONSOLE.log(f"virgi: specular gate keeps {kept:.1%} of {self.num_points:,} Gaussians")
         return {"kept_fraction": kept}
 
     # ------------------------------------------------------------------ renders
-    @torch.no_grad()
+    @_no_grad
     def render_camera(self, camera: NSCameras, gated: bool = False, max_pixels: int = 1 << 20):
         """Whole-image ``rgb``, ``diffuse``, ``specular`` (rgb - diffuse, no background), ``depth``,
         ``accumulation`` and ``segmentation`` (zeros without edits) for the first camera of
@@ -306,7 +326,7 @@ class RenderPath:
         """Whole views on a GPU go through gsplat's forward rasterizer (``whole_view_renderer``)."""
         return self.config.whole_view_renderer == "gsplat" and self.device.type == "cuda"
 
-    @torch.no_grad()
+    @_no_grad
     def _splat(self, view: View, colours: Tensor, backgrounds: Tensor, mode: str,
                projection: Optional[Projection] = None) -> Tuple[Tensor, Tensor, Projection]:
         """gsplat's forward rasterization of the frozen Gaussians with one colour per Gaussian
@@ -367,13 +387,18 @@ class RenderPath:
             ready["diffuse"] = rgb
         return ViewOutputs(OUTPUTS, ready, lazy)
 
-    @torch.no_grad()
+    @_no_grad
     def get_outputs_for_camera(self, camera: NSCameras, obb_box=None):
         if obb_box is not None and self.geometry_frozen and not getattr(self, "_crop_notice", False):
             self._crop_notice = True
             CONSOLE.log("virgi: crop boxes are ignored when rendering the colour field")
-        self.set_crop(None if self.geometry_frozen else obb_box)
-        if camera.camera_to_worlds.device != self.device:
+        crop = None if self.geometry_frozen else obb_box
+        if crop is not None or self.crop_box is not None:
+            self.set_crop(crop)
+        # frozen geometry renders a camera wherever its numbers lie (view_of reads them there: a camera on
+        # the CPU is read without a device sync and not copied to the device and back); splatfacto's
+        # geometry stage needs it on the device
+        if not self.geometry_frozen and camera.camera_to_worlds.device != self.device:
             camera = camera.to(self.device)
         return self.get_outputs(camera)  # type: ignore[return-value]
 
