@@ -341,3 +341,16 @@ def test_pick_latency_times_the_viewer_frames_on_a_tiny_random_scene(bench_edit)
     assert (frame["rgb"] - render_view(scene, cams, 0, stack)["rgb"].clamp(0, 1)).abs().max() <= tol
     sel = session.mask
     assert float((frame["rgb"] - base).abs()[sel].mean()) > 0.02  # the frame shows the edit
+
+
+def test_the_render_cache_reads_the_latency_hosts_gaussians(bench_edit):
+    """The viewer stand-in of the latency protocol has no ``gauss_params``: the render cache (the
+    GPU frames' path) reads its Gaussians from its attributes."""
+    from virgi_ns.bench.pick import ViewerRender
+    from virgi_ns.nerfstudio.render_cache import RenderCache
+
+    scene, _ = bench_edit.million_scene(300, 16, 9, "cpu")
+    host = ViewerRender(scene)
+    g = RenderCache().geometry(host)
+    assert torch.equal(g.means, host.means) and torch.allclose(g.scales, torch.exp(host.scales))
+    assert torch.allclose(g.opacities, torch.sigmoid(host.opacities).reshape(-1))
