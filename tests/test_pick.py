@@ -248,33 +248,3 @@ def test_commit_saves_the_pictures_beside_the_edit_and_replaces_it(world, tmp_pa
     assert stack.entries[0].edit.info["pick"]["mode"] == "colour"
     stack.undo()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["stack.json"]
-
-
-def test_the_selection_follows_chromaticity_through_shading_and_texture():
-    """An object shaded from 20% to 100% brightness, in two tones of one hue, whose colour-field
-    features vary at random from pixel to pixel, is taken whole by one click; its neighbour of a hue
-    40 degrees away and the background are not. A grey click (no hue) still compares features."""
-    from virgi_ns.edit.pick import ViewMaps, chromaticity
-
-    H, W = 20, 40
-    g = torch.Generator().manual_seed(0)
-    shade = torch.linspace(0.2, 1.0, W // 2).repeat(H, 1)[..., None]
-    deep, light = torch.tensor([0.1, 0.2, 0.9]), torch.tensor([0.2, 0.3, 0.9])
-    tone = torch.where((torch.arange(W // 2) % 4 < 2)[None, :, None], deep, light)
-    obj = tone * shade  # [H, W/2, 3]
-    hue_shift = torch.tensor([0.45, 0.1, 0.9])  # a blue-violet: about 40 degrees of chromaticity away
-    angle = torch.rad2deg(torch.arccos(torch.nn.functional.cosine_similarity(
-        chromaticity(hue_shift), chromaticity(deep), dim=0)))
-    assert 30.0 < float(angle) < 60.0
-    neighbour = hue_shift * shade
-    diffuse = torch.cat([obj, neighbour], 1)
-    features = torch.randn(H, W, 8, generator=g)
-    acc = torch.ones(H, W)
-    acc[:, -2:] = 0.0  # a background strip
-    maps = ViewMaps(diffuse, diffuse, features, acc)
-    sel = select(maps, 3, 5, 0.2)
-    assert bool(sel[:, : W // 2].all()) and not bool(sel[:, W // 2 :].any())
-    grey_rgb = torch.full((H, W, 3), 0.5) * shade.repeat(1, 2, 1)
-    grey = ViewMaps(grey_rgb, grey_rgb, features, acc)
-    sel = select(grey, 3, 5, 0.2)
-    assert 0 < int(sel.sum()) < H * W // 2  # the random features stop it

@@ -7,15 +7,11 @@ The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain to
   features composited per pixel, and its coverage (accumulation), from an
   :class:`~virgi_ns.edit.engine.EditEngine` set up on the view;
 - :func:`select`: the selection grown from the clicked pixel. A pixel joins when it is covered
-  (accumulation >= :data:`MIN_COVER`), when its diffuse colour has the clicked pixel's chromaticity
-  (the colour divided by its sum, so shading does not move it; the highlight is not in the diffuse
-  render): its hue within ``tolerance`` x 90 degrees and its chroma within a factor
-  ``1 + 4 tolerance`` of the click's either way, and when it is connected to the clicked pixel
-  through such pixels. The hue keeps neighbours of another colour out, the connection keeps to the
-  clicked object; at tolerance 1 every covered pixel connected to the click joins. On a nearly neutral click (chroma below :data:`NEUTRAL_CHROMA`, where hue is
-  noise) the RGB angle of the diffuse colour and of the colour field's features decide instead.
-  Measured apart on trained runs (``bench/pick_criteria.py``), the features' angle was what stopped
-  a selection short of its object, and the RGB angle alone let it run into a floor of a near hue;
+  (accumulation >= :data:`MIN_COVER`), when both its diffuse colour and its features point within
+  ``tolerance`` x 90 degrees of the clicked pixel's (angles between the vectors: brightness and
+  shading do not count, the highlight is not in the diffuse render), and when it is connected to
+  the clicked pixel through such pixels. The colour keeps neighbours of another colour out, the
+  features keep out what only looks alike, the connection keeps to the clicked object;
 - :func:`recolour`: the edited image: ``hue`` gives the selection the colour's hue and saturation
   and keeps each pixel's value (shading and highlights stay: saturation is scaled from the
   selection's typical pixel, so a white highlight stays near white); ``colour`` makes the colour
@@ -53,9 +49,6 @@ from virgi_ns.errors import InputError, atomic_path
 from virgi_ns.raster import Cameras, composite
 
 MODES = ("hue", "colour")
-NEUTRAL_CHROMA = 0.02
-"""A clicked diffuse colour whose chromaticity lies closer than this to grey (about 6% saturation) has
-no hue to compare: :func:`select` then compares RGB directions and features."""
 MIN_COVER = 0.5
 """A pixel whose accumulation is below this shows mostly background: it is never selected, and a
 click there picks nothing."""
@@ -134,29 +127,14 @@ def check_pixel(maps: ViewMaps, x: int, y: int) -> None:
                          f"< {MIN_COVER}); pick a pixel on an object")
 
 
-def chromaticity(rgb: Tensor) -> Tensor:
-    """[...,3] -> the colour's chromaticity (divided by its sum) as an offset from grey: a scaling of
-    the colour (shading) does not move it; its direction is the hue, its length the chroma."""
-    return rgb / rgb.sum(-1, keepdim=True).clamp_min(1e-6) - 1.0 / 3.0
-
-
 @torch.no_grad()
 def select(maps: ViewMaps, x: int, y: int, tolerance: float) -> Tensor:
     """Bool [H,W]: the selection grown from pixel (x, y) (see the module docstring)."""
     check_pixel(maps, x, y)
-    t = check_tolerance(tolerance)
-    limit = 90.0 * t
-    ch = chromaticity(maps.diffuse)
-    c0 = ch[y, x]
-    n, n0 = ch.norm(dim=-1), float(c0.norm())
-    if t >= 1.0:  # the slider's end: every covered pixel connected to the click
-        alike = torch.ones_like(n, dtype=torch.bool)
-    elif n0 >= NEUTRAL_CHROMA:
-        ratio = 1.0 + 4.0 * t  # the chroma's "how much" on the scale the hue's t x 90 degrees sets
-        alike = (_angle(ch, c0) <= limit) & (n <= n0 * ratio) & (n >= n0 / ratio)
-    else:
-        alike = (_angle(maps.diffuse, maps.diffuse[y, x]) <= limit) & (_angle(maps.features, maps.features[y, x]) <= limit)
-    allowed = (maps.accumulation >= MIN_COVER) & alike
+    limit = 90.0 * check_tolerance(tolerance)
+    allowed = ((maps.accumulation >= MIN_COVER)
+               & (_angle(maps.diffuse, maps.diffuse[y, x]) <= limit)
+               & (_angle(maps.features, maps.features[y, x]) <= limit))
     allowed[y, x] = True
     grown = torch.zeros_like(allowed)
     grown[y, x] = True
@@ -278,5 +256,5 @@ def commit(stack: EditStack, session: PickSession, edit: Edit, replace: Optional
         raise
 
 
-__all__ = ["MIN_COVER", "MODES", "NEUTRAL_CHROMA", "PickSession", "ViewMaps", "check_mode", "check_pixel", "check_tolerance", "chromaticity", "commit",
+__all__ = ["MIN_COVER", "MODES", "PickSession", "ViewMaps", "check_mode", "check_pixel", "check_tolerance", "commit",
            "parse_colour", "pick_config", "recolour", "select", "view_maps"]
