@@ -13,7 +13,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import edit_scene as es  # noqa: E402
 
 from virgi_ns.edit.engine import EditConfig, EditEngine  # noqa: E402
-from virgi_ns.edit.pixels import SparseRender, pixel_batches  # noqa: E402
+from virgi_ns.edit.pixels import pixel_batches  # noqa: E402
 from virgi_ns.edit.recolor import RecolorRule, recolor  # noqa: E402
 from virgi_ns.edit.scene import render_view  # noqa: E402
 from virgi_ns.edit.stack import Edit, EditStack  # noqa: E402
@@ -66,20 +66,20 @@ def test_sparse_pixel_batches_reproduce_composite(world):
     ref = composite(colours, c, bg).reshape(-1, 3)
     batches = pixel_batches(c, target, bg, 3, seed=5)
     assert sum(b.target.shape[0] for b in batches) == c.num_pixels
-    got = torch.cat([SparseRender.apply(colours, b.A, b.At) + b.background for b in batches])
+    got = torch.cat([b.render(colours) + b.background for b in batches])
     tgt = torch.cat([b.target for b in batches])
     # each batch's targets are its pixels' targets, so matching rows by target identifies the pixels
     idx = torch.cat([torch.nonzero((target[None] == t[:, None]).all(-1))[:, 1] for t in tgt.split(1000)])
     assert sorted(idx.tolist()) == list(range(c.num_pixels))
     torch.testing.assert_close(got, ref[idx], atol=1e-6, rtol=1e-5)
     one = pixel_batches(c, target, bg, 1, seed=0)[0]
-    torch.testing.assert_close(SparseRender.apply(colours, one.A, one.At) + one.background, ref, atol=1e-6, rtol=1e-5)
+    torch.testing.assert_close(one.render(colours) + one.background, ref, atol=1e-6, rtol=1e-5)
     # gradients through A^T equal autograd through the scatter composite
     w = torch.rand(c.num_pixels, 3, generator=g)
     (gr,) = torch.autograd.grad((ref * w).sum(), colours)
     (gs,) = torch.autograd.grad((got * w[idx]).sum(), colours)
     torch.testing.assert_close(gs, gr, atol=1e-5, rtol=1e-5)
-    (g1,) = torch.autograd.grad(((SparseRender.apply(colours, one.A, one.At)) * w).sum(), colours)
+    (g1,) = torch.autograd.grad(((one.render(colours)) * w).sum(), colours)
     torch.testing.assert_close(g1, gr, atol=1e-5, rtol=1e-5)
     # with changed pixels: every set holds its part of them, and they carry the share in every set
     changed = torch.zeros(c.num_pixels, dtype=torch.bool)

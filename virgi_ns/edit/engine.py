@@ -398,7 +398,7 @@ class EditEngine:
                 b.target = edited.reshape(-1, 3) if b.pixels is None else edited.reshape(-1, 3)[b.pixels]
         else:
             self.batches = pixel_batches(self.contrib, edited.reshape(-1, 3), self.background, cfg.pixel_batches,
-                                         cfg.seed, flat, cfg.changed_share, cfg.batch_composite)
+                                         cfg.seed, flat, cfg.changed_share, kind)
         self.recipe = cfg.recipe if changed is not None else "joint"
         staged = self.recipe == "staged"
         # the copied layer: from the colour map of the changed pixels (EditConfig.map_init), else

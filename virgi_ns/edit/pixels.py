@@ -2,11 +2,12 @@
 
 Geometry is frozen, so a view's pixels are ``A C + T bg`` with ``A`` fixed
 (:mod:`virgi_ns.raster.contract`). :func:`pixel_batches` cuts the view into random pixel sets,
-each with its own rows of ``A`` as a CSR matrix and its transpose; :class:`SparseRender` applies
-``A`` with the transpose precomputed for the backward pass, so no scatter with atomics runs.
+each with its own rows of ``A`` (:class:`CompositeOp`, which also holds what ``A^T`` needs for the
+backward pass).
 
 How a batch applies ``A`` (and ``A^T`` in the backward pass) is ``EditConfig.batch_composite``, one
-of :data:`COMPOSITES` (or ``"FWD/BWD"``: one kind for each pass). Every kind is built once per batch
+of :data:`COMPOSITES` (or ``"FWD/BWD"``: one kind for each pass; ``"csr"`` on both, cuSPARSE with a
+precomputed transpose, is the reference). Every kind is built once per batch
 and then runs without a host sync and with shapes fixed, so a step can be recorded as a CUDA graph.
 """
 
@@ -20,29 +21,6 @@ import torch
 from torch import Tensor
 
 from virgi_ns.raster import Contributions
-
-
-class SparseRender(torch.autograd.Function):
-    """``A @ C`` with ``A`` a constant CSR matrix; the backward pass uses a precomputed ``A^T``
-    (CSR too), so no scatter with atomics runs in either direction."""
-
-    @staticmethod
-    def forward(ctx, colours: Tensor, A: Tensor, At: Tensor) -> Tensor:  # type: ignore[override]
-        ctx.At = At
-        return A @ colours
-
-    @staticmethod
-    def backward(ctx, grad: Tensor):  # type: ignore[override]
-        return ctx.At @ grad.contiguous(), None, None
-
-
-def _csr(rows: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int]) -> Tensor:
-    """CSR matrix from entries already sorted by row."""
-    crow = torch.zeros(shape[0] + 1, dtype=torch.long, device=rows.device)
-    crow[1:] = torch.cumsum(torch.bincount(rows, minlength=shape[0]), 0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return torch.sparse_csr_tensor(crow, cols, vals, shape, check_invariants=False)
 
 
 COMPOSITES = {
@@ -177,29 +155,23 @@ def _csr_of(crow: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int]) ->
 
 @dataclass
 class PixelBatch:
-    A: Optional[Tensor]  # [p, U] CSR ("csr" composite; else None)
-    At: Optional[Tensor]  # [U, p] CSR ("csr" composite; else None)
+    op: CompositeOp  # the batch's A [p, U] and how it is applied
     background: Tensor  # [p, 3] T * bg
     target: Tensor  # [p, 3]
     weight: Optional[Tensor] = None  # [p] per-pixel loss weights summing to 1 (None: the plain mean)
     pixels: Optional[Tensor] = None  # [p] the view's pixels in this batch (None: all, in order)
-    op: Optional[CompositeOp] = None  # A by another kind than "csr" (None: SparseRender with A, At)
 
     @property
     def composite(self) -> str:
-        return "csr" if self.op is None else self.op.kind
+        return self.op.kind
 
     def render(self, colours: Tensor) -> Tensor:
         """``A @ colours`` [p, 3] by the batch's composite kind, differentiable in ``colours``."""
-        if self.op is not None:
-            return self.op(colours)
-        return SparseRender.apply(colours, self.A, self.At)
+        return self.op(colours)
 
     def render_transpose(self, grad: Tensor) -> Tensor:
         """``A^T @ grad`` [U, 3]: what :meth:`render`'s backward pass computes (for benchmarks)."""
-        if self.op is not None:
-            return _apply(self.op.bwd, self.op.backward_side, grad.contiguous())
-        return self.At @ grad.contiguous()
+        return _apply(self.op.bwd, self.op.backward_side, grad.contiguous())
 
 
 def _group_weights(changed: Optional[Tensor], share: float) -> Optional[Tensor]:
@@ -212,15 +184,6 @@ def _group_weights(changed: Optional[Tensor], share: float) -> Optional[Tensor]:
     if n_c == 0 or n_u == 0:
         return torch.full(changed.shape, 1.0 / max(changed.numel(), 1), device=changed.device)
     return torch.where(changed, share / n_c, (1.0 - share) / n_u).float()
-
-
-def _batch_maps(kind: str, rows: Tensor, cols: Tensor, vals: Tensor, p: int, U: int
-                ) -> tuple[Optional[Tensor], Optional[Tensor], Optional[CompositeOp]]:
-    """(A, At, None) for ``"csr"`` (entries sorted by row), else (None, None, the operator)."""
-    if kind == "csr":
-        t_order = torch.argsort(cols * max(p, 1) + rows)
-        return _csr(rows, cols, vals, (p, U)), _csr(cols[t_order], rows[t_order], vals[t_order], (U, p)), None
-    return None, None, CompositeOp(kind, rows, cols, vals, p, U)
 
 
 def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches: int, seed: int,
@@ -241,8 +204,8 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
         pix, pair = contrib.pixel.to(dev).long(), contrib.pair.to(dev).long()
         w = contrib.weight.detach().to(dev, dt)
         T = contrib.transmittance.detach().to(dev, dt)
-        A, At, op = _batch_maps(composite, pix, pair, w, P, U)
-        return [PixelBatch(A, At, T[:, None] * bg[None, :], target, _group_weights(changed, share), op=op)]
+        op = CompositeOp(composite, pix, pair, w, P, U)
+        return [PixelBatch(op, T[:, None] * bg[None, :], target, _group_weights(changed, share))]
     # drawn on the view's device (a CPU permutation of a megapixel view costs tens of milliseconds)
     gen = torch.Generator(device=dev).manual_seed(seed)
     batch_of = torch.empty(P, dtype=torch.long, device=dev)
@@ -272,12 +235,12 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
         e0 += e_counts[b]
         rows, cols, vals = local[pix[sel]], pair[sel], w[sel]
         p_b = int(counts[b])
-        A, At, op = _batch_maps(composite, rows, cols, vals, p_b, U)
+        op = CompositeOp(composite, rows, cols, vals, p_b, U)
         pixels = order[int(starts[b]) : int(starts[b]) + p_b]
-        out.append(PixelBatch(A, At, T[pixels, None] * bg[None, :], target[pixels],
-                               None if changed is None else _group_weights(changed[pixels], share), pixels, op))
+        out.append(PixelBatch(op, T[pixels, None] * bg[None, :], target[pixels],
+                              None if changed is None else _group_weights(changed[pixels], share), pixels))
     return out
 
 
-
-__all__ = ["AUTO_GPU", "COMPOSITES", "CompositeOp", "PixelBatch", "SparseRender", "parse_composite", "pixel_batches", "resolve_composite"]
+__all__ = ["AUTO_GPU", "COMPOSITES", "CompositeOp", "PixelBatch", "parse_composite", "pixel_batches",
+           "resolve_composite"]
