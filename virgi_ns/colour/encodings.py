@@ -1,5 +1,5 @@
-"""The colour field's encodings: nerfstudio's hash grid, SH direction encoding and L-inf scene
-contraction, with two changes that are ours to make from outside nerfstudio:
+"""The colour field's hash grid: nerfstudio's, with two changes that are ours to make from outside
+nerfstudio (the field takes nerfstudio's SH encoding and scene contraction as they are):
 
 - :class:`GridEncoding` reads the eight corners of a point in one ``index_select`` (same hash,
   same trilinear arithmetic, same parameter and state dict as nerfstudio's torch
@@ -12,11 +12,10 @@ contraction, with two changes that are ours to make from outside nerfstudio:
 from __future__ import annotations
 
 import torch
-from nerfstudio.field_components.encodings import HashEncoding, SHEncoding
-from nerfstudio.field_components.spatial_distortions import SceneContraction
+from nerfstudio.field_components.encodings import HashEncoding
 from torch import Tensor, nn
 
-__all__ = ["GridEncoding", "SHDirections", "contract_linf"]
+__all__ = ["GridEncoding"]
 
 # the eight corners (x, y, z; 1 = ceil) in the order nerfstudio's interpolation reads them:
 # ccc, cfc, ffc, fcc, ccf, cff, fff, fcf
@@ -63,17 +62,3 @@ class GridEncoding(HashEncoding):
         f4756 = f_47 * o1 + f_56 * (1 - o1)
         encoded = f0312 * o2 + f4756 * (1 - o2)  # [..., L, F]
         return torch.flatten(encoded, start_dim=-2, end_dim=-1)
-
-
-def SHDirections(levels: int = 4) -> SHEncoding:
-    """nerfstudio's SH encoding of unit view directions, bands ``0 .. levels - 1`` (torch)."""
-    return SHEncoding(levels=levels, implementation="torch")
-
-
-_CONTRACTION = SceneContraction(order=float("inf"))
-
-
-def contract_linf(x: Tensor) -> Tensor:
-    """nerfstudio's L-inf scene contraction (MipNeRF-360's, the unit cube kept, the rest of space
-    in the cube of side 4)."""
-    return _CONTRACTION(x)

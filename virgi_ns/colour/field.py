@@ -29,9 +29,11 @@ from dataclasses import dataclass
 
 import torch
 from jaxtyping import Float
+from nerfstudio.field_components.encodings import SHEncoding
+from nerfstudio.field_components.spatial_distortions import SceneContraction
 from torch import Tensor, nn
 
-from virgi_ns.colour.encodings import GridEncoding, SHDirections, contract_linf
+from virgi_ns.colour.encodings import GridEncoding
 
 
 @dataclass
@@ -83,7 +85,8 @@ class DecoupledColorField(nn.Module):
             implementation="torch",
             empty=empty,
         )
-        self.dir_encoding = SHDirections(levels=cfg.sh_dir_degree)
+        self.contraction = SceneContraction(order=float("inf"))
+        self.dir_encoding = SHEncoding(levels=cfg.sh_dir_degree, implementation="torch")
         f = self.hash.get_out_dim()
         d = self.dir_encoding.get_out_dim()
         h = cfg.hidden
@@ -113,7 +116,7 @@ class DecoupledColorField(nn.Module):
         [-2, 2]^3, then mapped to the hash grid's [0, 1]^3."""
         lo, hi = self.aabb[0], self.aabb[1]
         x = (positions - (lo + hi) / 2) / ((hi - lo) / 2)
-        x = contract_linf(x)
+        x = self.contraction(x)
         return ((x + 2.0) / 4.0).clamp(0.0, 1.0)
 
     def encode(self, positions: Float[Tensor, "N 3"]) -> Float[Tensor, "N F"]:
