@@ -117,12 +117,8 @@ class RenderPath:
             c_d = edited_diffuse(fld, f, h2, stack, live)[inv]
             c_s = fld.specular(f[inv], d, h1[inv], h2[inv])
         else:
-            h1, h2p = fld.diffuse_hidden(f[inv], d)
-            c_d = fld.diffuse(h2p)
-            if stack is not None:
-                c_d = stack.diffuse(f[inv], h2p, c_d)
-            if live is not None:
-                c_d = live.over(f[inv], h2p, c_d)
+            _, h2p = fld.diffuse_hidden(f[inv], d)
+            c_d = edited_diffuse(fld, f[inv], h2p, stack, live)
             c_s = torch.zeros_like(c_d)
         k = stack.specular_strength if stack is not None else 1.0
         return {"rgb": torch.sigmoid(c_d + k * c_s), "diffuse": torch.sigmoid(c_d), "c_s": c_s}
@@ -164,11 +160,7 @@ class RenderPath:
                 h1, h2 = fld.diffuse_hidden(f)
             else:
                 h1, h2 = fld.diffuse_hidden(f, d)
-            c_d = fld.diffuse(h2)
-            if stack is not None:
-                c_d = stack.diffuse(f, h2, c_d)
-            if live is not None:
-                c_d = live.over(f, h2, c_d)
+            c_d = edited_diffuse(fld, f, h2, stack, live)
             if fld.decoupled:
                 rgbs.append(torch.sigmoid(c_d + k * fld.specular(f, d, h1, h2)))
             diffs.append(torch.sigmoid(c_d))
