@@ -344,8 +344,8 @@ def test_pick_latency_times_the_viewer_frames_on_a_tiny_random_scene(bench_edit)
 
 
 def test_the_render_cache_reads_the_latency_hosts_gaussians(bench_edit):
-    """The viewer stand-in of the latency protocol has no ``gauss_params``: the render cache (the
-    GPU frames' path) reads its Gaussians from its attributes."""
+    """The viewer stand-in of the latency protocol holds its Gaussians where the render cache (the GPU
+    frames' path) reads a model's: the cache's geometry is the stand-in's."""
     from virgi_ns.bench.pick import ViewerRender
     from virgi_ns.nerfstudio.render_cache import RenderCache
 

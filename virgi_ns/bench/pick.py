@@ -181,6 +181,8 @@ class ViewerRender(RenderPath):
         self.means, self.quats = scene.means, scene.quats
         self.scales = torch.log(scene.scales)
         self.opacities = torch.logit(scene.opacities, eps=1e-6)[:, None]
+        self.gauss_params = {"means": self.means, "quats": self.quats, "scales": self.scales,
+                             "opacities": self.opacities}  # as the model holds them (the render cache reads these)
         self.background_color = scene.background
         self.device = scene.device
         self.num_points = int(scene.means.shape[0])

@@ -434,11 +434,8 @@ class RenderCache:
 
 def _gaussian_params(model) -> dict:
     """The model's Gaussian parameters by name: its ``gauss_params`` ParameterDict's own entries (a
-    ParameterDict look-up takes a ``getattr``, and the model's ``means`` property one more); a host
-    without one (the benchmark's viewer stand-in) gives its attributes of those names."""
-    gp = getattr(model, "gauss_params", None)
-    if gp is None:
-        return {name: getattr(model, name) for name in ("means", "quats", "scales", "opacities")}
+    ParameterDict look-up takes a ``getattr``, and the model's ``means`` property one more)."""
+    gp = model.gauss_params
     return getattr(gp, "_parameters", gp)
 
 
