@@ -188,7 +188,7 @@ class ViewerRender(RenderPath):
         self.num_points = int(scene.means.shape[0])
         self.spec_magnitude = torch.zeros(0, device=self.device)
         self.diffuse_cache = torch.zeros(0, 3, device=self.device)
-        self.edit_stack = self.live_edit = self.segmentation_edit = self._edited_cache = None
+        self.edit_stack = self.live_edit = self.segmentation_edit = None
 
     def _raster(self, cams, request):
         return self.scene.contributions(cams, request)
