@@ -473,6 +473,34 @@ def test_map_target_fits_the_render_changed_as_the_user_changed_its_colours(worl
     assert miss["map"] < miss["edited"], miss
 
 
+def test_map_fallback_change_gives_unexplained_pixels_the_render_plus_their_change(world):
+    """``map_fallback="change"``: a changed pixel the colour map does not explain (here a patch
+    painted with noise, which no function of colour gives) is fitted to the render plus that
+    pixel's own change instead of the edited pixel; every other pixel keeps the default's target."""
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    render = world["before"][EDIT_VIEW]["rgb"]
+    H, W = render.shape[:2]
+    g = torch.Generator().manual_seed(3)
+    photo = (render + 0.05 * torch.rand(H, W, 3, generator=g) - 0.025).clamp(0, 1)  # detail the render lacks
+    edited, _ = recolor(photo, BLUE_TO_RED)
+    edited[: H // 3, : W // 3] = torch.rand(H // 3, W // 3, 3, generator=g)  # not one function of colour
+    targets = {}
+    for fallback in ("edited", "change"):
+        eng = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=0, pixel_batches=1, map_fallback=fallback),
+                         original=photo)
+        targets[fallback] = eng.batches[0].target.reshape(render.shape)
+    default, candidate = targets["edited"], targets["change"]
+    changed = (edited - photo).abs().amax(-1) > EditConfig().unchanged_tol
+    unexplained = changed & ((default - edited).abs().amax(-1) == 0)  # where the default kept the edited pixel
+    assert int(unexplained[: H // 3, : W // 3].sum()) > 0.8 * (H // 3) * (W // 3)
+    torch.testing.assert_close(candidate[unexplained], (render + edited - photo).clamp(0, 1)[unexplained],
+                               atol=1e-6, rtol=0)
+    torch.testing.assert_close(candidate[~unexplained], default[~unexplained], atol=0, rtol=0)
+    with pytest.raises(ValueError, match="map_fallback"):
+        EditConfig(map_fallback="photo")  # type: ignore[arg-type]
+
+
 def test_staged_recipe_segments_first_and_its_edit_renders_what_it_fitted(world):
     """``recipe="staged"``: the segmentation is a classifier of the view's Gaussians, fixed while the
     layer trains; the saved edit's head gives the same alpha at render time, high on the Gaussians

@@ -74,6 +74,9 @@ class Apply:
     map_levels: Literal[1, 2, 3] = 1
     """With ``--changed-target map``: grid levels of the colour map (3: finer grids answer near a
     rule's threshold, where a coarse cell mixes colours changed differently)."""
+    map_fallback: Literal["edited", "change"] = "edited"
+    """With ``--changed-target map``: what a changed pixel the map does not explain is fitted to: the
+    edited image's pixel (``edited``) or the render plus that pixel's change (``change``)."""
     recipe: Literal["joint", "staged"] = "joint"
     """``joint``: the segmentation and the new colour are fitted together (the paper's recipe);
     ``staged``: the segmentation first, from which Gaussians your change covers, so parts of another
@@ -368,6 +371,7 @@ def apply(args: Apply, console: "Console", pipeline=None) -> str:
     cfg.whole_image = args.whole_image
     cfg.changed_target = args.changed_target
     cfg.map_levels = args.map_levels
+    cfg.map_fallback = args.map_fallback
     cfg.recipe = args.recipe
     cfg.map_init = args.map_init
     with torch.no_grad():

@@ -124,6 +124,11 @@ class EditConfig:
     and 65: at each colour the coarsest level that is one change answers, so a colour that a coarse
     cell mixes with others changed differently, near a rule's threshold, can still use the map;
     :mod:`virgi_ns.edit.colour_change`). Selectable, not the default (bench/RESULTS.md, "Edit")."""
+    map_fallback: Literal["edited", "change"] = "edited"
+    """``changed_target="map"``: the target of a changed pixel the colour map does not explain (or
+    that is not one change at the render's colour): ``edited``, the edited image's pixel (the
+    default); ``change``, the current render plus that pixel's own change (edited - original,
+    clamped), which keeps the model's reconstruction error out of the target there too."""
     whole_image: bool = False
     """Fit every pixel to the edited image (no original, no edited-render detection)."""
     map_init: bool = True
@@ -178,6 +183,8 @@ class EditConfig:
         if self.changed_target not in ("change", "transfer", "map", "edited"):
             raise ValueError(f"EditConfig.changed_target must be 'change', 'transfer', 'map' or 'edited', "
                              f"got {self.changed_target!r}")
+        if self.map_fallback not in ("edited", "change"):
+            raise ValueError(f"EditConfig.map_fallback must be 'edited' or 'change', got {self.map_fallback!r}")
         if not 1 <= self.map_levels <= 3:
             raise ValueError(f"EditConfig.map_levels must be 1, 2 or 3, got {self.map_levels}")
         parse_composite(self.batch_composite)  # ValueError naming the kinds
@@ -378,7 +385,8 @@ class EditEngine:
                                  f"the edited image does not differ from the {ref}: nothing to edit")
             self.mode = {"original": "changed pixels (original given" + {
                 "change": ", render + change)", "transfer": ", render + logit change)",
-                "map": ", render + colour map of the change)"}.get(
+                "map": ", render + colour map of the change" + (
+                    ", else render + change)" if cfg.map_fallback == "change" else ")")}.get(
                     cfg.changed_target, ", edited image)"),
                 "selection": "changed pixels (a selection)"}.get(ref, "changed pixels (an edited render)")
             if ref == "original" and cfg.changed_target == "change":
@@ -430,13 +438,15 @@ class EditEngine:
     def _mapped_target(self, edited: Tensor, original: Tensor, changed: Tensor) -> Tensor:
         """``changed_target="map"``: the render changed by the colour map of the user's change
         where the map explains that pixel's change and is one change at the render's colour
-        (:mod:`virgi_ns.edit.colour_change`), the edited pixel elsewhere."""
+        (:mod:`virgi_ns.edit.colour_change`); elsewhere the edited pixel, or with
+        ``map_fallback="change"`` the render plus that pixel's change."""
         change = fit_colour_change(original, edited, levels=self.cfg.map_levels)
         flat_o, flat_e, flat_r = original.reshape(-1, 3), edited.reshape(-1, 3), self.current.reshape(-1, 3)
         mapped, one = change.apply_where_one_change(flat_r)
         use = change.explains(flat_o, flat_e) & one
         self.map_explained = float(use[changed.reshape(-1)].float().mean())
-        return torch.where(use[:, None], mapped, flat_e).reshape(edited.shape)
+        fallback = flat_e if self.cfg.map_fallback == "edited" else (flat_r + flat_e - flat_o).clamp(0.0, 1.0)
+        return torch.where(use[:, None], mapped, fallback).reshape(edited.shape)
 
     def retarget(self, edited: Float[Tensor, "H W 3"], changed: Optional[Tensor] = None,
                  original: Optional[Float[Tensor, "H W 3"]] = None, seg_steps: Optional[int] = None) -> None:
