@@ -121,7 +121,9 @@ def check_variant(text: str, scenes: List[str]) -> None:
 
 def parse_variant(text: str) -> dict:
     """'steps=200,seg_init_bias=-2' -> EditConfig fields, typed as the fields' defaults are, checked
-    as EditConfig checks them; 'rule=h0/h1/shift/s_min/v_min' -> another rule (key ``rule``)."""
+    as EditConfig checks them; 'rule=h0/h1/shift/s_min/v_min' -> another rule (key ``rule``);
+    'source=render' -> the rule applied to the edit view's render instead of its photo (key
+    ``source``): the edit with an exact target, which tells the target's error from the fit's."""
     from virgi_ns.edit.engine import EditConfig
 
     defaults = EditConfig()
@@ -135,11 +137,16 @@ def parse_variant(text: str) -> dict:
                 raise InputError(f"--variants: rule takes h0/h1/shift/s_min/v_min, got '{value}'") from None
             out["rule"] = RuleArgs(h0=h0, h1=h1, shift=shift, s_min=s_min, v_min=v_min).rule()
             continue
+        if key == "source":
+            if value not in ("photo", "render"):
+                raise InputError(f"--variants: source takes photo or render, got '{value}'")
+            out["source"] = value
+            continue
         if not hasattr(defaults, key):
             raise InputError(f"--variants: '{key}' is not an EditConfig field")
         out[key] = typed_like(getattr(defaults, key), value, key, "--variants")
     try:
-        EditConfig(**{k: v for k, v in out.items() if k != "rule"})
+        EditConfig(**{k: v for k, v in out.items() if k not in ("rule", "source")})
     except ValueError as e:
         raise InputError(f"--variants: {e}") from None
     return out
@@ -249,9 +256,10 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
             continue
         v_cfg = parse_variant(text)
         v_rule = v_cfg.pop("rule", scene.rule)
-        v_edited = b.edited_image(v_rule, "photo")
-        v_edit, v_t = b.fit(v_edited, v_cfg.pop("steps", args.steps), v_cfg.pop("pixel_batches", None), 1, original,
-                            **v_cfg)
+        v_source = v_cfg.pop("source", "photo")
+        v_edited = b.edited_image(v_rule, v_source)
+        v_edit, v_t = b.fit(v_edited, v_cfg.pop("steps", args.steps), v_cfg.pop("pixel_batches", None), 1,
+                            b.original(v_source), **v_cfg)
         v_res, _ = b.measure(v_edit, v_rule, lpips=False, edited=v_edited)
         rows.append({**base, "variant": text, "rule": v_rule.to_dict(), **v_res["mean"], "timing_warm": v_t,
                      "targets": targets(v_res["mean"], v_t["total_s"], scene.synthetic is not None)})

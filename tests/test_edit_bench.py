@@ -102,11 +102,12 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1,
                            pictures=1, pick=True,
                            variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05", "other:steps=5",
-                                     "tiny:recipe=staged,seg_samples=512,seg_steps=20"])
+                                     "tiny:recipe=staged,seg_samples=512,seg_steps=20", "steps=15,source=render"])
     assert bench_edit.parse_variant("steps=20,pixel_batches=2") == {"steps": 20, "pixel_batches": 2}
+    assert bench_edit.parse_variant("source=render") == {"source": "render"}
     assert bench_edit.parse_variant("rule=10/20/30/0.1/0.2")["rule"] == RuleArgs(10, 20, 30, 0.1, 0.2).rule()
     for bad in ("steps", "colour=3", "steps=many", "rule=1/2/3", "changed_target=chnage", "whole_image=ture",
-                "recipe=both"):
+                "recipe=both", "source=paint"):
         with pytest.raises(InputError, match="--variants"):
             bench_edit.parse_variant(bad)
     assert bench_edit.variant_scene("fern:rule=1/2/3/0.1/0.1") == ("fern", "rule=1/2/3/0.1/0.1")
@@ -128,9 +129,12 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     # 'other:' entries belong to another scene; 'tiny:' ones to this one, named without the prefix
     assert [r["variant"] for r in rows] == ["engine defaults", "pixel_batches=2",
                                             "steps=10,lr=0.05,rule=0/360/60/0.2/0.05",
-                                            "recipe=staged,seg_samples=512,seg_steps=20"]
+                                            "recipe=staged,seg_samples=512,seg_steps=20", "steps=15,source=render"]
     assert rows[2]["rule"]["s_min"] == 0.2 and rows[1]["rule"] == rows[0]["rule"] == BROAD.rule().to_dict()
-    assert [r["timing_warm"]["steps"] for r in rows] == [20, 20, 10, 20]
+    assert [r["timing_warm"]["steps"] for r in rows] == [20, 20, 10, 20, 15]
+    # source=render: the rule on the edit view's render is the edited image, an exact target; no
+    # original, so the engine finds the changed pixels against its render
+    assert rows[4]["timing_warm"]["map_explained"] is None and rows[4]["timing_warm"]["changed_fraction"] < 1.0
     assert rows[1]["timing_warm"]["pixel_batches"] == 2
     assert set(rows[0]["targets"]) == {"propagation>=35", "miss>=30", "leak>=30",
                                        "recolour within 0.5 dB of unedited", "edit <= 0.25 s warm"}
