@@ -47,6 +47,11 @@ only), ``current`` (the 17-grid map with its spread check, the engine's default)
   ``EditConfig.map_levels=3``), added after the candidates were run: the same numbers as
   ``multires`` show that the library implements the measured candidate.
 
+Added later, before their numbers were seen: ``current+change`` and ``multires_lib+change``, the
+same maps with ``EditConfig.map_fallback="change"``: a changed pixel whose target is not the map's
+gets ``R + E - P`` (clamped) instead of ``E``. Their ``use`` and ``leak`` are their map's; only
+``target`` can differ. Reported; the choice is made on the GPU (bench/RESULTS.md, "Edit").
+
 Decision rule (fixed before the candidates were run)
 ----------------------------------------------------
 A candidate replaces ``current`` if, at both blur levels: on every scene its ``target`` is not lower
@@ -227,6 +232,8 @@ def variants(P, E):
         "multires": lambda: MultiRes(P, E),
         "multires_lib": lambda: fit_colour_change(P, E, levels=3),  # the library's (EditConfig.map_levels=3)
         "loclin": lambda: LocalLinear(P, E),
+        "current+change": lambda: base,
+        "multires_lib+change": lambda: fit_colour_change(P, E, levels=3),
     }
 
 
@@ -238,7 +245,8 @@ def psnr(a, b, mask) -> float:
     return CAP if mse <= 10 ** (-CAP / 10) else -10 * math.log10(mse)
 
 
-def figures(m, P, E, R, rule: RecolorRule, changed) -> dict:
+def figures(m, P, E, R, rule: RecolorRule, changed, fallback: str = "edited") -> dict:
+    """``fallback``: the target where the map is not used, ``E`` (``edited``) or ``R + E - P`` (``change``)."""
     flat_p, flat_e, flat_r = P.reshape(-1, 3), E.reshape(-1, 3), R.reshape(-1, 3)
     T = recolor(R, rule)[0].reshape(-1, 3)
     ch = changed.reshape(-1)
@@ -248,7 +256,8 @@ def figures(m, P, E, R, rule: RecolorRule, changed) -> dict:
     else:
         mapped, one = m.apply_where_one_change(flat_r)
         use = m.explains(flat_p, flat_e) & one
-        target = torch.where(use[:, None], mapped, flat_e)
+        other = flat_e if fallback == "edited" else (flat_r + flat_e - flat_p).clamp(0, 1)
+        target = torch.where(use[:, None], mapped, other)
         leaked = torch.where(one[:, None], mapped, flat_r)
     return {"use": float(use[ch].float().mean()), "target": psnr(target, T, ch),
             "leak": psnr(leaked, flat_r, unchanged_r)}
@@ -311,7 +320,8 @@ def main(argv=None) -> dict:
             m = make()
             row = {"scene": scene.name, "view": name, "changed_share": float(changed.float().mean()), "variant": name_v}
             for sigma in BLURS:
-                f = figures(m, P, E, blur(P, sigma), scene.rule, changed)
+                f = figures(m, P, E, blur(P, sigma), scene.rule, changed,
+                            "change" if name_v.endswith("+change") else "edited")
                 row.update({f"{k}_s{sigma:g}": v for k, v in f.items()})
             row["seconds"] = time.perf_counter() - t0
             rows.append(row)
