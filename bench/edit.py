@@ -123,7 +123,10 @@ def parse_variant(text: str) -> dict:
     """'steps=200,seg_init_bias=-2' -> EditConfig fields, typed as the fields' defaults are, checked
     as EditConfig checks them; 'rule=h0/h1/shift/s_min/v_min' -> another rule (key ``rule``);
     'source=render' -> the rule applied to the edit view's render instead of its photo (key
-    ``source``): the edit with an exact target, which tells the target's error from the fit's."""
+    ``source``): the edit with an exact target, which tells the target's error from the fit's;
+    'source=render+original' -> the same with the render given as the original, so the engine
+    fits only the changed pixels as it does for a photo edit (with ``changed_target=edited``: the
+    rule on the render itself, exactly)."""
     from virgi_ns.edit.engine import EditConfig
 
     defaults = EditConfig()
@@ -138,8 +141,8 @@ def parse_variant(text: str) -> dict:
             out["rule"] = RuleArgs(h0=h0, h1=h1, shift=shift, s_min=s_min, v_min=v_min).rule()
             continue
         if key == "source":
-            if value not in ("photo", "render"):
-                raise InputError(f"--variants: source takes photo or render, got '{value}'")
+            if value not in ("photo", "render", "render+original"):
+                raise InputError(f"--variants: source takes photo, render or render+original, got '{value}'")
             out["source"] = value
             continue
         if not hasattr(defaults, key):

@@ -108,6 +108,22 @@ def test_colour_map_recolours_each_gaussian_before_compositing(world):
     torch.testing.assert_close(const, c.to(const) * (1 - T) + T * bg, atol=1e-5, rtol=0)
 
 
+def test_diffuse_map_recolours_the_diffuse_colour_and_keeps_the_specular_part(world):
+    """``render_view(diffuse_map=...)`` maps every Gaussian's diffuse colour and adds the specular
+    logit back: the identity gives the plain render; a constant c makes the diffuse render
+    c (1 - T) + T bg while the rgb keeps a view-dependent part on top of it."""
+    S = world["S"]
+    v = HELD_OUT[0]
+    plain = _render(world, v)
+    torch.testing.assert_close(_render(world, v, diffuse_map=lambda c: c)["rgb"], plain["rgb"], atol=1e-5, rtol=0)
+    c = torch.tensor([0.2, 0.7, 0.4])
+    out = _render(world, v, diffuse_map=lambda x: c.to(x).expand_as(x).clone())
+    T = world["contrib"][v].transmittance.reshape(plain["rgb"].shape[:2])[..., None].to(out["rgb"])
+    bg = S.scene.background.to(out["rgb"]).reshape(3)
+    torch.testing.assert_close(out["diffuse"], c.to(out["rgb"]) * (1 - T) + T * bg, atol=1e-5, rtol=0)
+    assert float((out["rgb"] - out["diffuse"]).abs().max()) > 1e-3  # the specular part is still there
+
+
 def test_fresh_edit_changes_nothing(world):
     """Without the colour-map start, before any step the edit's c_d' is the base head, so the
     preview is the unedited render; with it (forced here: this edit is below the default's share),

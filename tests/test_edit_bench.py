@@ -102,7 +102,8 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1,
                            pictures=1, pick=True,
                            variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05", "other:steps=5",
-                                     "tiny:recipe=staged,seg_samples=512,seg_steps=20", "steps=15,source=render"])
+                                     "tiny:recipe=staged,seg_samples=512,seg_steps=20", "steps=15,source=render",
+                                     "steps=15,source=render+original,changed_target=edited"])
     assert bench_edit.parse_variant("steps=20,pixel_batches=2") == {"steps": 20, "pixel_batches": 2}
     assert bench_edit.parse_variant("source=render") == {"source": "render"}
     assert bench_edit.parse_variant("rule=10/20/30/0.1/0.2")["rule"] == RuleArgs(10, 20, 30, 0.1, 0.2).rule()
@@ -129,12 +130,17 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     # 'other:' entries belong to another scene; 'tiny:' ones to this one, named without the prefix
     assert [r["variant"] for r in rows] == ["engine defaults", "pixel_batches=2",
                                             "steps=10,lr=0.05,rule=0/360/60/0.2/0.05",
-                                            "recipe=staged,seg_samples=512,seg_steps=20", "steps=15,source=render"]
+                                            "recipe=staged,seg_samples=512,seg_steps=20", "steps=15,source=render",
+                                            "steps=15,source=render+original,changed_target=edited"]
     assert rows[2]["rule"]["s_min"] == 0.2 and rows[1]["rule"] == rows[0]["rule"] == BROAD.rule().to_dict()
-    assert [r["timing_warm"]["steps"] for r in rows] == [20, 20, 10, 20, 15]
+    assert [r["timing_warm"]["steps"] for r in rows] == [20, 20, 10, 20, 15, 15]
     # source=render: the rule on the edit view's render is the edited image, an exact target; no
     # original, so the engine finds the changed pixels against its render
     assert rows[4]["timing_warm"]["map_explained"] is None and rows[4]["timing_warm"]["changed_fraction"] < 1.0
+    # source=render+original: the render as the original, so the changed pixels are the rule's mask there
+    assert abs(rows[5]["timing_warm"]["changed_fraction"] - rows[0]["mask_fraction"]) < 0.5
+    for r in rows:  # the diffuse-only ceiling: a per-Gaussian recolour of the diffuse part alone
+        assert math.isfinite(r["diffuse_rule_propagation_psnr"]) and math.isfinite(r["diffuse_rule_miss_psnr"])
     assert rows[1]["timing_warm"]["pixel_batches"] == 2
     assert set(rows[0]["targets"]) == {"propagation>=35", "miss>=30", "leak>=30",
                                        "recolour within 0.5 dB of unedited", "edit <= 0.25 s warm"}
@@ -144,7 +150,10 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
             assert math.isfinite(r[k]), (r["variant"], k)
         assert 0.0 <= r["alpha_in_mask"] <= 1.0 and 0.0 <= r["alpha_out_mask"] <= 1.0
     # the variants are different fits: their figures differ from the defaults'
-    assert len({round(r["propagation_psnr"], 4) for r in rows}) == len(rows)
+    assert len({round(r["propagation_psnr"], 4) for r in rows[:5]}) == 5
+    # ... except render+original with the edited target: on a small edit the engine finds the same changed
+    # pixels against its render by itself, so it is the source=render fit
+    assert abs(rows[5]["propagation_psnr"] - rows[4]["propagation_psnr"]) < 1e-3
     assert (args.out / "tiny_view0.png").is_file() and (args.out / "tiny_edit.png").is_file()
     # the worst case row takes the engine defaults' rows only
     w = bench_edit.worst_case(rows + [{**rows[0], "variant": "x", "miss_psnr": -1.0}])

@@ -205,7 +205,7 @@ class Bench:
     def edited_image(self, rule: RecolorRule, source: str) -> torch.Tensor:
         if source == "photo":
             img = self.edit_photo
-        elif source == "render":
+        elif source in ("render", "render+original"):
             img = self.edit_base
         else:
             raise InputError(f"--edit-source must be 'photo' or 'render', got {source!r}")
@@ -214,8 +214,9 @@ class Bench:
     def original(self, source: str):
         """The unedited image the engine compares the edit with (only changed pixels are fitted to
         the edit): the photo for a photo edit; None for a render edit (the engine recognises an
-        edited render by itself)."""
-        return self.edit_photo if source == "photo" else None
+        edited render by itself); the render itself for ``render+original`` (a render edit whose
+        changed pixels the engine is told, however many)."""
+        return {"photo": self.edit_photo, "render+original": self.edit_base}.get(source)
 
     def fit(self, edited: torch.Tensor, steps: Optional[int], pixel_batches: Optional[int], repeats: int,
             original: Optional[torch.Tensor] = None, whole_image: bool = False, **config):
@@ -255,9 +256,15 @@ class Bench:
         if key not in self._reference:
             ref = render_view(self.scene, self.views[i], 0, colour_map=lambda c: recolor(c, rule)[0])["rgb"]
             ref = ref.clamp(0, 1)
+            # the same rule on the diffuse colours only, the specular part kept: the most that any
+            # edit of the diffuse colour (this method's) can reach
+            dif = render_view(self.scene, self.views[i], 0, diffuse_map=lambda c: recolor(c, rule)[0])["rgb"]
+            dif = dif.clamp(0, 1)
             self._reference[key] = {"per_gaussian_rule_propagation_psnr": psnr(ref, truth),
                                     "per_gaussian_rule_miss_psnr": psnr(ref, truth, mask),
-                                    "per_gaussian_rule_leak_psnr": psnr(ref, truth, ~mask)}
+                                    "per_gaussian_rule_leak_psnr": psnr(ref, truth, ~mask),
+                                    "diffuse_rule_propagation_psnr": psnr(dif, truth),
+                                    "diffuse_rule_miss_psnr": psnr(dif, truth, mask)}
         return self._reference[key]
 
     def _truth_figures(self, i: int, after: torch.Tensor, alpha: torch.Tensor) -> dict:

@@ -81,14 +81,17 @@ class FrozenScene:
 @torch.no_grad()
 def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional[EditStack] = None,
                 seg_index: Optional[int] = None, contrib: Optional[Contributions] = None,
-                colour_map: Optional[Callable[[Tensor], Tensor]] = None) -> dict[str, Tensor]:
+                colour_map: Optional[Callable[[Tensor], Tensor]] = None,
+                diffuse_map: Optional[Callable[[Tensor], Tensor]] = None) -> dict[str, Tensor]:
     """Render view ``view`` of ``cameras`` with the full (ungated) colour model through ``stack``:
     ``rgb`` [H,W,3] (``sigmoid(c_d'' + k c_s)``), ``diffuse`` (``sigmoid(c_d'')``), ``specular``
     (rgb - diffuse) and ``segmentation`` [H,W,1] (alpha of edit ``seg_index``, or the combined
     share of all enabled edits; zeros with no stack). ``contrib``: the view's contributions when
     the caller has them already (:meth:`FrozenScene.contributions` of the one-view camera).
     ``colour_map``: applied to each Gaussian's final colour [U,3] before ``rgb`` is composited
-    (e.g. a recolour rule per Gaussian instead of per pixel)."""
+    (e.g. a recolour rule per Gaussian instead of per pixel). ``diffuse_map``: applied to each
+    Gaussian's diffuse colour ``sigmoid(c_d'')`` [U,3], the specular part then added to its logit as
+    usual (what an edit of the diffuse colour alone can reach)."""
     cams = cameras.index(view).to(scene.device, torch.float32)
     if contrib is None:
         contrib = scene.contributions(cams, Request.whole_images(cams))
@@ -107,6 +110,8 @@ def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional
         if len(stack):
             seg = stack.segmentation(f, h2.float(), seg_index).float()
     bg = scene.background.to(scene.device, torch.float32)
+    if diffuse_map is not None:
+        c_d = torch.logit(diffuse_map(torch.sigmoid(c_d)).clamp(1e-6, 1.0 - 1e-6))
     colours = torch.sigmoid(c_d + k * c_s)
     rgb = composite(colours if colour_map is None else colour_map(colours), contrib, bg)[0]
     diff = composite(torch.sigmoid(c_d), contrib, bg)[0]
