@@ -137,3 +137,20 @@ def test_finer_levels_answer_only_where_the_coarse_level_is_not_one_change():
     assert float(one.float().mean()) > 0.97
     for a, b in zip(coarse.lookup(probe[one]), fine.lookup(probe[one])):
         torch.testing.assert_close(a, b, atol=0, rtol=0)
+
+
+def test_a_tolerance_admits_a_split_change_whose_spread_is_below_it():
+    """Pixels of one colour changed by +0.1 in red (60%) or kept (40%): the mean change 0.06 and the
+    spread 0.1 sqrt(0.24) = 0.049 exceed the relative test (a quarter of 0.06), so it is not one
+    change; with a tolerance of 0.06 it is, with 0.03 it is not."""
+    c = torch.tensor([[0.5, 0.3, 0.2]]).expand(1000, 3).clone()
+    edited = c.clone()
+    edited[:600, 0] += 0.1
+    change = fit_colour_change(c, edited)
+    delta, _, spread = change.lookup(c[:1])
+    assert abs(float(delta[0, 0]) - 0.06) < 1e-4 and abs(float(spread[0]) - 0.1 * 0.24 ** 0.5) < 1e-4
+    assert not bool(change.one_change(c[:1])[0])
+    for tol, one in ((0.06, True), (0.03, False)):
+        mapped, ok = change.apply_where_one_change(c[:1], torch.tensor([tol]))
+        assert bool(ok[0]) is one
+        torch.testing.assert_close(mapped, (c[:1] + delta).clamp(0, 1))

@@ -517,6 +517,30 @@ def test_map_fallback_change_gives_unexplained_pixels_the_render_plus_their_chan
         EditConfig(map_fallback="photo")  # type: ignore[arg-type]
 
 
+def test_map_gate_error_also_maps_where_the_spread_is_below_the_pixels_own_error(world):
+    """``map_gate="error"``: the map is trusted at more changed pixels than by its spread alone (those
+    whose spread is below their render-photo difference), and every pixel it adds gets the map's
+    target, the same as where both gates trust it."""
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    render = world["before"][EDIT_VIEW]["rgb"]
+    H, W = render.shape[:2]
+    g = torch.Generator().manual_seed(5)
+    photo = (render + 0.3 * torch.rand(H, W, 3, generator=g) - 0.15).clamp(0, 1)  # a poor reconstruction
+    edited, _ = recolor(photo, BLUE_TO_RED)
+    eng = {}
+    for gate in ("spread", "error"):
+        eng[gate] = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=0, pixel_batches=1, map_gate=gate),
+                               original=photo)
+    assert eng["error"].map_explained > eng["spread"].map_explained, (eng["error"].map_explained,
+                                                                      eng["spread"].map_explained)
+    t_s, t_e = (eng[k].batches[0].target.reshape(render.shape) for k in ("spread", "error"))
+    moved = (t_s - t_e).abs().amax(-1) > 0
+    assert bool(moved.any()) and bool(((t_s - edited).abs().amax(-1)[moved] == 0).all())  # the spread gate kept E there
+    with pytest.raises(ValueError, match="map_gate"):
+        EditConfig(map_gate="photo")  # type: ignore[arg-type]
+
+
 def test_staged_recipe_segments_first_and_its_edit_renders_what_it_fitted(world):
     """``recipe="staged"``: the segmentation is a classifier of the view's Gaussians, fixed while the
     layer trains; the saved edit's head gives the same alpha at render time, high on the Gaussians

@@ -121,10 +121,16 @@ class ColourChange:
         :data:`SPREAD_SHARE` of the mean change's largest channel)."""
         return self.apply_where_one_change(colours)[1]
 
-    def apply_where_one_change(self, colours: Float[Tensor, "N 3"]) -> tuple[Tensor, Tensor]:
-        """(:meth:`apply`, :meth:`one_change`) of ``colours`` from one lookup."""
+    def apply_where_one_change(self, colours: Float[Tensor, "N 3"],
+                               tolerance: Optional[Float[Tensor, "N"]] = None) -> tuple[Tensor, Tensor]:
+        """(:meth:`apply`, :meth:`one_change`) of ``colours`` from one lookup. ``tolerance`` (per
+        colour): also one change where the spread is at most this, however small the change (the
+        caller's error of the alternative to the map's change)."""
         delta, support, spread = self.lookup(colours)
-        return (colours + delta).clamp(0.0, 1.0), _one(delta, support, spread)
+        one = _one(delta, support, spread)
+        if tolerance is not None:
+            one = one | ((support >= MIN_SUPPORT) & (spread <= tolerance))
+        return (colours + delta).clamp(0.0, 1.0), one
 
     def apply(self, colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N 3"]:
         """``colours`` changed as the user changed such colours (clamped to [0, 1])."""

@@ -129,6 +129,12 @@ class EditConfig:
     that is not one change at the render's colour): ``edited``, the edited image's pixel (the
     default); ``change``, the current render plus that pixel's own change (edited - original,
     clamped), which keeps the model's reconstruction error out of the target there too."""
+    map_gate: Literal["spread", "error"] = "spread"
+    """``changed_target="map"``: where the map's change is trusted at a render colour: ``spread``
+    (the default), where the changes the user made near that colour are one change (their spread
+    within a quarter of the change); ``error``, also where that spread is below the pixel's own
+    render-photo difference (largest channel), the error the edited pixel would bring as its
+    target: small changes near a rule's threshold, refused by the relative test, then use the map."""
     whole_image: bool = False
     """Fit every pixel to the edited image (no original, no edited-render detection)."""
     map_init: bool = True
@@ -183,6 +189,8 @@ class EditConfig:
         if self.changed_target not in ("change", "transfer", "map", "edited"):
             raise ValueError(f"EditConfig.changed_target must be 'change', 'transfer', 'map' or 'edited', "
                              f"got {self.changed_target!r}")
+        if self.map_gate not in ("spread", "error"):
+            raise ValueError(f"EditConfig.map_gate must be 'spread' or 'error', got {self.map_gate!r}")
         if self.map_fallback not in ("edited", "change"):
             raise ValueError(f"EditConfig.map_fallback must be 'edited' or 'change', got {self.map_fallback!r}")
         if not 1 <= self.map_levels <= 3:
@@ -442,7 +450,8 @@ class EditEngine:
         ``map_fallback="change"`` the render plus that pixel's change."""
         change = fit_colour_change(original, edited, levels=self.cfg.map_levels)
         flat_o, flat_e, flat_r = original.reshape(-1, 3), edited.reshape(-1, 3), self.current.reshape(-1, 3)
-        mapped, one = change.apply_where_one_change(flat_r)
+        own = (flat_r - flat_o).abs().amax(-1) if self.cfg.map_gate == "error" else None
+        mapped, one = change.apply_where_one_change(flat_r, own)
         use = change.explains(flat_o, flat_e) & one
         self.map_explained = float(use[changed.reshape(-1)].float().mean())
         fallback = flat_e if self.cfg.map_fallback == "edited" else (flat_r + flat_e - flat_o).clamp(0.0, 1.0)
