@@ -467,8 +467,9 @@ def test_map_target_fits_the_render_changed_as_the_user_changed_its_colours(worl
     rule_on_render, _ = recolor(render, BLUE_TO_RED)
     miss, off = {}, {}
     for target in ("map", "edited"):
-        eng = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=60, pixel_batches=1, changed_target=target),
-                         original=photo)
+        # (the edited pixel where the map does not answer, so the mapped pixels are those that differ from it)
+        eng = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=60, pixel_batches=1, changed_target=target,
+                                                              map_fallback="edited"), original=photo)
         tgt = eng.batches[0].target.reshape(render.shape)
         off[target] = (tgt - rule_on_render).abs().amax(-1)[changed]
         if target == "map":
@@ -530,8 +531,8 @@ def test_map_gate_error_also_maps_where_the_spread_is_below_the_pixels_own_error
     edited, _ = recolor(photo, BLUE_TO_RED)
     eng = {}
     for gate in ("spread", "error"):
-        eng[gate] = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=0, pixel_batches=1, map_gate=gate),
-                               original=photo)
+        eng[gate] = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=0, pixel_batches=1, map_gate=gate,
+                                                                    map_fallback="edited"), original=photo)
     assert eng["error"].map_explained > eng["spread"].map_explained, (eng["error"].map_explained,
                                                                       eng["spread"].map_explained)
     t_s, t_e = (eng[k].batches[0].target.reshape(render.shape) for k in ("spread", "error"))

@@ -74,9 +74,9 @@ class Apply:
     map_levels: Literal[1, 2, 3] = 1
     """With ``--changed-target map``: grid levels of the colour map (3: finer grids answer near a
     rule's threshold, where a coarse cell mixes colours changed differently)."""
-    map_fallback: Literal["edited", "change"] = "edited"
+    map_fallback: Literal["change", "edited"] = "change"
     """With ``--changed-target map``: what a changed pixel the map does not explain is fitted to: the
-    edited image's pixel (``edited``) or the render plus that pixel's change (``change``)."""
+    render plus that pixel's change (``change``, the default) or the edited image's pixel (``edited``)."""
     recipe: Literal["joint", "staged"] = "joint"
     """``joint``: the segmentation and the new colour are fitted together (the paper's recipe);
     ``staged``: the segmentation first, from which Gaussians your change covers, so parts of another

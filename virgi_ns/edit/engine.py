@@ -124,11 +124,12 @@ class EditConfig:
     and 65: at each colour the coarsest level that is one change answers, so a colour that a coarse
     cell mixes with others changed differently, near a rule's threshold, can still use the map;
     :mod:`virgi_ns.edit.colour_change`). Selectable, not the default (bench/RESULTS.md, "Edit")."""
-    map_fallback: Literal["edited", "change"] = "edited"
+    map_fallback: Literal["edited", "change"] = "change"
     """``changed_target="map"``: the target of a changed pixel the colour map does not explain (or
-    that is not one change at the render's colour): ``edited``, the edited image's pixel (the
-    default); ``change``, the current render plus that pixel's own change (edited - original,
-    clamped), which keeps the model's reconstruction error out of the target there too."""
+    that is not one change at the render's colour): ``change`` (the default), the current render
+    plus that pixel's own change (edited - original, clamped), which keeps the model's
+    reconstruction error out of the target there too; ``edited``, the edited image's pixel. Chosen
+    on a fresh run set by a rule fixed before it ran (bench/RESULTS.md, "Edit")."""
     map_gate: Literal["spread", "error"] = "spread"
     """``changed_target="map"``: where the map's change is trusted at a render colour: ``spread``
     (the default), where the changes the user made near that colour are one change (their spread
