@@ -208,7 +208,7 @@ class Bench:
         elif source in ("render", "render+original"):
             img = self.edit_base
         else:
-            raise InputError(f"--edit-source must be 'photo' or 'render', got {source!r}")
+            raise InputError(f"--edit-source must be 'photo', 'render' or 'render+original', got {source!r}")
         return recolor(img, rule)[0]
 
     def original(self, source: str):

@@ -13,7 +13,8 @@ that pixel, so the photo's detail that the model never reproduced is not fitted 
 and a render pixel gets the change the user gave to its own colour (a blended edge of the render
 gets the change of a blended colour, not that of the sharp photo pixel behind it). Where an edit is
 not one function of colour (two objects of one colour changed differently, or one changed and one
-not) :meth:`ColourChange.explains` says so per pixel and the engine keeps the edited pixel itself.
+not) :meth:`ColourChange.explains` says so per pixel and the engine falls back to the render plus that
+pixel's own change (``EditConfig.map_fallback``).
 
 A map may have finer levels (``fit_colour_change(..., levels=3)``: grids of 17, 33 and 65 points):
 at each colour the coarsest level that has support and whose change is one change gives the change.

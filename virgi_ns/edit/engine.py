@@ -17,7 +17,8 @@ only a copy of the diffuse head and a segmentation head::
 ``I_target`` is the edited image. When the unedited image is known too (``original``: the
 training photo the user recoloured), only the pixels the user changed are fitted to the edit
 (by default to the current render changed as the user changed pixels of its colour,
-``changed_target="map"``; or to the edited image's own pixels, the paper's); every other pixel's
+``changed_target="map"``, and where that function does not answer to the render plus the pixel's own
+change; or to the edited image's own pixels, the paper's); every other pixel's
 target is the scene's current render there. Otherwise the edit would also
 "repair" the model's reconstruction error all over the view (the photo is not the render), and
 that repair would leak into every view. An edited *render* needs no original: most of its pixels
@@ -135,7 +136,8 @@ class EditConfig:
     (the default), where the changes the user made near that colour are one change (their spread
     within a quarter of the change); ``error``, also where that spread is below the pixel's own
     render-photo difference (largest channel), the error the edited pixel would bring as its
-    target: small changes near a rule's threshold, refused by the relative test, then use the map."""
+    target: small changes near a rule's threshold, refused by the relative test, then use the map.
+    Measured, not the default: it made cup worse (bench/RESULTS.md, "Edit")."""
     whole_image: bool = False
     """Fit every pixel to the edited image (no original, no edited-render detection)."""
     map_init: bool = True
