@@ -236,6 +236,12 @@ def _logit(x: Tensor, eps: float = 0.02) -> Tensor:
     return torch.logit(x.clamp(eps, 1.0 - eps))
 
 
+def _render_plus_change(render: Tensor, edited: Tensor, original: Tensor) -> Tensor:
+    """The render moved by the user's change of each pixel, ``edited - original`` (clamped to [0, 1]):
+    ``changed_target="change"``, and the colour map's ``map_fallback="change"``."""
+    return (render + (edited - original)).clamp(0.0, 1.0)
+
+
 def logit_colour_map(source: Float[Tensor, "N 3"], target: Float[Tensor, "N 3"], seed: int = 0,
                      max_pixels: int = 1 << 16, eps: float = 0.02, ridge: float = 0.05,
                      ridge_floor: float = 0.01) -> Float[Tensor, "3 4"]:
@@ -401,7 +407,7 @@ class EditEngine:
                     cfg.changed_target, ", edited image)"),
                 "selection": "changed pixels (a selection)"}.get(ref, "changed pixels (an edited render)")
             if ref == "original" and cfg.changed_target == "change":
-                edited = (current + (edited - original)).clamp(0.0, 1.0)
+                edited = _render_plus_change(current, edited, original)
             elif ref == "original" and cfg.changed_target == "transfer":
                 edited = torch.sigmoid(_logit(current) + _logit(edited) - _logit(original))
             elif ref == "original" and cfg.changed_target == "map":
@@ -457,7 +463,7 @@ class EditEngine:
         mapped, one = change.apply_where_one_change(flat_r, own)
         use = change.explains(flat_o, flat_e) & one
         self.map_explained = float(use[changed.reshape(-1)].float().mean())
-        fallback = flat_e if self.cfg.map_fallback == "edited" else (flat_r + flat_e - flat_o).clamp(0.0, 1.0)
+        fallback = flat_e if self.cfg.map_fallback == "edited" else _render_plus_change(flat_r, flat_e, flat_o)
         return torch.where(use[:, None], mapped, fallback).reshape(edited.shape)
 
     def retarget(self, edited: Float[Tensor, "H W 3"], changed: Optional[Tensor] = None,
