@@ -238,7 +238,7 @@ class EditCache:
         return self.p3k is None
 
 
-def gated_logits(gate: GateCache, edits: EditCache, centre: Tensor) -> Tensor:
+def colours_of_gated(gate: GateCache, edits: EditCache, centre: Tensor) -> Tensor:
     """[M,3] ``sigmoid(c_d'' + k c_s)`` of the gated Gaussians for a view from ``centre`` [1,3]."""
     d = view_directions(gate.means, centre)
     mono = direction_monomials(d, gate.degree)
@@ -251,7 +251,7 @@ def gated_colours(gate: GateCache, edits: EditCache, centre: Tensor) -> Tensor:
     """[N,3] colours for a view from camera centre ``centre`` [1,3]: the cached diffuse colours with
     the gated Gaussians' ``sigmoid(c_d'' + k c_s)`` written over them (the specification that
     :class:`ColourGraph` replays)."""
-    return edits.diffuse.index_copy(0, gate.index, gated_logits(gate, edits, centre))
+    return edits.diffuse.index_copy(0, gate.index, colours_of_gated(gate, edits, centre))
 
 
 class ColourGraph:
@@ -274,7 +274,7 @@ class ColourGraph:
             self._write(gate, edits)
 
     def _write(self, gate: GateCache, edits: EditCache) -> None:
-        self.out.index_copy_(0, gate.index, gated_logits(gate, edits, self.centre))
+        self.out.index_copy_(0, gate.index, colours_of_gated(gate, edits, self.centre))
 
     def __call__(self, centre: Tensor) -> Tensor:
         self.centre.copy_(centre)
@@ -553,4 +553,4 @@ class ViewOutputs(MutableMapping):
 
 
 __all__ = ["ColourGraph", "EditCache", "GateCache", "GeometryCache", "ModuleWatch", "RenderCache", "View", "ViewColours",
-           "ViewOutputs", "edited_diffuse", "gated_colours", "gated_logits", "stamp", "view_of"]
+           "ViewOutputs", "colours_of_gated", "edited_diffuse", "gated_colours", "stamp", "view_of"]
