@@ -92,6 +92,10 @@ class Args:
     """Also a pick on every scene (one click on the rule's object with the rule's colour, measured as
     the rule edit is, :mod:`virgi_ns.bench.pick`) and the viewer's pick latency on the synthetic
     1M-Gaussian scene at 1280x720 (drag to frame, release to frame)."""
+    dump_targets: bool = False
+    """Also write, per scene, the edit view's photo, render, rule-edited photo and rule-edited render
+    (the exact target) to ``SCENE_targets.npz`` (float16), so target builders can be compared offline
+    against the exact target on real renders."""
     merge: List[Path] = field(default_factory=list)
     """Print one table of these results.json files (no training, no GPU) and write it to --out."""
     synthetic_size: tuple[int, int, int, float] = SYNTHETIC_SIZE
@@ -232,6 +236,8 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
     b = Bench.load(pipeline, view, 0, capture=folder if scene.synthetic else None)
     edited = b.edited_image(scene.rule, "photo")
     original = b.original("photo")
+    if args.dump_targets:
+        dump_targets(args.out / f"{scene.name}_targets.npz", b, scene)
     b.scene.features = None
     edit, cold = b.fit(edited, args.steps, None, 1, original)
     _sync()
@@ -269,6 +275,16 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
     del b
     torch.cuda.empty_cache()
     return rows
+
+
+def dump_targets(path: Path, b: Bench, scene: EvalScene) -> None:
+    """The edit view's photo, render, and the scene's rule on each (float16 arrays, H x W x 3)."""
+    import numpy as np
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {"photo": b.edit_photo, "render": b.edit_base, "edited": b.edited_image(scene.rule, "photo"),
+              "exact": b.edited_image(scene.rule, "render")}
+    np.savez_compressed(path, **{k: v.detach().cpu().numpy().astype(np.float16) for k, v in arrays.items()})
 
 
 def bench_pick(args: Args, scene: EvalScene, b: Bench, rule_propagation: float) -> dict:

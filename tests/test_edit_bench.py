@@ -100,7 +100,7 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     cfg.write_text("unused")
     scene = EvalScene("tiny", "tiny", BROAD.rule(), "every saturated pixel")
     args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1,
-                           pictures=1, pick=True,
+                           pictures=1, pick=True, dump_targets=True,
                            variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05", "other:steps=5",
                                      "tiny:recipe=staged,seg_samples=512,seg_steps=20", "steps=15,source=render",
                                      "steps=15,source=render+original,changed_target=edited"])
@@ -127,6 +127,16 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
 
     counts = [int(rule_mask(p, scene.rule).sum()) for p in photos]
     assert counts[rows[0]["edit_view"]] == max(counts)
+    # --dump-targets: the edit view's photo and render, and the rule on each (float16)
+    import numpy as np
+    from virgi_ns.edit.recolor import recolor
+
+    dumped = np.load(tmp_path / "out" / "tiny_targets.npz")
+    photo = photos[rows[0]["edit_view"]].numpy()
+    assert np.abs(dumped["photo"] - photo).max() < 1e-3
+    for source, result in (("photo", "edited"), ("render", "exact")):
+        expect = recolor(torch.from_numpy(dumped[source].astype(np.float32)), scene.rule)[0].numpy()
+        assert np.abs(dumped[result] - expect).max() < 2e-3 and np.abs(dumped[result] - dumped[source]).max() > 0.05
     # 'other:' entries belong to another scene; 'tiny:' ones to this one, named without the prefix
     assert [r["variant"] for r in rows] == ["engine defaults", "pixel_batches=2",
                                             "steps=10,lr=0.05,rule=0/360/60/0.2/0.05",
