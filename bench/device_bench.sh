@@ -57,7 +57,9 @@ if stage edit; then
     --train-out $RUNS/edit_runs --seed ${SEED:-42} --geometry-steps $STEPS --colour-steps ${EDIT_COLOUR_STEPS:-1000} \
     --out $RUNS/edit ${EDIT_ARGS:-} > $OUT/edit.log 2>&1; el "edit rc=$?"
   tail -n 60 $OUT/edit.log
-  (cd $RUNS/edit && tar czf $OUT/edit_results.tgz *.json *.png $(ls *.npz 2>/dev/null)) 2>/dev/null
+  (cd $RUNS/edit && tar czf $OUT/edit_results.tgz *.json *.png) 2>/dev/null
+  # --dump-targets arrays, apart (they would take the results archive over the size that comes back)
+  (cd $RUNS/edit && ls *.npz > /dev/null 2>&1 && tar cf $OUT/edit_targets.tar *.npz)
 fi
 if stage export; then
   el "export bench"

@@ -192,6 +192,16 @@ def run_config(args: Args, scene: EvalScene, folder: Path) -> Path:
     return Path(c.get_base_dir()) / "config.yml"
 
 
+def engine_defaults() -> dict:
+    """The EditConfig defaults of this call: what "engine defaults" meant when the row was measured
+    (a merged table may join calls made before and after a default changed)."""
+    from dataclasses import asdict
+
+    from virgi_ns.edit.engine import EditConfig
+
+    return asdict(EditConfig())
+
+
 def _safe(text: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "._" else "_" for ch in text)
 
@@ -254,7 +264,7 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
     base = {"scene": scene.name, "capture": scene.capture, "synthetic": scene.synthetic is not None,
             "seed": args.seed, "train_settings": args.train_settings, "config": str(cfg), "gaussians": int(b.scene.means.shape[0]), "edit_view": view,
             "image": f"{int(b.edit_camera.widths[0])}x{int(b.edit_camera.heights[0])}", "rule": scene.rule.to_dict(),
-            "why": scene.why, "feature_cache_s": cache_s}
+            "why": scene.why, "feature_cache_s": cache_s, "engine_defaults": engine_defaults()}
     rows = [{**base, "variant": "engine defaults", **res["mean"], "timing_cold": cold, "timing_warm": warm,
              "per_view": res["views"], "targets": targets(res["mean"], warm["total_s"], scene.synthetic is not None)}]
     if args.pick:

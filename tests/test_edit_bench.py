@@ -119,6 +119,10 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
             bench_edit.check_variant(bad, ["tiny"])
     rows = bench_edit.bench_scene(args, scene, {})
     assert loads == [cfg]
+    # each row says what the engine's defaults were in this call
+    from virgi_ns.edit.engine import EditConfig
+
+    assert rows[0]["engine_defaults"]["changed_target"] == EditConfig().changed_target
     # the edited photo is the training photo the rule recolours most
     train = pipeline.datamanager.train_dataset
     photos = [train.get_image_float32(i)[..., :3] for i in range(len(train))]
