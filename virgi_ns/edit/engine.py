@@ -103,8 +103,13 @@ class EditConfig:
     """With an ``original`` image: the share of the loss carried by the changed pixels (the rest by
     the unchanged ones), whatever their numbers; a small edit would otherwise be outvoted by the
     many pixels asking for no change."""
-    changed_target: Literal["change", "transfer", "map", "edited"] = "map"
+    changed_target: Literal["change", "transfer", "map", "affine", "edited"] = "map"
     """What the changed pixels are fitted to when the unedited image is a photo (``original``):
+    ``affine``: the edited pixel moved by the model's reconstruction error there, as the user's
+    change would move it: ``edited + J (render - original)``, with ``J`` the slope of the best affine
+    fit of the edited colours to the original ones over all changed pixels (:func:`change_slope`);
+    exact for a change that is affine in colour (a hue shift of 120 degrees permutes the channels),
+    first order for any other;
     ``change``: the current render plus the change the user made (edited - original, clamped to
     [0, 1]), so the photo's detail the model never reproduced is not fitted as part of the edit;
     ``transfer``: the same change as a shift of logits, ``sigmoid(logit(render) + logit(edited) -
@@ -189,8 +194,8 @@ class EditConfig:
 
     def check(self) -> None:
         """Refuse values no edit can run with (also called by the engine: fields may be set later)."""
-        if self.changed_target not in ("change", "transfer", "map", "edited"):
-            raise ValueError(f"EditConfig.changed_target must be 'change', 'transfer', 'map' or 'edited', "
+        if self.changed_target not in ("change", "transfer", "map", "affine", "edited"):
+            raise ValueError(f"EditConfig.changed_target must be 'change', 'transfer', 'map', 'affine' or 'edited', "
                              f"got {self.changed_target!r}")
         if self.map_gate not in ("spread", "error"):
             raise ValueError(f"EditConfig.map_gate must be 'spread' or 'error', got {self.map_gate!r}")
@@ -240,6 +245,24 @@ def _render_plus_change(render: Tensor, edited: Tensor, original: Tensor) -> Ten
     """The render moved by the user's change of each pixel, ``edited - original`` (clamped to [0, 1]):
     ``changed_target="change"``, and the colour map's ``map_fallback="change"``."""
     return (render + (edited - original)).clamp(0.0, 1.0)
+
+
+SLOPE_RIDGE = (1.0 / 255.0) ** 2
+"""Ridge of :func:`change_slope`: along a direction of colour in which the changed pixels vary by less
+than one 8-bit level the photo says nothing of how the change varies, so the slope there stays 0
+(no correction: the render plus the pixel's own change)."""
+
+
+def change_slope(original: Float[Tensor, "N 3"], edited: Float[Tensor, "N 3"]) -> Float[Tensor, "3 3"]:
+    """``J``, the slope of the best affine fit ``edited ~ J original + b`` over these pixels (least
+    squares, the slope's excess over identity ridged by :data:`SLOPE_RIDGE`): how the user's change
+    moves with the colour it starts from."""
+    o = original.reshape(-1, 3).double()
+    d = edited.reshape(-1, 3).double() - o
+    o, d = o - o.mean(0), d - d.mean(0)
+    cov = o.T @ o / o.shape[0] + SLOPE_RIDGE * torch.eye(3, dtype=o.dtype, device=o.device)
+    excess = torch.linalg.solve(cov, o.T @ d / o.shape[0]).T
+    return (torch.eye(3, dtype=o.dtype, device=o.device) + excess).to(original.dtype)
 
 
 def logit_colour_map(source: Float[Tensor, "N 3"], target: Float[Tensor, "N 3"], seed: int = 0,
@@ -402,6 +425,7 @@ class EditEngine:
                                  f"the edited image does not differ from the {ref}: nothing to edit")
             self.mode = {"original": "changed pixels (original given" + {
                 "change": ", render + change)", "transfer": ", render + logit change)",
+                "affine": ", edited + its slope x (render - photo))",
                 "map": ", render + colour map of the change" + (
                     ", else render + change)" if cfg.map_fallback == "change" else ")")}.get(
                     cfg.changed_target, ", edited image)"),
@@ -412,6 +436,10 @@ class EditEngine:
                 edited = torch.sigmoid(_logit(current) + _logit(edited) - _logit(original))
             elif ref == "original" and cfg.changed_target == "map":
                 edited = self._mapped_target(edited, original, changed)
+            elif ref == "original" and cfg.changed_target == "affine":
+                on = changed[..., 0]
+                slope = change_slope(original[on], edited[on])
+                edited = (edited + (current - original) @ slope.T).clamp(0.0, 1.0)
             edited = torch.where(changed, edited, current)
             self.changed_fraction = float(changed.float().mean())
         flat = None if changed is None else changed.reshape(-1)
