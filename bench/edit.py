@@ -202,6 +202,28 @@ def engine_defaults() -> dict:
     return asdict(EditConfig())
 
 
+def label_against_today(row: dict) -> str:
+    """The row's variant named against today's EditConfig defaults, from the defaults its call
+    recorded (``engine_defaults``): a row whose settings are today's defaults is "engine defaults",
+    any other is named by the fields that differ (and its rule or source). Rows of calls that
+    recorded no defaults keep their label."""
+    recorded = row.get("engine_defaults")
+    if recorded is None:
+        return row["variant"]
+    today = engine_defaults()
+    settings = dict(recorded)
+    extra = []
+    if row["variant"] != "engine defaults":
+        for key, value in split_settings(row["variant"], "variant"):
+            key = key.replace("-", "_")
+            if key in ("rule", "source") or key not in today:
+                extra.append(f"{key}={value}")
+            else:
+                settings[key] = typed_like(today[key], value, key, "variant")
+    differ = [f"{k}={v}" for k, v in settings.items() if k in today and today[k] != v]
+    return ",".join(differ + extra) or "engine defaults"
+
+
 def _safe(text: str) -> str:
     return "".join(ch if ch.isalnum() or ch in "._" else "_" for ch in text)
 
@@ -496,7 +518,8 @@ def _write(path: Path, result: dict) -> None:
 
 
 def merged(paths: List[Path]) -> dict:
-    """One result of several calls' results.json (rows concatenated; devices and commits listed)."""
+    """One result of several calls' results.json (rows concatenated; devices and commits listed;
+    variants named against today's defaults, :func:`label_against_today`)."""
     from virgi_ns.bench.pick import pick_passes
 
     rows, devices, commits, latencies = [], [], [], []
@@ -509,6 +532,7 @@ def merged(paths: List[Path]) -> dict:
             raise InputError(f"--merge: {p} is not a bench/edit.py result")
         for row in r["scenes"]:  # judged again: the targets may have been refined since the call
             row["targets"] = targets(row, row["timing_warm"]["total_s"], row["synthetic"])
+            row["variant"] = label_against_today(row)  # a default may have changed since the call
             if "difference_db" in row.get("pick", {}):
                 row["pick"]["pass"] = pick_passes(row["pick"])
         rows += r["scenes"]

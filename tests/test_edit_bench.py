@@ -199,6 +199,17 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     bench_edit.print_pick(m["scenes"], m["pick_latencies"])
     with pytest.raises(InputError, match="--merge"):
         bench_edit.merged([tmp_path / "missing.json"])
+    # a call made while another default held: its rows are named against today's defaults
+    then = {**rows[0]["engine_defaults"], "changed_target": "affine"}
+    old = [{**rows[0], "engine_defaults": then}, {**rows[1], "engine_defaults": then, "variant": "changed_target=map"},
+           {**rows[4], "engine_defaults": then}]
+    (tmp_path / "c.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": old}, default=float))
+    today = EditConfig().changed_target
+    m = bench_edit.merged([tmp_path / "c.json"])
+    assert [r["variant"] for r in m["scenes"]] == [
+        "engine defaults" if today == "affine" else "changed_target=affine",
+        "engine defaults" if today == "map" else "changed_target=map",
+        "steps=15," + ("" if today == "affine" else "changed_target=affine,") + "source=render"]
 
 
 def _check_pick(rows, pipeline, rule, picture_png):
