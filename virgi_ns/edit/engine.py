@@ -265,6 +265,34 @@ def change_slope(original: Float[Tensor, "N 3"], edited: Float[Tensor, "N 3"]) -
     return (torch.eye(3, dtype=o.dtype, device=o.device) + excess).to(original.dtype)
 
 
+def changed_pixels_target(cfg: EditConfig, render: Float[Tensor, "H W 3"], edited: Float[Tensor, "H W 3"],
+                          original: Float[Tensor, "H W 3"], changed: Tensor) -> tuple[Tensor, Optional[float]]:
+    """What the pixels a user changed in a photo (``original`` -> ``edited``; ``changed`` [H,W]) are
+    fitted to, by ``cfg.changed_target`` (:class:`EditConfig`), as an image (read on the changed
+    pixels only); and, for ``map``, the share of changed pixels the colour map answered."""
+    kind = cfg.changed_target
+    if kind == "change":
+        return _render_plus_change(render, edited, original), None
+    if kind == "transfer":
+        return torch.sigmoid(_logit(render) + _logit(edited) - _logit(original)), None
+    if kind == "affine":
+        slope = change_slope(original[changed], edited[changed])
+        return (edited + (render - original) @ slope.T).clamp(0.0, 1.0), None
+    if kind == "map":
+        # the render changed by the colour map of the user's change where the map explains that
+        # pixel's change and is one change at the render's colour (virgi_ns.edit.colour_change);
+        # elsewhere the edited pixel, or with map_fallback="change" the render plus that pixel's change
+        change = fit_colour_change(original, edited, levels=cfg.map_levels)
+        flat_o, flat_e, flat_r = original.reshape(-1, 3), edited.reshape(-1, 3), render.reshape(-1, 3)
+        own = (flat_r - flat_o).abs().amax(-1) if cfg.map_gate == "error" else None
+        mapped, one = change.apply_where_one_change(flat_r, own)
+        use = change.explains(flat_o, flat_e) & one
+        fallback = flat_e if cfg.map_fallback == "edited" else _render_plus_change(flat_r, flat_e, flat_o)
+        target = torch.where(use[:, None], mapped, fallback).reshape(edited.shape)
+        return target, float(use[changed.reshape(-1)].float().mean())
+    return edited, None
+
+
 def logit_colour_map(source: Float[Tensor, "N 3"], target: Float[Tensor, "N 3"], seed: int = 0,
                      max_pixels: int = 1 << 16, eps: float = 0.02, ridge: float = 0.05,
                      ridge_floor: float = 0.01) -> Float[Tensor, "3 4"]:
@@ -430,16 +458,8 @@ class EditEngine:
                     ", else render + change)" if cfg.map_fallback == "change" else ")")}.get(
                     cfg.changed_target, ", edited image)"),
                 "selection": "changed pixels (a selection)"}.get(ref, "changed pixels (an edited render)")
-            if ref == "original" and cfg.changed_target == "change":
-                edited = _render_plus_change(current, edited, original)
-            elif ref == "original" and cfg.changed_target == "transfer":
-                edited = torch.sigmoid(_logit(current) + _logit(edited) - _logit(original))
-            elif ref == "original" and cfg.changed_target == "map":
-                edited = self._mapped_target(edited, original, changed)
-            elif ref == "original" and cfg.changed_target == "affine":
-                on = changed[..., 0]
-                slope = change_slope(original[on], edited[on])
-                edited = (edited + (current - original) @ slope.T).clamp(0.0, 1.0)
+            if ref == "original":
+                edited, self.map_explained = changed_pixels_target(cfg, current, edited, original, changed[..., 0])
             edited = torch.where(changed, edited, current)
             self.changed_fraction = float(changed.float().mean())
         flat = None if changed is None else changed.reshape(-1)
@@ -479,20 +499,6 @@ class EditEngine:
         trainable = [self.weight, self.bias] + ([] if staged else list(self.seg.parameters()))
         on_gpu = self.scene.device.type == "cuda"
         self.opt = torch.optim.Adam(trainable, lr=cfg.lr, fused=on_gpu, capturable=on_gpu)
-
-    def _mapped_target(self, edited: Tensor, original: Tensor, changed: Tensor) -> Tensor:
-        """``changed_target="map"``: the render changed by the colour map of the user's change
-        where the map explains that pixel's change and is one change at the render's colour
-        (:mod:`virgi_ns.edit.colour_change`); elsewhere the edited pixel, or with
-        ``map_fallback="change"`` the render plus that pixel's change."""
-        change = fit_colour_change(original, edited, levels=self.cfg.map_levels)
-        flat_o, flat_e, flat_r = original.reshape(-1, 3), edited.reshape(-1, 3), self.current.reshape(-1, 3)
-        own = (flat_r - flat_o).abs().amax(-1) if self.cfg.map_gate == "error" else None
-        mapped, one = change.apply_where_one_change(flat_r, own)
-        use = change.explains(flat_o, flat_e) & one
-        self.map_explained = float(use[changed.reshape(-1)].float().mean())
-        fallback = flat_e if self.cfg.map_fallback == "edited" else _render_plus_change(flat_r, flat_e, flat_o)
-        return torch.where(use[:, None], mapped, fallback).reshape(edited.shape)
 
     def retarget(self, edited: Float[Tensor, "H W 3"], changed: Optional[Tensor] = None,
                  original: Optional[Float[Tensor, "H W 3"]] = None, seg_steps: Optional[int] = None) -> None:
@@ -647,4 +653,4 @@ class EditEngine:
         return {"rgb": composite(C, self.contrib, bg)[0], "alpha": composite(alpha, self.contrib)[0]}
 
 
-__all__ = ["EditConfig", "EditEngine", "EditTiming", "logit_colour_map"]
+__all__ = ["EditConfig", "EditEngine", "EditTiming", "change_slope", "changed_pixels_target", "logit_colour_map"]
