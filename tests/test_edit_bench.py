@@ -212,6 +212,31 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
         "steps=15," + ("" if today == "affine" else "changed_target=affine,") + "source=render"]
 
 
+def test_edit_bench_takes_each_figure_as_the_median_over_edit_seeds(pipeline, bench_edit, tmp_path, monkeypatch):
+    """``--edit-seeds 3``: each row's figures are the median of three fits with seeds 0, 1, 2 (listed
+    in ``per_seed``, seed 0's first, the seeds giving different edits), and the targets are judged on
+    the medians; a variant's row too."""
+    import statistics
+
+    from virgi_ns.bench.evalset import EvalScene
+
+    import virgi_ns.cli.edit as cli_edit
+
+    monkeypatch.setattr(cli_edit, "load_run", lambda cfg: (None, pipeline))
+    (tmp_path / "data" / "tiny").mkdir(parents=True)
+    scene = EvalScene("tiny", "tiny", BROAD.rule(), "every saturated pixel")
+    args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": tmp_path / "config.yml"}, out=tmp_path / "out",
+                           steps=10, repeats=1, pictures=0, edit_seeds=3, variants=["changed_target=edited"])
+    rows = bench_edit.bench_scene(args, scene, {})
+    for row in rows:
+        seeds = row["per_seed"]
+        assert len(seeds) == 3 and len({s["propagation_psnr"] for s in seeds}) == 3
+        for key in ("propagation_psnr", "miss_psnr", "leak_psnr", "recolour_psnr"):
+            assert row[key] == pytest.approx(statistics.median(s[key] for s in seeds))
+        assert row["targets"] == bench_edit.targets(row, row["timing_warm"]["total_s"], False)
+    assert rows[0]["per_seed"][1] != rows[1]["per_seed"][1]
+
+
 def _check_pick(rows, pipeline, rule, picture_png):
     """The pick beside the engine defaults: the click inside the rule's mask on the edit view's
     render, the rule's colour there, IoU and selection share as the saved selection and mask give
