@@ -405,8 +405,8 @@ def test_changed_pixels_target_the_render_plus_the_change(world):
     pixels (``changed_target="edited"``, the paper's) or the current render plus the user's change
     (``"change"``). With a photo uniformly brighter than the render, "change" keeps the brightness
     error out of the recoloured object in the other views; "edited" carries it along. (The default
-    is "map", tested below.)"""
-    assert EditConfig().changed_target == "map"
+    is "affine", tested below.)"""
+    assert EditConfig().changed_target == "affine"
     S = world["S"]
     cam = S.cameras.index(EDIT_VIEW)
     render = world["before"][EDIT_VIEW]["rgb"]
@@ -555,8 +555,8 @@ def test_map_fallback_change_gives_unexplained_pixels_the_render_plus_their_chan
     edited[: H // 3, : W // 3] = torch.rand(H // 3, W // 3, 3, generator=g)  # not one function of colour
     targets = {}
     for fallback in ("edited", "change"):
-        eng = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=0, pixel_batches=1, map_fallback=fallback),
-                         original=photo)
+        cfg = EditConfig(steps=0, pixel_batches=1, changed_target="map", map_fallback=fallback)
+        eng = EditEngine(S.scene, cam, edited, cfg=cfg, original=photo)
         targets[fallback] = eng.batches[0].target.reshape(render.shape)
     default, candidate = targets["edited"], targets["change"]
     changed = (edited - photo).abs().amax(-1) > EditConfig().unchanged_tol
@@ -582,8 +582,8 @@ def test_map_gate_error_also_maps_where_the_spread_is_below_the_pixels_own_error
     edited, _ = recolor(photo, BLUE_TO_RED)
     eng = {}
     for gate in ("spread", "error"):
-        eng[gate] = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=0, pixel_batches=1, map_gate=gate,
-                                                                    map_fallback="edited"), original=photo)
+        cfg = EditConfig(steps=0, pixel_batches=1, changed_target="map", map_gate=gate, map_fallback="edited")
+        eng[gate] = EditEngine(S.scene, cam, edited, cfg=cfg, original=photo)
     assert eng["error"].map_explained > eng["spread"].map_explained, (eng["error"].map_explained,
                                                                       eng["spread"].map_explained)
     t_s, t_e = (eng[k].batches[0].target.reshape(render.shape) for k in ("spread", "error"))

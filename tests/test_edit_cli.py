@@ -200,13 +200,13 @@ def test_original_image_limits_the_fit_to_changed_pixels(saved, tmp_path):
     try:
         first = run(_apply(saved, original=orig), _quiet(), pl)
         run(_apply(saved, whole_image=True), _quiet(), pl)
-        assert "colour map of the change, else render + change)" in first, first
+        assert "edited + its slope x (render - photo))" in first, first
         st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
         fr = [e.edit.info["changed_fraction"] for e in st.entries]
         assert abs(fr[0] - float(mask.float().mean())) < 0.03 and fr[0] < 0.9, fr
         assert fr[1] == 1.0
         run(Reset(saved["config"]), _quiet(), pl)  # the next edit starts from the unedited render again
-        msg = run(_apply(saved, original=orig, map_fallback="edited"), _quiet(), pl)
+        msg = run(_apply(saved, original=orig, changed_target="map", map_fallback="edited"), _quiet(), pl)
         assert msg.count("colour map of the change)") == 1 and "else render" not in msg, msg
         run(Reset(saved["config"]), _quiet(), pl)
         msg = run(_apply(saved, original=orig, changed_target="change"), _quiet(), pl)

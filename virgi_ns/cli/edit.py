@@ -64,14 +64,13 @@ class Apply:
     the edit left unchanged keep the scene's current colours instead of being fitted to the image."""
     whole_image: bool = False
     """Fit every pixel of the edited image, also those equal to the original."""
-    changed_target: Literal["map", "affine", "change", "transfer", "edited"] = "map"
-    """With an original photo: fit the changed pixels to the render changed as you changed pixels of
-    its colour (``map``, the default: the photo's detail the model never reproduced stays out of the
-    edit), to the edited pixel moved by the render's error as your change would move it (``affine``:
-    your change fitted as an affine function of colour), to the edited image's own pixels (``edited``, the paper's), to the render plus your change (``change``: helps when the photo is uniformly
-    brighter or darker than the render) or to the render moved by your change in logits
-    (``transfer``: helps when the edit covers most of the view). No effect with --whole-image or for
-    an edited render."""
+    changed_target: Literal["affine", "map", "change", "transfer", "edited"] = "affine"
+    """With an original photo: fit the changed pixels to your pixels moved by the render's error as
+    your change moves colours (``affine``, the default: your change fitted as an affine function of
+    colour, so the photo's detail the model never reproduced stays out of the edit), to the render
+    changed as you changed pixels of its colour (``map``), to the edited image's own pixels
+    (``edited``, the paper's), to the render plus your change (``change``) or to the render moved by
+    your change in logits (``transfer``). No effect with --whole-image or for an edited render."""
     map_levels: Literal[1, 2, 3] = 1
     """With ``--changed-target map``: grid levels of the colour map (3: finer grids answer near a
     rule's threshold, where a coarse cell mixes colours changed differently)."""

@@ -16,9 +16,9 @@ only a copy of the diffuse head and a segmentation head::
 
 ``I_target`` is the edited image. When the unedited image is known too (``original``: the
 training photo the user recoloured), only the pixels the user changed are fitted to the edit
-(by default to the current render changed as the user changed pixels of its colour,
-``changed_target="map"``, and where that function does not answer to the render plus the pixel's own
-change; or to the edited image's own pixels, the paper's); every other pixel's
+(by default to the edited pixel moved by the model's reconstruction error there as the user's change
+moves colours, ``changed_target="affine"``; or to the edited image's own pixels, the paper's);
+every other pixel's
 target is the scene's current render there. Otherwise the edit would also
 "repair" the model's reconstruction error all over the view (the photo is not the render), and
 that repair would leak into every view. An edited *render* needs no original: most of its pixels
@@ -103,23 +103,23 @@ class EditConfig:
     """With an ``original`` image: the share of the loss carried by the changed pixels (the rest by
     the unchanged ones), whatever their numbers; a small edit would otherwise be outvoted by the
     many pixels asking for no change."""
-    changed_target: Literal["change", "transfer", "map", "affine", "edited"] = "map"
+    changed_target: Literal["change", "transfer", "map", "affine", "edited"] = "affine"
     """What the changed pixels are fitted to when the unedited image is a photo (``original``):
-    ``affine``: the edited pixel moved by the model's reconstruction error there, as the user's
-    change would move it: ``edited + J (render - original)``, with ``J`` the slope of the best affine
-    fit of the edited colours to the original ones over all changed pixels (:func:`change_slope`);
-    exact for a change that is affine in colour (a hue shift of 120 degrees permutes the channels),
-    first order for any other;
+    ``affine`` (the default): the edited pixel moved by the model's reconstruction error there, as
+    the user's change would move it: ``edited + J (render - original)``, with ``J`` the slope of the
+    best affine fit of the edited colours to the original ones over all changed pixels
+    (:func:`change_slope`); exact for a change that is affine in colour (a hue shift of 120 degrees
+    permutes the channels), first order for any other; chosen over ``map`` on two fresh run sets
+    by a rule fixed before they ran (bench/RESULTS.md, "Edit");
     ``change``: the current render plus the change the user made (edited - original, clamped to
     [0, 1]), so the photo's detail the model never reproduced is not fitted as part of the edit;
     ``transfer``: the same change as a shift of logits, ``sigmoid(logit(render) + logit(edited) -
     logit(original))`` (colours clamped to [0.02, 0.98]), which keeps the render's colour where the
     change saturates;
-    ``map`` (the default): the render changed as the user changed pixels of the same colour in the
-    photo (the change learnt as a function of colour, :mod:`virgi_ns.edit.colour_change`), on the
-    changed pixels that function explains; the others keep the edited image's pixel; on the
-    evaluation set's fresh runs it meets every target on more scenes than ``edited``
-    (bench/RESULTS.md, "Edit");
+    ``map`` (the previous default): the render changed as the user changed pixels of the same colour
+    in the photo (the change learnt as a function of colour, :mod:`virgi_ns.edit.colour_change`), on
+    the changed pixels that function explains; the others as ``map_fallback`` says; its grid's
+    interpolation error is larger than a small reconstruction error (bench/RESULTS.md, "Edit");
     ``edited``: the edited image itself (the paper's: the photo's detail the model never reproduced
     goes into the edit; with ``change`` the photo's colour delta lands on the render's base colour
     where the two differ; ``transfer`` helps the edits that cover most of the view and loses on
