@@ -452,16 +452,21 @@ def test_transfer_target_moves_the_render_by_the_change_in_logits(world):
     torch.testing.assert_close(eng.batches[0].target.reshape(render.shape), expected, atol=2e-5, rtol=0)
 
 
+def _checkered_photo(world):
+    """(scene, edit camera, its render, a photo: the render with a checkerboard of +-0.08 the model
+    never reproduced)."""
+    S = world["S"]
+    render = world["before"][EDIT_VIEW]["rgb"]
+    H, W = render.shape[:2]
+    checker = ((torch.arange(H)[:, None] + torch.arange(W)[None, :]) % 2).float()[..., None] * 0.16 - 0.08
+    return S, S.cameras.index(EDIT_VIEW), render, (render + checker).clamp(0, 1)
+
+
 def test_map_target_fits_the_render_changed_as_the_user_changed_its_colours(world):
     """``changed_target="map"``: with a photo that carries detail the model never reproduced (a
     checkerboard of +-0.08), the changed pixels' targets are close to the rule applied to the render
     itself (not to the photo), and the held-out views' miss is below that of the edited photo's pixels."""
-    S = world["S"]
-    cam = S.cameras.index(EDIT_VIEW)
-    render = world["before"][EDIT_VIEW]["rgb"]
-    H, W = render.shape[:2]
-    checker = ((torch.arange(H)[:, None] + torch.arange(W)[None, :]) % 2).float()[..., None] * 0.16 - 0.08
-    photo = (render + checker).clamp(0, 1)
+    S, cam, render, photo = _checkered_photo(world)
     edited, _ = recolor(photo, BLUE_TO_RED)
     changed = (edited - photo).abs().amax(-1) > EditConfig().unchanged_tol
     rule_on_render, _ = recolor(render, BLUE_TO_RED)
@@ -509,13 +514,9 @@ def test_affine_target_is_the_rule_on_the_render_for_a_channel_permuting_edit(wo
     pixel moved by the slope of the user's change times (render - photo) is the rule applied to the
     render itself, although the photo carries a checkerboard of +-0.08 the model never reproduced;
     held out, the edit misses the truth by less than one fitted to the edited photo's pixels."""
-    S = world["S"]
-    cam = S.cameras.index(EDIT_VIEW)
-    render = world["before"][EDIT_VIEW]["rgb"]
-    H, W = render.shape[:2]
-    checker = ((torch.arange(H)[:, None] + torch.arange(W)[None, :]) % 2).float()[..., None] * 0.16 - 0.08
-    photo = (render + checker).clamp(0, 1)
-    rule = RecolorRule(h0=BLUE_TO_RED.h0, h1=BLUE_TO_RED.h1, shift=120, s_min=BLUE_TO_RED.s_min, v_min=BLUE_TO_RED.v_min)
+    S, cam, render, photo = _checkered_photo(world)
+    rule = RecolorRule(h0=BLUE_TO_RED.h0, h1=BLUE_TO_RED.h1, shift=120, s_min=BLUE_TO_RED.s_min,
+                       v_min=BLUE_TO_RED.v_min)
     edited, in_photo = recolor(photo, rule)
     rule_on_render, in_render = recolor(render, rule)
     miss = {}
