@@ -497,7 +497,8 @@ def test_map_target_fits_the_render_changed_as_the_user_changed_its_colours(worl
 
 def test_change_slope_recovers_an_affine_change_and_leaves_unvaried_directions_alone():
     """:func:`change_slope`: for edited colours that are an affine function of the originals, the
-    function's matrix; where the originals do not vary (one colour), identity (no correction)."""
+    function's matrix; where the originals do not vary (one colour), identity (no correction); for
+    a change that is no function of colour, the slope shrunk by the little its fit explains."""
     from virgi_ns.edit.engine import change_slope
 
     g = torch.Generator().manual_seed(3)
@@ -507,6 +508,13 @@ def test_change_slope_recovers_an_affine_change_and_leaves_unvaried_directions_a
     torch.testing.assert_close(change_slope(original, edited), matrix, atol=2e-3, rtol=0)
     flat = torch.tensor([[0.3, 0.5, 0.7]]).repeat(50, 1)
     torch.testing.assert_close(change_slope(flat, flat @ matrix.T), torch.eye(3), atol=1e-6, rtol=0)
+    # a change that is no function of colour (paint strokes of random colours): no slope, although
+    # with few pixels the colours correlate with it by chance
+    strokes = torch.rand(40, 3, generator=g)
+    some = original[:40] * 0.05 + 0.4  # colours varying little, as over a flat region
+    unscaled = torch.linalg.lstsq(torch.cat([some, torch.ones(40, 1)], 1), strokes - some).solution[:3].T
+    assert float(unscaled.abs().max()) > 1.0  # what an unweighted slope would make of it
+    assert float((change_slope(some, strokes) - torch.eye(3)).abs().max()) < 0.5 * float(unscaled.abs().max())
 
 
 def test_affine_target_is_the_rule_on_the_render_for_a_channel_permuting_edit(world):
