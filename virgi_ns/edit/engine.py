@@ -249,25 +249,38 @@ def _render_plus_change(render: Tensor, edited: Tensor, original: Tensor) -> Ten
 
 SLOPE_RIDGE = (1.0 / 255.0) ** 2
 """Ridge of :func:`change_slope`: along a direction of colour in which the changed pixels vary by less
-than one 8-bit level the photo says nothing of how the change varies, so the slope there stays 0
-(no correction: the render plus the pixel's own change)."""
+than one 8-bit level the photo says little of how the change varies, so the slope there shrinks
+towards 0 (no correction: the render plus the pixel's own change)."""
+
+
+SLOPE_MIN_PIXELS = 64
+"""Fewest changed pixels :func:`change_slope` fits a slope to: the fit has 12 parameters, and with
+fewer than about five pixels each a chance correlation of a few dabs of paint fits as well as a
+colour rule; a smaller edit gets no slope (the render plus each pixel's own change)."""
 
 
 def change_slope(original: Float[Tensor, "N 3"], edited: Float[Tensor, "N 3"]) -> Float[Tensor, "3 3"]:
     """``J``, the slope of the best affine fit ``edited ~ J original + b`` over these pixels (least
     squares, the slope's excess over identity ridged by :data:`SLOPE_RIDGE`): how the user's change
     moves with the colour it starts from. The excess is scaled by the share of the change's variance
-    the fit explains (R^2): a recolour by a colour rule is affine almost everywhere (R^2 above 0.99 on
-    every scene of the evaluation set), while a change that is no function of colour (strokes of
-    paint) gets no slope from colours that only happen to correlate with it."""
+    the fit explains, adjusted for the fit's 4 parameters per channel (R^2 above 0.99 on every scene
+    of the evaluation set), so a change that is no function of colour (strokes of paint) gets no
+    slope from colours that only happen to correlate with it; under :data:`SLOPE_MIN_PIXELS`, identity."""
+    n = original.reshape(-1, 3).shape[0]
+    eye = torch.eye(3, dtype=original.dtype, device=original.device)
+    if n < SLOPE_MIN_PIXELS:
+        return eye
     o = original.reshape(-1, 3).double()
     d = edited.reshape(-1, 3).double() - o
     o, d = o - o.mean(0), d - d.mean(0)
-    cov = o.T @ o / o.shape[0] + SLOPE_RIDGE * torch.eye(3, dtype=o.dtype, device=o.device)
-    excess = torch.linalg.solve(cov, o.T @ d / o.shape[0]).T
+    cov = o.T @ o / n + SLOPE_RIDGE * torch.eye(3, dtype=o.dtype, device=o.device)
+    excess = torch.linalg.solve(cov, o.T @ d / n).T
     total = (d ** 2).sum()
-    explained = (1.0 - ((d - o @ excess.T) ** 2).sum() / total).clamp(0.0, 1.0) if total > 0 else total
-    return (torch.eye(3, dtype=o.dtype, device=o.device) + explained * excess).to(original.dtype)
+    if total <= 0:
+        return eye
+    unexplained = ((d - o @ excess.T) ** 2).sum() / total
+    explained = (1.0 - unexplained * (n - 1) / (n - 4)).clamp(0.0, 1.0)
+    return eye + (explained * excess).to(original.dtype)
 
 
 def changed_pixels_target(cfg: EditConfig, render: Float[Tensor, "H W 3"], edited: Float[Tensor, "H W 3"],
@@ -275,6 +288,7 @@ def changed_pixels_target(cfg: EditConfig, render: Float[Tensor, "H W 3"], edite
     """What the pixels a user changed in a photo (``original`` -> ``edited``; ``changed`` [H,W]) are
     fitted to, by ``cfg.changed_target`` (:class:`EditConfig`), as an image (read on the changed
     pixels only); and, for ``map``, the share of changed pixels the colour map answered."""
+    changed = changed.reshape(render.shape[:-1])
     kind = cfg.changed_target
     if kind == "change":
         return _render_plus_change(render, edited, original), None
