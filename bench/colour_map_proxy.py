@@ -32,7 +32,7 @@ gate at the render's colour), ``E`` elsewhere. Figures per scene, blur and varia
   failure without the spread check). Capped at 100 dB (no error).
 
 Variants: ``edited`` (target E; no map, leak 100), ``no_spread`` (the 17-grid map, gate = support
-only), ``current`` (the 17-grid map with its spread check, the engine's default), and candidates:
+only), ``current`` (the 17-grid map with its spread check, the engine's ``changed_target="map"``), and candidates:
 
 - ``multires``: maps on grids 17, 33 and 65; at each colour, the coarsest level that has support
   and whose change is one change (the spread check of that level) gives the change; no level: not

@@ -53,6 +53,7 @@ CFG=$RUNS/train/runs/beercan-virgi/virgi/run/config.yml
 if stage edit; then
   # the evaluation set (bench/edit.py): EDIT_SCENES picks rows (default all), SEED a run set, EDIT_ARGS more flags
   el "edit bench: ${EDIT_SCENES:-all scenes}, seed ${SEED:-42}"
+  rm -f $RUNS/edit/*.npz  # an earlier call's --dump-targets arrays must not travel with this one's
   timeout ${EDIT_TIMEOUT:-560} python3 bench/edit.py --data $PWD/.data ${EDIT_SCENES:+--scenes $EDIT_SCENES} \
     --train-out $RUNS/edit_runs --seed ${SEED:-42} --geometry-steps $STEPS --colour-steps ${EDIT_COLOUR_STEPS:-1000} \
     --out $RUNS/edit ${EDIT_ARGS:-} > $OUT/edit.log 2>&1; el "edit rc=$?"

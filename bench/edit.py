@@ -225,7 +225,7 @@ def label_against_today(row: dict) -> str:
                 extra.append(f"{key}={value}")
             else:
                 settings[key] = typed_like(today[key], value, key, "variant")
-    differ = [f"{k}={v}" for k, v in settings.items() if k in today and today[k] != v]
+    differ = [f"{k}={settings[k]}" for k in today if k in settings and today[k] != settings[k]]
     return ",".join(differ + extra) or "engine defaults"
 
 
@@ -331,12 +331,15 @@ SEED_FIGURES = ("propagation_psnr", "miss_psnr", "leak_psnr", "recolour_psnr", "
 
 
 def median_over_seeds(args: Args, b: Bench, fit: tuple, config: dict, rule, edited: torch.Tensor, first: dict) -> dict:
-    """``first`` (the figures of the fit with seed 0), or with ``--edit-seeds N`` each figure's median
-    over the fits with seeds 0..N-1 (``fit``: ``Bench.fit``'s positional arguments), plus ``per_seed``."""
+    """``first`` (the figures of the fit with the row's seed, s: 0 unless the variant sets one), or with
+    ``--edit-seeds N`` each figure's median over the fits with seeds s..s+N-1 (``fit``: ``Bench.fit``'s
+    positional arguments), plus ``per_seed``. Each figure's median is taken on its own, so a row's
+    figures may come from different fits."""
     if args.edit_seeds <= 1:
         return first
     runs = [first]
-    for seed in range(1, args.edit_seeds):
+    base = int(config.get("seed", 0))
+    for seed in range(base + 1, base + args.edit_seeds):
         edit, _ = b.fit(*fit, **{**config, "seed": seed})
         runs.append(b.measure(edit, rule, lpips=False, edited=edited)[0]["mean"])
     median = {k: float(statistics.median(r[k] for r in runs)) for k, v in first.items()
@@ -435,7 +438,7 @@ def worst_case(rows: List[dict]) -> dict:
     nanmin = lambda xs: min((x for x in xs if not math.isnan(x)), default=math.nan)  # noqa: E731
     return {"propagation_psnr": nanmin([r["propagation_psnr"] for r in d]),
             "miss_psnr": nanmin([r["miss_psnr"] for r in d]), "leak_psnr": nanmin([r["leak_psnr"] for r in d]),
-            "recolour_gap": nanmin([r["recolour_psnr"] - r["unedited_psnr"] for r in d]),
+            "recolour_gap": nanmin([r["recolour_psnr"] - r["unedited_psnr"] for r in d if not r["synthetic"]]),
             "truth_psnr": nanmin([r.get("truth_psnr", math.nan) for r in d]),
             "edit_s": max((r["timing_warm"]["total_s"] for r in d), default=math.nan),
             "passed": sum(all(r["targets"].values()) for r in d), "rows": len(d),
@@ -558,6 +561,8 @@ def merged(paths: List[Path]) -> dict:
         for row in r["scenes"]:  # judged again: the targets may have been refined since the call
             row["targets"] = targets(row, row["timing_warm"]["total_s"], row["synthetic"])
             row["variant"] = label_against_today(row)  # a default may have changed since the call
+            if "engine_defaults" in row:  # the label is today's now: a merge of this merge keeps it
+                row["engine_defaults"] = engine_defaults()
             if "difference_db" in row.get("pick", {}):
                 row["pick"]["pass"] = pick_passes(row["pick"])
         rows += r["scenes"]

@@ -200,16 +200,18 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     with pytest.raises(InputError, match="--merge"):
         bench_edit.merged([tmp_path / "missing.json"])
     # a call made while another default held: its rows are named against today's defaults
-    then = {**rows[0]["engine_defaults"], "changed_target": "affine"}
-    old = [{**rows[0], "engine_defaults": then}, {**rows[1], "engine_defaults": then, "variant": "changed_target=map"},
+    today = EditConfig().changed_target
+    then = {**rows[0]["engine_defaults"], "changed_target": "map" if today == "affine" else "affine"}
+    old = [{**rows[0], "engine_defaults": then}, {**rows[1], "engine_defaults": then, "variant": f"changed_target={today}"},
            {**rows[4], "engine_defaults": then}]
     (tmp_path / "c.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": old}, default=float))
-    today = EditConfig().changed_target
     m = bench_edit.merged([tmp_path / "c.json"])
-    assert [r["variant"] for r in m["scenes"]] == [
-        "engine defaults" if today == "affine" else "changed_target=affine",
-        "engine defaults" if today == "map" else "changed_target=map",
-        "steps=15," + ("" if today == "affine" else "changed_target=affine,") + "source=render"]
+    labels = [f"changed_target={then['changed_target']}", "engine defaults",
+              f"steps=15,changed_target={then['changed_target']},source=render"]
+    assert [r["variant"] for r in m["scenes"]] == labels
+    # a merge of that merge keeps the labels
+    (tmp_path / "m.json").write_text(json.dumps(m, default=float))
+    assert [r["variant"] for r in bench_edit.merged([tmp_path / "m.json"])["scenes"]] == labels
 
 
 def test_edit_bench_takes_each_figure_as_the_median_over_edit_seeds(pipeline, bench_edit, tmp_path, monkeypatch):
