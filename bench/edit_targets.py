@@ -16,7 +16,6 @@ enough.
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List
@@ -44,6 +43,7 @@ class Args:
 def target_psnr(arrays: dict, kinds: List[str]) -> dict:
     """Per kind, PSNR of its target against the exact target on the changed pixels; with the
     changed share and the map's answered share."""
+    from virgi_ns.bench.recolor import psnr
     from virgi_ns.edit.engine import EditConfig, changed_pixels_target
 
     photo, render, edited, exact = (torch.from_numpy(arrays[k].astype(np.float32))
@@ -54,8 +54,7 @@ def target_psnr(arrays: dict, kinds: List[str]) -> dict:
     row = {"changed_fraction": float(changed.float().mean())}
     for kind in kinds:
         target, answered = changed_pixels_target(EditConfig(changed_target=kind), render, edited, photo, changed)
-        mse = float(((target - exact)[changed] ** 2).mean())
-        row[kind] = -10.0 * math.log10(max(mse, 1e-10))
+        row[kind] = psnr(target, exact, changed)
         if answered is not None:
             row["map_answered"] = answered
     return row
