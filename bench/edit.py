@@ -274,7 +274,7 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
     edited = b.edited_image(scene.rule, "photo")
     original = b.original("photo")
     if args.dump_targets:
-        dump_targets(args.out / f"{scene.name}_targets.npz", b, scene)
+        dump_targets(args.out / f"{scene.name}_targets.npz", b, scene, edited)
     b.scene.features = None
     edit, cold = b.fit(edited, args.steps, None, 1, original)
     _sync()
@@ -317,12 +317,13 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
     return rows
 
 
-def dump_targets(path: Path, b: Bench, scene: EvalScene) -> None:
-    """The edit view's photo, render, and the scene's rule on each (float16 arrays, H x W x 3)."""
+def dump_targets(path: Path, b: Bench, scene: EvalScene, edited: torch.Tensor) -> None:
+    """The edit view's photo, render, ``edited`` (the scene's rule on the photo, as the bench fits it)
+    and the rule on the render (float16 arrays, H x W x 3)."""
     import numpy as np
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    arrays = {"photo": b.edit_photo, "render": b.edit_base, "edited": b.edited_image(scene.rule, "photo"),
+    arrays = {"photo": b.edit_photo, "render": b.edit_base, "edited": edited,
               "exact": b.edited_image(scene.rule, "render")}
     np.savez_compressed(path, **{k: v.detach().cpu().numpy().astype(np.float16) for k, v in arrays.items()})
 
