@@ -266,18 +266,18 @@ def change_slope(original: Float[Tensor, "N 3"], edited: Float[Tensor, "N 3"]) -
     the fit explains, adjusted for the fit's 4 parameters per channel (R^2 above 0.99 on every scene
     of the evaluation set), so a change that is no function of colour (strokes of paint) gets no
     slope from colours that only happen to correlate with it; under :data:`SLOPE_MIN_PIXELS`, identity."""
-    n = original.reshape(-1, 3).shape[0]
+    o = original.reshape(-1, 3).double()
+    n = o.shape[0]
     eye = torch.eye(3, dtype=original.dtype, device=original.device)
     if n < SLOPE_MIN_PIXELS:
         return eye
-    o = original.reshape(-1, 3).double()
     d = edited.reshape(-1, 3).double() - o
     o, d = o - o.mean(0), d - d.mean(0)
+    total = (d ** 2).sum()
+    if total <= 0:  # one change for every pixel: nothing varies with colour
+        return eye
     cov = o.T @ o / n + SLOPE_RIDGE * torch.eye(3, dtype=o.dtype, device=o.device)
     excess = torch.linalg.solve(cov, o.T @ d / n).T
-    total = (d ** 2).sum()
-    if total <= 0:
-        return eye
     unexplained = ((d - o @ excess.T) ** 2).sum() / total
     explained = (1.0 - unexplained * (n - 1) / (n - 4)).clamp(0.0, 1.0)
     return eye + (explained * excess).to(original.dtype)
