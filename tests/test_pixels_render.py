@@ -164,6 +164,46 @@ def test_retarget_rebuilds_batches_for_another_kind(tiny):
         eng.fit()
 
 
+def test_a_warm_retarget_writes_its_own_targets_not_the_callers_image(tiny):
+    """A whole-image fit in one pixel set keeps a copy of the edited image as its target, so a warm
+    retarget (which writes targets in place) leaves the image the caller passed untouched."""
+    S, cam, edited = tiny
+    kept = edited.clone()
+    with es.one_thread():
+        eng = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=2, whole_image=True, pixel_batches=1))
+        eng.fit()
+        target = eng.batches[0].target
+        eng.retarget(edited.flip(0).contiguous())
+    assert eng.batches[0].target is target
+    torch.testing.assert_close(target, edited.flip(0).reshape(-1, 3), atol=0, rtol=0)
+    torch.testing.assert_close(edited, kept, atol=0, rtol=0)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+def test_recorded_steps_are_replayed_after_a_warm_retarget(tiny):
+    """A warm retarget keeps the recorded steps, and replaying them fits the new target as the eager
+    steps of a fresh engine do."""
+    import copy
+
+    from virgi_ns.edit.scene import FrozenScene
+
+    S, cam, edited = tiny
+    sc = S.scene
+    gpu = FrozenScene(sc.means.cuda(), sc.quats.cuda(), sc.scales.cuda(), sc.opacities.cuda(),
+                      copy.deepcopy(sc.field).cuda(), sc.background.cuda(), backend="auto")
+    other = edited.flip(1).contiguous().cuda()
+    eng = EditEngine(gpu, cam, edited.cuda(), cfg=EditConfig(steps=20, whole_image=True))
+    eng.fit()
+    graphs = eng._graphs[0]
+    eng.retarget(other)
+    assert eng._graphs[0] is graphs
+    e_g, t_g = eng.fit()
+    e_e, t_e = EditEngine(gpu, cam, other, cfg=EditConfig(steps=20, whole_image=True, cuda_graphs=False)).fit()
+    torch.testing.assert_close(e_g.head_weight, e_e.head_weight, atol=1e-4, rtol=1e-4)
+    torch.testing.assert_close(e_g.head_bias, e_e.head_bias, atol=1e-4, rtol=1e-4)
+    assert t_g.final_loss == pytest.approx(t_e.final_loss, rel=1e-4)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
 @pytest.mark.parametrize("kind", KINDS)
 def test_every_kind_records_as_cuda_graphs(tiny, kind):

@@ -48,6 +48,7 @@ sparse batches by :mod:`virgi_ns.edit.pixels`.
 from __future__ import annotations
 
 import copy
+import functools
 import time
 import warnings
 from dataclasses import dataclass
@@ -237,6 +238,14 @@ def _sync(dev: torch.device) -> None:
         torch.cuda.synchronize(dev)
 
 
+def _restart_adam(opt: torch.optim.Adam) -> None:
+    """Put ``opt`` back to a fresh Adam's state (no moments, step 0) without replacing its tensors."""
+    for state in opt.state.values():
+        for value in state.values():
+            if torch.is_tensor(value):
+                value.zero_()
+
+
 def _logit(x: Tensor, eps: float = 0.02) -> Tensor:
     return torch.logit(x.clamp(eps, 1.0 - eps))
 
@@ -312,6 +321,15 @@ def changed_pixels_target(cfg: EditConfig, render: Float[Tensor, "H W 3"], edite
     return edited, None
 
 
+@functools.lru_cache(maxsize=4)
+def _pixel_subset(n: int, k: int, seed: int) -> Tensor:
+    """The first ``k`` of a permutation of ``n`` drawn on the CPU with ``seed`` (the same on every
+    device). Kept for the next call: a live drag asks for the same subset at every change, and the
+    permutation of a megapixel view takes tens of milliseconds."""
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    return torch.randperm(n, generator=g)[:k]
+
+
 def logit_colour_map(source: Float[Tensor, "N 3"], target: Float[Tensor, "N 3"], seed: int = 0,
                      max_pixels: int = 1 << 16, eps: float = 0.02, ridge: float = 0.05,
                      ridge_floor: float = 0.01) -> Float[Tensor, "3 4"]:
@@ -322,8 +340,7 @@ def logit_colour_map(source: Float[Tensor, "N 3"], target: Float[Tensor, "N 3"],
     colour) leave M near the identity and the shift to t, instead of fitting their noise."""
     n = source.shape[0]
     if n > max_pixels:
-        g = torch.Generator(device="cpu").manual_seed(seed)
-        pick = torch.randperm(n, generator=g)[:max_pixels].to(source.device)
+        pick = _pixel_subset(n, max_pixels, seed).to(source.device)
         source, target = source[pick], target[pick]
     x = torch.logit(source.double().clamp(eps, 1.0 - eps))
     y = torch.logit(target.double().clamp(eps, 1.0 - eps))
@@ -433,6 +450,8 @@ class EditEngine:
         self.weight = head.weight.detach().float().clone().requires_grad_(True)
         self.bias = head.bias.detach().float().clone().requires_grad_(True)
         self.alpha_fixed: Optional[Tensor] = None
+        self.opt: Optional[torch.optim.Adam] = None
+        self._graphs: Optional[list] = None  # the recorded steps, one per pixel set (_fit_graphed)
         self.colour_map: Optional[Tensor] = None
         self.map_explained: Optional[float] = None  # changed_target="map": share of changed pixels it explains
         self.recipe = self.cfg.recipe
@@ -485,12 +504,16 @@ class EditEngine:
         kind = resolve_composite(cfg.batch_composite, edited.device)
         same = warm and self.batches and self.batches[0].composite == kind and (
             flat is None) == (self._changed is None) and (flat is None or torch.equal(flat, self._changed))
-        if same:  # the same pixel sets and weights: only the targets move
+        if same:  # the same pixel sets and weights: only the targets move (in place: recorded steps read them)
             for b in self.batches:
-                b.target = edited.reshape(-1, 3) if b.pixels is None else edited.reshape(-1, 3)[b.pixels]
+                b.target.copy_(edited.reshape(-1, 3) if b.pixels is None else edited.reshape(-1, 3)[b.pixels])
         else:
             self.batches = pixel_batches(self.contrib, edited.reshape(-1, 3), self.background, cfg.pixel_batches,
                                          cfg.seed, flat, cfg.changed_share, kind)
+            for b in self.batches:
+                if b.pixels is None:  # the whole image: its own copy, which a warm retarget writes into
+                    b.target = b.target.clone()
+            self._graphs = None
         self.recipe = cfg.recipe if changed is not None else "joint"
         staged = self.recipe == "staged"
         # the copied layer: from the colour map of the changed pixels (EditConfig.map_init), else
@@ -512,12 +535,17 @@ class EditEngine:
                                    steps=cfg.seg_steps if seg_steps is None else seg_steps)
         elif not staged and self.alpha_fixed is not None:  # back to the joint recipe: alpha trains again
             self.alpha_fixed = None
+            self._graphs = None
             for p in self.seg.parameters():
                 p.requires_grad_(True)
         self._changed = flat
         trainable = [self.weight, self.bias] + ([] if staged else list(self.seg.parameters()))
-        on_gpu = self.scene.device.type == "cuda"
-        self.opt = torch.optim.Adam(trainable, lr=cfg.lr, fused=on_gpu, capturable=on_gpu)
+        if self.opt is not None and [id(p) for p in self.opt.param_groups[0]["params"]] == [id(p) for p in trainable]:
+            _restart_adam(self.opt)  # the same tensors, which recorded steps read and write
+        else:
+            on_gpu = self.scene.device.type == "cuda"
+            self.opt = torch.optim.Adam(trainable, lr=cfg.lr, fused=on_gpu, capturable=on_gpu)
+            self._graphs = None
 
     def retarget(self, edited: Float[Tensor, "H W 3"], changed: Optional[Tensor] = None,
                  original: Optional[Float[Tensor, "H W 3"]] = None, seg_steps: Optional[int] = None) -> None:
@@ -556,7 +584,7 @@ class EditEngine:
         if float(pos_w.sum()) <= 0.0 or float(neg_w.sum()) <= 0.0:  # one class: a constant alpha
             torch.nn.init.zeros_(self.seg.l2.weight)
             torch.nn.init.constant_(self.seg.l2.bias, 8.0 if float(pos_w.sum()) > 0.0 else -8.0)
-            self.alpha_fixed = torch.sigmoid(self.seg.logits_of(self.seg_input))
+            self._set_alpha_fixed(torch.sigmoid(self.seg.logits_of(self.seg_input)))
             return
         half = cfg.seg_samples // 2
         n_prior = int(round(half * cfg.seg_prior_share))
@@ -582,7 +610,15 @@ class EditEngine:
                 opt.step()
         for p in params:
             p.requires_grad_(False)
-        self.alpha_fixed = torch.sigmoid(self.seg.logits_of(self.seg_input))
+        self._set_alpha_fixed(torch.sigmoid(self.seg.logits_of(self.seg_input)))
+
+    def _set_alpha_fixed(self, alpha: Tensor) -> None:
+        """The staged recipe's fixed alpha, written in place when there is one (recorded steps read it)."""
+        if self.alpha_fixed is None:
+            self.alpha_fixed = alpha
+            self._graphs = None
+        else:
+            self.alpha_fixed.copy_(alpha)
 
     # ------------------------------------------------------------------ steps
     def colours(self) -> tuple[Tensor, Tensor]:
@@ -614,7 +650,7 @@ class EditEngine:
         nb = len(self.batches)
         with torch.enable_grad():  # callers may hold a no_grad context (viewer threads, scripts)
             done = 0
-            if self.cfg.cuda_graphs and dev.type == "cuda" and n > 2 * nb:
+            if self.cfg.cuda_graphs and dev.type == "cuda" and (n > 2 * nb or (self._graphs and n > 0)):
                 done, loss = self._fit_graphed(n, progress)
             for i in range(done, n):
                 loss = self.step(self.batches[i % nb])
@@ -626,11 +662,20 @@ class EditEngine:
         return self.edit(timing), timing
 
     def _fit_graphed(self, n: int, progress: Optional[Callable[[int, int], None]]) -> tuple[int, Tensor]:
-        """Up to ``n`` steps, the first eager on a side stream (it creates Adam's state and warms the
-        libraries up), then one recorded CUDA graph per pixel set, replayed in the eager order.
-        Returns (steps done, last loss): where a graph cannot be recorded, only the first step is
-        done and the caller runs the rest eagerly."""
+        """Up to ``n`` steps as replays of one recorded CUDA graph per pixel set, in the eager order.
+        The graphs are recorded at the first such fit, after one eager step on a side stream (it
+        creates Adam's state and warms the libraries up), and replayed by later fits while the
+        tensors they read stay the same (a warm :meth:`retarget` writes its targets, alpha and
+        Adam's state in place; anything else drops them). Returns (steps done, last loss): where a
+        graph cannot be recorded, only the first step is done and the caller runs the rest eagerly."""
         nb = len(self.batches)
+        if self._graphs:
+            graphs, losses = self._graphs
+            for i in range(n):
+                graphs[i % nb].replay()
+                if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
+                    progress(i + 1, n)
+            return n, losses[(n - 1) % nb].clone()
         side = torch.cuda.Stream(self.scene.device)
         side.wait_stream(torch.cuda.current_stream())
         with torch.cuda.stream(side):
@@ -648,6 +693,7 @@ class EditEngine:
             warnings.warn(f"edit steps run without CUDA graphs: {str(e).splitlines()[0]}")
             self.cfg.cuda_graphs = False
             return 1, loss
+        self._graphs = [graphs, losses]
         for i in range(1, n):
             graphs[i % nb].replay()
             if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
