@@ -20,7 +20,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import edit_scene as es  # noqa: E402
 
 from virgi_ns.edit.engine import EditEngine  # noqa: E402
-from virgi_ns.edit.pick import PickSession, commit, parse_colour, pick_config, recolour, select  # noqa: E402
+from virgi_ns.edit.pick import (PickSession, commit, connected_to, parse_colour, pick_config, recolour,  # noqa: E402
+                                select)
 from virgi_ns.edit.scene import render_view  # noqa: E402
 from virgi_ns.edit.stack import EditStack  # noqa: E402
 from virgi_ns.errors import InputError  # noqa: E402
@@ -169,6 +170,18 @@ def test_recolour_rules_against_colorsys():
     np.testing.assert_allclose(got, want, atol=1e-4)
 
 
+def test_connected_to_follows_diagonals_and_stops_at_gaps():
+    """The 8-connected component of the clicked pixel: a diagonal step joins, a gap of one pixel does
+    not, and a pixel outside the allowed ones has no component."""
+    allowed = torch.zeros(6, 7, dtype=torch.bool)
+    for y, x in ((0, 0), (1, 1), (2, 1), (2, 3), (2, 4), (5, 0)):
+        allowed[y, x] = True
+    as_set = lambda m: {tuple(p) for p in m.nonzero().tolist()}  # noqa: E731
+    assert as_set(connected_to(allowed, 0, 0)) == {(0, 0), (1, 1), (2, 1)}
+    assert as_set(connected_to(allowed, 4, 2)) == {(2, 3), (2, 4)}
+    assert as_set(connected_to(allowed, 6, 5)) == set()
+
+
 def test_bad_picks_are_refused(world):
     S = world["S"]
     cam = S.cameras.index(EDIT_VIEW)
@@ -204,8 +217,16 @@ def test_a_view_set_up_first_and_retargeted_fits_as_a_fresh_engine(world):
     torch.testing.assert_close(a.head_weight, b.head_weight, atol=0, rtol=0)
     torch.testing.assert_close(fresh.alpha_fixed, later.alpha_fixed, atol=0, rtol=0)
     batches, alpha = later.batches, later.alpha_fixed
-    later.retarget(recolour(s.maps.rgb, s.mask, (0.1, 0.8, 0.2), "hue"), s.mask)
+    targets, moments = [bt.target for bt in batches], [t for st in later.opt.state.values() for t in st.values()]
+    green = recolour(s.maps.rgb, s.mask, (0.1, 0.8, 0.2), "hue")
+    later.retarget(green, s.mask)
     assert later.batches is batches and later.alpha_fixed is alpha
+    # the same tensors (recorded GPU steps read them), holding what a fresh engine's would
+    assert all(bt.target is t for bt, t in zip(later.batches, targets))
+    assert [t for st in later.opt.state.values() for t in st.values()] == moments
+    assert all(float(t.abs().max()) == 0.0 for t in moments)
+    c = EditEngine(S.scene, cam, green, None, cfg, changed=s.mask).fit(10)[0]
+    torch.testing.assert_close(later.fit(10)[0].head_weight, c.head_weight, atol=0, rtol=0)
     assert fresh.mode == "changed pixels (a selection)"
     with pytest.raises(InputError, match="selection is empty"):
         later.retarget(s.edited, torch.zeros_like(s.mask))
@@ -228,6 +249,13 @@ def test_a_live_update_reaches_a_new_colour_in_few_steps(world):
     target = s.edited[s.mask]
     assert float((full - target).abs().mean()) < 0.05
     assert float((live - full).abs().mean()) < 0.03
+    # the colour drag kept the click's selection; a new tolerance selects again
+    assert torch.equal(s.mask, select(s.maps, *world["pixel"], 0.2))
+    kept = s.mask
+    s.update(green, 0.2, "hue", steps=0)
+    assert s.mask is kept
+    s.update(green, 1.0, "hue", steps=0)
+    assert torch.equal(s.mask, select(s.maps, *world["pixel"], 1.0)) and not torch.equal(s.mask, kept)
 
 
 def test_commit_saves_the_pictures_beside_the_edit_and_replaces_it(world, tmp_path):

@@ -35,7 +35,7 @@ import dataclasses
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import numpy as np
 import torch
@@ -136,16 +136,18 @@ def select(maps: ViewMaps, x: int, y: int, tolerance: float) -> Tensor:
                & (_angle(maps.diffuse, maps.diffuse[y, x]) <= limit)
                & (_angle(maps.features, maps.features[y, x]) <= limit))
     allowed[y, x] = True
-    grown = torch.zeros_like(allowed)
-    grown[y, x] = True
-    grown = grown[None, None].float()
-    free = allowed[None, None].float()
-    while True:  # flood fill (8-connected), a few dilations between checks
-        before = grown
-        for _ in range(8):
-            grown = torch.nn.functional.max_pool2d(grown, 3, 1, 1) * free
-        if torch.equal(grown, before):
-            return grown[0, 0] > 0
+    return connected_to(allowed, x, y)
+
+
+def connected_to(allowed: Tensor, x: int, y: int) -> Tensor:
+    """Bool [H,W]: the pixels of ``allowed`` [H,W] 8-connected to pixel (x, y) through ``allowed``
+    ones (empty when (x, y) is not allowed). Labelled on the host by scipy: one pass, where a flood
+    fill on the GPU takes a dilation per pixel of the object's extent and a sync every few."""
+    from scipy import ndimage
+
+    labels, _ = ndimage.label(allowed.cpu().numpy(), structure=np.ones((3, 3), dtype=bool))
+    mine = int(labels[y, x])
+    return torch.from_numpy(labels == mine if mine else np.zeros_like(labels, dtype=bool)).to(allowed.device)
 
 
 def _typical(values: Tensor, mask: Tensor) -> float:
@@ -196,23 +198,35 @@ class PickSession:
         self.maps = view_maps(self.engine)
         check_pixel(self.maps, self.x, self.y)
         self.mask: Optional[Tensor] = None
+        self._selection: Optional[tuple[float, Tensor]] = None  # (tolerance, the selection it gave)
         self.edited: Optional[Tensor] = None
         self.settings: dict = {}
         self.steps_done = 0
 
     def update(self, colour: tuple[float, float, float], tolerance: float, mode: str, steps: Optional[int] = None,
-               seg_steps: Optional[int] = None) -> Edit:
+               seg_steps: Optional[int] = None, timer: Optional[Callable[[str], None]] = None) -> Edit:
         """Select with ``tolerance``, recolour towards ``colour`` by ``mode`` and fit ``steps``
         (default: the config's) from the last fit; ``seg_steps``: the staged segmentation's steps
-        when the selection changed (default: the config's). Returns the edit."""
+        when the selection changed (default: the config's). Returns the edit. ``timer(part)``, if
+        given, is called as each part ends (``select``, ``recolour``, ``retarget``, ``steps``): a
+        benchmark's breakdown."""
+        tick = timer or (lambda part: None)
         tolerance, mode = check_tolerance(tolerance), check_mode(mode)
-        mask = select(self.maps, self.x, self.y, tolerance)
+        # a drag of the colour keeps the selection (it depends on the click and the tolerance only)
+        if self._selection is None or self._selection[0] != tolerance:
+            self._selection = (tolerance, select(self.maps, self.x, self.y, tolerance))
+        mask = self._selection[1]
+        tick("select")
         edited = recolour(self.maps.rgb, mask, colour, mode, self.maps.diffuse)
+        tick("recolour")
         self.engine.retarget(edited, mask, seg_steps=seg_steps)
+        tick("retarget")
         self.mask, self.edited, self.steps_done = mask, edited, 0
         self.settings = {"pixel": [self.x, self.y], "colour": "#" + "".join(f"{round(255 * c):02x}" for c in colour),
                          "tolerance": tolerance, "mode": mode, "selected": float(mask.float().mean())}
-        return self.refine(self.engine.cfg.steps if steps is None else steps)
+        edit = self.refine(self.engine.cfg.steps if steps is None else steps)
+        tick("steps")
+        return edit
 
     def refine(self, steps: int) -> Edit:
         """``steps`` more steps of the current fit; returns the edit."""
@@ -257,4 +271,4 @@ def commit(stack: EditStack, session: PickSession, edit: Edit, replace: Optional
 
 
 __all__ = ["MIN_COVER", "MODES", "PickSession", "ViewMaps", "check_mode", "check_pixel", "check_tolerance", "commit",
-           "parse_colour", "pick_config", "recolour", "select", "view_maps"]
+           "connected_to", "parse_colour", "pick_config", "recolour", "select", "view_maps"]
