@@ -369,7 +369,7 @@ def test_pick_latency_times_the_viewer_frames_on_a_tiny_random_scene(bench_edit)
     """The latency protocol on a small random scene (CPU, a short pick config): its figures, and the
     frames it times are the renders of the live edit and of the committed stack (compared with
     render_view, which renders without the viewer's render path)."""
-    from virgi_ns.bench.pick import TOLERANCE, ViewerRender, drag_frame, release_frame, viewer_latency
+    from virgi_ns.bench.pick import TOLERANCE, ViewerRender, drag_frame, release_frame, top_up_frame, viewer_latency
     from virgi_ns.edit.engine import EditConfig
     from virgi_ns.edit.pick import PickSession
     from virgi_ns.edit.scene import render_view
@@ -383,9 +383,16 @@ def test_pick_latency_times_the_viewer_frames_on_a_tiny_random_scene(bench_edit)
     lat = viewer_latency(scene, cams, 1, cfg)
     assert lat["gaussians"] == 1200 and lat["image"] == "32x18" and lat["repeats"] == 1 and lat["steps"] == 30
     assert lat["renderer"] == "contributions" and 0.0 < lat["selected"] <= 1.0
-    for part, names in (("drag", ("fit_s", "render_s")), ("release", ("fit_s", "commit_s", "render_s"))):
+    for part, names in (("drag", ("fit_s", "render_s")), ("top_up", ("fit_s", "render_s")),
+                        ("release", ("commit_s", "clear_s", "render_s"))):
         t = lat[part]
-        assert all(t[k] > 0 for k in names) and t["total_s"] == pytest.approx(sum(t[k] for k in names), rel=1e-6)
+        assert all(t[k] > 0 for k in names)
+        assert t["total_s"] == pytest.approx(sum(t[k] for k in names) + t.get("fit_s", 0.0) * (part == "release"),
+                                             rel=1e-6)
+    assert lat["top_up"]["change_to_final_s"] == pytest.approx(lat["drag"]["total_s"] + lat["top_up"]["total_s"])
+    fit = lat["drag"]["fit_parts"]  # the update's parts, within the drag's fit
+    assert set(fit) == {"select_s", "recolour_s", "retarget_s", "steps_s"} and all(v >= 0 for v in fit.values())
+    assert sum(fit.values()) <= lat["drag"]["fit_s"]
     x, y = lat["pixel"]
 
     host = ViewerRender(scene)
@@ -401,8 +408,13 @@ def test_pick_latency_times_the_viewer_frames_on_a_tiny_random_scene(bench_edit)
     live.add(host.live_edit)
     tol = host.config.gate_threshold + 1e-5
     assert (drag["rgb"] - render_view(scene, cams, 0, live)["rgb"].clamp(0, 1)).abs().max() <= tol
-    _, frame = release_frame(host, stack, session, camera)
+    _, shown, topped = top_up_frame(host, session, camera)
+    assert session.steps_done == 30
+    torch.testing.assert_close(host.live_edit.head_weight, topped.head_weight, atol=0, rtol=0)
+    times, frame = release_frame(host, stack, session, camera, topped)
     assert host.live_edit is None and len(stack) == 1 and session.steps_done == 30
+    torch.testing.assert_close(stack.entries[0].edit.head_weight, topped.head_weight, atol=0, rtol=0)
+    torch.testing.assert_close(frame["rgb"], shown["rgb"], atol=1e-6, rtol=0)  # the committed edit is the one shown
     assert (frame["rgb"] - render_view(scene, cams, 0, stack)["rgb"].clamp(0, 1)).abs().max() <= tol
     sel = session.mask
     assert float((frame["rgb"] - base).abs()[sel].mean()) > 0.02  # the frame shows the edit

@@ -227,12 +227,17 @@ def test_panel_pick_live_commit_replace_undo(run, tmp_path):
     panel.pick_at(cam, int(xs[k]), int(ys[k]), wait=True)
     assert not panel.status_is_error, panel.status
     assert model.live_edit is not None and len(model.edit_stack) == 0 and "edit_0001.pt" not in files()
+    # while nothing changes the fit is topped up to the config's steps and shown, still unwritten
+    session, topped = panel._pick_session, model.live_edit
+    assert session.steps_done == session.engine.cfg.steps
     live = render(model, cam)
     assert live[red][:, 1].mean() > before[red][:, 1].mean() + 0.1  # turning green while "dragged"
     panel.commit_after_s = 0.05
     panel.wait_pick(commit=True)
     assert model.live_edit is None and len(model.edit_stack) == 1, panel.status
     assert files() == ["edit_0001.pt", "edit_0001_edited.png", "edit_0001_selection.png", "stack.json"]
+    np.testing.assert_array_equal(model.edit_stack.entries[0].edit.head_weight.cpu().numpy(),
+                                  topped.head_weight.cpu().numpy())  # the release commits the topped-up fit
     after = render(model, cam)
     assert after[red][:, 1].mean() > after[red][:, 0].mean()  # green over red now
     assert np.abs(after - before)[blue].mean() < 0.03  # the other sphere stays

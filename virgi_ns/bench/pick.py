@@ -25,11 +25,14 @@ its propagation PSNR is at most :data:`WITHIN_DB` below the rule edit's.
 host holding the scene (:class:`ViewerRender`), since a nerfstudio model of the synthetic
 1M-Gaussian scene would need a dataset and a checkpoint. Drag to frame: ``PickSession.update`` with
 :data:`~virgi_ns.nerfstudio.viewer.picking.LIVE_STEPS` steps and a quarter of the segmentation's
-steps (``_live_pick``), the live-edit slot set, the frame rendered. Release to frame (``_commit_pick``):
-the fit topped up to the config's steps, committed to a stack in a directory (its edit file and
-pictures written, as the viewer's stack is), the live slot cleared, the frame rendered. Not counted:
-the viewer's wait of ``COMMIT_AFTER_S`` without a change that it takes as the release, viser's encoding
-and sending of the frame, and the GUI's refresh of the edit list.
+steps (``_live_pick``), the live-edit slot set, the frame rendered. Top-up to frame (``_top_up_pick``,
+which the viewer runs as soon as the change is shown and nothing newer waits): the fit topped up to
+the config's steps in chunks of ``LIVE_STEPS``, the live slot set, the frame rendered; with the drag,
+a change to its finished frame (``change_to_final_s``). Release to frame (``_commit_pick``): the
+topped-up edit committed to a stack in a directory (its edit file and pictures written, as the
+viewer's stack is), the live slot cleared, the frame rendered. Not counted: the viewer's wait of
+``COMMIT_AFTER_S`` without a change that it takes as the release, viser's encoding and sending of the
+frame, and the GUI's refresh of the edit list.
 """
 
 from __future__ import annotations
@@ -217,32 +220,58 @@ def _timed(device: torch.device, parts: list[tuple[str, Callable[[], object]]]) 
 
 def drag_frame(host: ViewerRender, session, camera, colour: tuple, tolerance: float, mode: str) -> tuple[dict, dict]:
     """A colour change during a drag to its frame, as ``PickActions._live_pick`` makes it:
-    ({fit_s, render_s, total_s}, the frame)."""
+    ({fit_s, render_s, total_s, fit_parts: the update's parts in seconds}, the frame)."""
     from virgi_ns.nerfstudio.viewer.picking import LIVE_STEPS
 
     seg = max(1, session.engine.cfg.seg_steps // 4)
+    parts: dict = {}
+    last = [0.0]
+
+    def tick(part: str) -> None:
+        _sync(host.device)
+        now = time.perf_counter()
+        parts[f"{part}_s"] = now - last[0]
+        last[0] = now
 
     def refit() -> None:
-        host.set_live_edit(session.update(colour, tolerance, mode, LIVE_STEPS, seg))
+        last[0] = time.perf_counter()
+        host.set_live_edit(session.update(colour, tolerance, mode, LIVE_STEPS, seg, timer=tick))
 
-    return _timed(host.device, [("fit_s", refit), ("render_s", lambda: host.frame(camera))])
+    times, frame = _timed(host.device, [("fit_s", refit), ("render_s", lambda: host.frame(camera))])
+    return {**times, "fit_parts": parts}, frame
 
 
-def release_frame(host: ViewerRender, stack, session, camera) -> tuple[dict, dict]:
+def top_up_frame(host: ViewerRender, session, camera) -> tuple[dict, dict, object]:
+    """The top-up after a change to its frame, as ``PickActions._top_up_pick`` makes it while nothing
+    changes (chunks of ``LIVE_STEPS`` to the config's steps, then the live slot set): ({fit_s,
+    render_s, total_s}, the frame, the topped-up edit)."""
+    from virgi_ns.nerfstudio.viewer.picking import LIVE_STEPS
+
+    edits: list = []
+
+    def top_up() -> None:
+        while session.steps_done < session.engine.cfg.steps:
+            edits.append(session.refine(min(LIVE_STEPS, session.engine.cfg.steps - session.steps_done)))
+        host.set_live_edit(edits[-1])
+
+    times, frame = _timed(host.device, [("fit_s", top_up), ("render_s", lambda: host.frame(camera))])
+    return times, frame, edits[-1]
+
+
+def release_frame(host: ViewerRender, stack, session, camera, topped=None) -> tuple[dict, dict]:
     """A release to its frame, as ``PickActions._commit_pick`` makes it (the first commit of the pick):
-    ({fit_s, commit_s, render_s, total_s}, the frame)."""
+    ({fit_s (what is left of the top-up: none after :func:`top_up_frame`, whose edit is ``topped``),
+    commit_s (pictures and stack files), clear_s (the live slot), render_s, total_s}, the frame)."""
     from virgi_ns.edit.pick import commit
 
     edit: list = []
 
     def top_up() -> None:
-        edit.append(session.refine(session.engine.cfg.steps - session.steps_done))
+        left = session.engine.cfg.steps - session.steps_done
+        edit.append(session.refine(left) if left > 0 or topped is None else topped)
 
-    def put() -> None:
-        commit(stack, session, edit[0])
-        host.set_live_edit(None)
-
-    return _timed(host.device, [("fit_s", top_up), ("commit_s", put), ("render_s", lambda: host.frame(camera))])
+    return _timed(host.device, [("fit_s", top_up), ("commit_s", lambda: commit(stack, session, edit[0])),
+                                ("clear_s", lambda: host.set_live_edit(None)), ("render_s", lambda: host.frame(camera))])
 
 
 def _hue(degrees: float) -> tuple[float, float, float]:
@@ -266,7 +295,7 @@ def viewer_latency(scene, cams, repeats: int, cfg=None) -> dict:
     camera = ns_cameras(cams).to(scene.device)
     x, y, _ = click_pixel(coverage(scene, cams) >= MIN_COVER)
     cfg = cfg or pick_config(scene.device)
-    drags, releases, selected = [], [], []
+    drags, top_ups, releases, selected = [], [], [], []
     with tempfile.TemporaryDirectory(prefix="virgi_pick_bench_") as run_dir:
         stack = EditStack.open(run_dir, scene.fingerprint())
         host.set_edit_stack(stack)
@@ -275,20 +304,25 @@ def viewer_latency(scene, cams, repeats: int, cfg=None) -> dict:
             host.set_live_edit(session.update(_hue(40.0 * r), TOLERANCE, MODE, LIVE_STEPS))
             host.frame(camera)
             drag, _ = drag_frame(host, session, camera, _hue(40.0 * r + 20.0), TOLERANCE, MODE)
-            release, _ = release_frame(host, stack, session, camera)
+            top_up, _, topped = top_up_frame(host, session, camera)
+            release, _ = release_frame(host, stack, session, camera, topped)
             stack.undo()
             if r:  # the first pick warms up
                 drags.append(drag)
+                top_ups.append({**top_up, "change_to_final_s": drag["total_s"] + top_up["total_s"]})
                 releases.append(release)
                 selected.append(session.settings["selected"])
-    med = lambda rows: {k: float(statistics.median(t[k] for t in rows)) for k in rows[0]}  # noqa: E731
+    def med(rows: list) -> dict:  # per key, nested dicts too
+        return {k: med([t[k] for t in rows]) if isinstance(v, dict) else float(statistics.median(t[k] for t in rows))
+                for k, v in rows[0].items()}
+
     return {"gaussians": host.num_points, "image": f"{int(cams.widths[0])}x{int(cams.heights[0])}",
             "renderer": "gsplat" if host._renders_with_gsplat() else "contributions",
             "gate_kept": gate["kept_fraction"], "pixel": [x, y], "selected": float(statistics.median(selected)),
             "live_steps": LIVE_STEPS, "steps": cfg.steps, "repeats": len(drags), "drag": med(drags),
-            "release": med(releases), "target_s": LATENCY_TARGET_S}
+            "top_up": med(top_ups), "release": med(releases), "target_s": LATENCY_TARGET_S}
 
 
 __all__ = ["LATENCY_TARGET_S", "MODE", "TOLERANCE", "WITHIN_DB", "ViewerRender", "border_distance", "click_pixel",
            "coverage", "drag_frame", "largest_component", "measure_pick", "pick_passes", "release_frame",
-           "rule_colour", "viewer_latency"]
+           "rule_colour", "top_up_frame", "viewer_latency"]

@@ -13,10 +13,13 @@ How it runs (mixed into :class:`~virgi_ns.nerfstudio.viewer.panel.VirgiPanel`):
   :class:`~virgi_ns.edit.pick.PickSession` and fits it; a change refits it warm in a few steps
   (:data:`LIVE_STEPS`) and shows the result through the model's live-edit slot (rendered over the
   stack, nothing written);
+- **the fit tops up while nothing changes**: once the newest change is shown, the worker runs the
+  rest of the config's steps in chunks of :data:`LIVE_STEPS` (a new change or click goes first) and
+  shows the finished fit;
 - **release commits**: viser reports no release of a slider or colour drag, so a pick is committed
-  when no change has come for ``commit_after_s`` (:data:`COMMIT_AFTER_S`): its fit is topped up to
-  the config's steps and added to the stack with its edited image and selection (undo, toggles
-  and export then see it as any edit). Further changes of the same pick replace that edit at their
+  when no change has come for ``commit_after_s`` (:data:`COMMIT_AFTER_S`): the topped-up edit is
+  added to the stack with its edited image and selection (undo, toggles and export then see it as
+  any edit). Further changes of the same pick replace that edit at their
   own release. A new click, leaving Pick mode, or any other change of the stack (apply, undo,
   reset, toggles, specular strength, export) first commits what is pending and ends the pick.
 
@@ -35,7 +38,7 @@ from virgi_ns.errors import InputError, VirgiError
 COMMIT_AFTER_S = 1.0
 """Seconds without a change after which a pick's live edit is committed ("release")."""
 LIVE_STEPS = 20
-"""Fit steps of a live update (a commit tops the fit up to the config's steps)."""
+"""Fit steps of a live update, and of each chunk of the top-up to the config's steps that follows it."""
 
 
 class PickActions:
@@ -108,7 +111,7 @@ class PickActions:
         deadline = time.monotonic() + timeout
 
         def idle() -> bool:
-            if self._pick_working or self._pick_job(time.monotonic())[0] in ("click", "live"):
+            if self._pick_working or self._pick_job(time.monotonic())[0] in ("click", "live", "top-up"):
                 return False
             return not commit or self._pick_live is None
 
@@ -135,13 +138,16 @@ class PickActions:
             self._pick_thread.start()
 
     def _pick_job(self, now: float) -> tuple[str, Optional[float]]:
-        """(the next job: 'click', 'live', 'commit' or '' for none; seconds until a commit is due)."""
+        """(the next job: 'click', 'live', 'top-up', 'commit' or '' for none; seconds until a commit
+        is due)."""
         if self._pick_click is not None:
             return "click", None
         if self._pick_session is None:
             return "", None
         if self._pick_version != self._pick_done:
             return "live", None
+        if self._pick_live is not None and self._pick_session.steps_done < self._pick_session.engine.cfg.steps:
+            return "top-up", None
         if self._pick_live is not None:
             due = self._pick_last_change + self.commit_after_s - now
             return ("commit", None) if due <= 0 else ("", due)
@@ -164,6 +170,8 @@ class PickActions:
                         self._start_pick(*click, version)
                     elif job == "live" and self._pick_session is not None:
                         self._live_pick(version)
+                    elif job == "top-up" and self._pick_live is not None:
+                        self._top_up_pick()
                     elif job == "commit" and self._pick_live is not None:
                         self._commit_pick()
             except VirgiError as e:
@@ -214,13 +222,25 @@ class PickActions:
         self.set_status(f"pick at {session.x} {session.y}: {st['selected']:.0%} of the view selected, {mode} -> "
                         f"{st['colour']} (live; committed {self.commit_after_s:g} s after the last change)", log=first)
 
+    def _top_up_pick(self) -> None:
+        """One chunk of the live fit's top-up to the config's steps; the last one shows the result."""
+        session = self._pick_session
+        left = session.engine.cfg.steps - session.steps_done
+        edit = session.refine(min(LIVE_STEPS, left))
+        if session.steps_done >= session.engine.cfg.steps:
+            with self._lock():
+                self._model.set_live_edit(edit)
+            self._pick_live = edit
+            self._rerender()
+
     def _commit_pick(self) -> None:
-        """Top the live fit up to the config's steps and put it on the stack (in the place of this
+        """Put the live fit, topped up to the config's steps, on the stack (in the place of this
         pick's earlier commit)."""
         from virgi_ns.edit.pick import commit
 
         session = self._pick_session
-        edit = session.refine(session.engine.cfg.steps - session.steps_done)
+        left = session.engine.cfg.steps - session.steps_done
+        edit = session.refine(left) if left > 0 else self._pick_live
         stack = self._stack()
         with self._lock():
             number = commit(stack, session, edit, self._pick_committed)
