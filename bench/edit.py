@@ -92,6 +92,10 @@ class Args:
     """Also a pick on every scene (one click on the rule's object with the rule's colour, measured as
     the rule edit is, :mod:`virgi_ns.bench.pick`) and the viewer's pick latency on the synthetic
     1M-Gaussian scene at 1280x720 (drag to frame, release to frame)."""
+    pick_criteria: List[str] = field(default_factory=list)
+    """With ``--pick``: also the same click with each of these selection criteria
+    (:data:`virgi_ns.edit.pick.CRITERIA`), as ``pick_by_criterion`` per row and one table, to choose
+    between them; the row's ``pick`` is the product's default criterion's."""
     edit_seeds: int = 1
     """Fit every row's edit with this many seeds (``EditConfig.seed`` 0..N-1: the segmentation head's
     start and the pixel sets) and report each figure's median over them, with the seeds' figures in
@@ -298,6 +302,10 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
              "per_view": res["views"], "targets": targets(res["mean"], warm["total_s"], scene.synthetic is not None)}]
     if args.pick:
         rows[0]["pick"] = bench_pick(args, scene, b, res["mean"]["propagation_psnr"])
+        if args.pick_criteria:
+            rows[0]["pick_by_criterion"] = {c: rows[0]["pick"] if c == rows[0]["pick"].get("criterion") else
+                                            bench_pick(args, scene, b, res["mean"]["propagation_psnr"], c)
+                                            for c in args.pick_criteria}
     for v in args.variants:
         only, text = variant_scene(v)
         if only is not None and only != scene.name:
@@ -348,20 +356,24 @@ def median_over_seeds(args: Args, b: Bench, fit: tuple, config: dict, rule, edit
     return {**first, **median, "per_seed": [{k: r[k] for k in SEED_FIGURES if k in r} for r in runs]}
 
 
-def bench_pick(args: Args, scene: EvalScene, b: Bench, rule_propagation: float) -> dict:
-    """The scene's pick (:func:`virgi_ns.bench.pick.measure_pick`) on the run the rule edit used;
-    its pictures beside the rule edit's. A pick refused (no pixel to click, an empty selection) is a
-    failed row with the reason, not the end of the call."""
+def bench_pick(args: Args, scene: EvalScene, b: Bench, rule_propagation: float,
+               criterion: Optional[str] = None) -> dict:
+    """The scene's pick (:func:`virgi_ns.bench.pick.measure_pick`) on the run the rule edit used, by
+    ``criterion`` (default: the product's); its pictures beside the rule edit's (another criterion's:
+    its selection strip only). A pick refused (no pixel to click, an empty selection) is a failed row
+    with the reason, not the end of the call."""
     from virgi_ns.bench.pick import measure_pick
 
     try:
-        p, pics, picture = measure_pick(b, scene.rule, rule_propagation, keep=args.pictures)
+        p, pics, picture = measure_pick(b, scene.rule, rule_propagation, keep=0 if criterion else args.pictures,
+                                        criterion=criterion)
     except InputError as e:
         console.log(f"{scene.name}: the pick failed: {e}")
-        return {"error": str(e), "rule_propagation_psnr": rule_propagation, "pass": False}
+        return {"error": str(e), "rule_propagation_psnr": rule_propagation, "pass": False,
+                **({"criterion": criterion} if criterion else {})}
     for i, pic in enumerate(pics):
         _save_png(args.out / f"{scene.name}_pick_view{i}.png", pic)
-    _save_png(args.out / f"{scene.name}_pick.png", picture)
+    _save_png(args.out / f"{scene.name}_pick{'_' + criterion if criterion else ''}.png", picture)
     return p
 
 
@@ -510,21 +522,50 @@ def print_pick(rows: List[dict], latencies: List[dict]) -> None:
         t.add_row("worst case", "", "", "", "", "", "", "", _f(w["pick_difference_db"], "+.2f"), "",
                   f"{w['pick_passed']}/{w['pick_rows']} pass")
         console.print(t)
+    by = [r for r in rows if "pick_by_criterion" in r]
+    if by:
+        t = Table(title="the same click by each selection criterion (difference: pick - rule edit propagation, dB)")
+        names = list(by[0]["pick_by_criterion"])
+        t.add_column("scene")
+        for c in names:
+            t.add_column(f"{c}: selected / IoU / difference")
+        for r in by:
+            t.add_row(r["scene"], *[("FAIL: " + p["error"]) if "error" in p else
+                                   f"{_f(p['selected'], '.1%')} / {_f(p['iou'], '.3f')} / {_f(p['difference_db'], '+.2f')}"
+                                   f" {'PASS' if p['pass'] else 'FAIL'}"
+                                   for p in (r["pick_by_criterion"][c] for c in names)])
+        summary = criteria_summary(by)
+        t.add_row("passed / worst", *[f"{summary[c]['passed']}/{len(by)} / {_f(summary[c]['worst_db'], '+.2f')}"
+                                      for c in names])
+        console.print(t)
     for lat in latencies:
         console.print(latency_line(lat))
 
 
+def criteria_summary(rows: List[dict]) -> dict:
+    """Per selection criterion over the rows' ``pick_by_criterion``: picks passed and the worst
+    difference (a refused pick counts as failed, at -inf)."""
+    names = list(rows[0]["pick_by_criterion"])
+    out = {}
+    for c in names:
+        picks = [r["pick_by_criterion"][c] for r in rows]
+        out[c] = {"passed": sum(bool(p["pass"]) for p in picks),
+                  "worst_db": min(p.get("difference_db", -math.inf) for p in picks)}
+    return out
+
+
 def latency_line(lat: dict) -> str:
     """One line of :func:`pick_latency`'s medians against the 100 ms target."""
-    d, r = lat["drag"], lat["release"]
+    d, r, u = lat["drag"], lat["release"], lat.get("top_up")
     ok = lambda s: "PASS" if s <= lat["target_s"] else "FAIL"  # noqa: E731
+    top_up = ("" if u is None else f"; top-up to {lat['steps']} steps + frame {1e3 * u['total_s']:.0f} ms while "
+              f"nothing changes (a change -> its finished frame {1e3 * u['change_to_final_s']:.0f} ms)")
     return (f"pick latency, {lat['gaussians']:,} Gaussians at {lat['image']} ({lat.get('device', '?')}; "
             f"{lat['renderer']} frames, gate keeps {lat['gate_kept']:.0%}, {lat['selected']:.0%} selected; median of "
             f"{lat['repeats']}): drag -> frame {1e3 * d['total_s']:.0f} ms ({lat['live_steps']} steps "
-            f"{1e3 * d['fit_s']:.0f} + render {1e3 * d['render_s']:.0f}) {ok(d['total_s'])}; release -> frame "
-            f"{1e3 * r['total_s']:.0f} ms (top-up to {lat['steps']} steps {1e3 * r['fit_s']:.0f} + commit "
-            f"{1e3 * r['commit_s']:.0f} + render {1e3 * r['render_s']:.0f}) {ok(r['total_s'])} "
-            f"(target <= {1e3 * lat['target_s']:.0f} ms)")
+            f"{1e3 * d['fit_s']:.0f} + render {1e3 * d['render_s']:.0f}) {ok(d['total_s'])}{top_up}; release -> frame "
+            f"{1e3 * r['total_s']:.0f} ms (fit left {1e3 * r['fit_s']:.0f} + commit {1e3 * r['commit_s']:.0f} + render "
+            f"{1e3 * r['render_s']:.0f}) {ok(r['total_s'])} (target <= {1e3 * lat['target_s']:.0f} ms)")
 
 
 def _commit() -> Optional[str]:

@@ -42,7 +42,7 @@ reason written beside it, never chosen by their scores here.
   of the selection's mean, until nothing joins (at most 8 rounds).
 - ``chroma_steps``: ``chroma`` with the chroma compared step by step instead of to the click's: a
   pixel joins when its hue is within t x 90 degrees of the click's (as ``chroma``), its chroma is at
-  least :data:`NEUTRAL_CHROMA` (below it the chromaticity's direction is no hue) and within a factor
+  least :data:`~virgi_ns.edit.pick.NEUTRAL_CHROMA` (below it the chromaticity's direction is no hue) and within a factor
   ``1 + 4t`` of that of an 8-neighbour already selected. Why: on the demo's beercan run ``chroma``
   stops at the click's tone (its chroma is the rule mask's 87th percentile; 59% of the mask is paler
   than the click / 1.8), while the can's pale and deep blues meet through gradual blends (print and
@@ -94,7 +94,7 @@ sys.path.insert(0, str(ROOT))
 
 from virgi_ns.bench.evalset import capture_folder, edit_view, find  # noqa: E402
 from virgi_ns.bench.pick import TOLERANCE, click_pixel, coverage  # noqa: E402
-from virgi_ns.edit.pick import MIN_COVER, ViewMaps, _angle, select, view_maps  # noqa: E402
+from virgi_ns.edit.pick import MIN_COVER, ViewMaps, _angle, chromaticity, select, view_maps  # noqa: E402
 from virgi_ns.edit.recolor import rule_mask  # noqa: E402
 
 SYNTHETIC = ["syn_mug_handle", "syn_toy_on_white", "syn_dark_vase", "syn_pastel_cushion", "syn_glossy_ball",
@@ -126,11 +126,6 @@ def grow(allowed: Tensor, x: int, y: int, seed: Tensor | None = None) -> Tensor:
             g = torch.nn.functional.max_pool2d(g, 3, 1, 1) * free
         if torch.equal(g, before):
             return g[0, 0] > 0
-
-
-def chromaticity(rgb: Tensor) -> Tensor:
-    """[...,3] -> the rgb chromaticity's offset from grey (shading, a scaling, does not move it)."""
-    return rgb / rgb.sum(-1, keepdim=True).clamp_min(1e-6) - 1.0 / 3.0
 
 
 def standardised(features: Tensor, covered: Tensor) -> Tensor:
@@ -197,45 +192,8 @@ def sel_region(m, x, y, t, k: float = 3.0, rounds: int = 8):
     return sel
 
 
-NEUTRAL_CHROMA = 0.02
-"""Chromaticity offsets shorter than this have no hue for ``chroma_steps``: about 6% HSV saturation,
-where one 8-bit step of one channel of a mid grey (sum 1.5: an offset of about 0.0026) turns the
-direction by about 7.5 degrees, under half the default 18-degree hue limit."""
-_STEPS = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx]
-
-
-def _shifted(a: Tensor, dy: int, dx: int, fill) -> Tensor:
-    """``a[y - dy, x - dx]`` at (y, x), ``fill`` where that lies outside the image."""
-    H, W = a.shape
-    out = torch.full_like(a, fill)
-    out[max(dy, 0):H + min(dy, 0), max(dx, 0):W + min(dx, 0)] = a[max(-dy, 0):H + min(-dy, 0),
-                                                                  max(-dx, 0):W + min(-dx, 0)]
-    return out
-
-
 def sel_chroma_steps(m, x, y, t):
-    cov = m.accumulation >= MIN_COVER
-    ch = chromaticity(m.diffuse)
-    n = ch.norm(dim=-1)
-    if float(n[y, x]) < NEUTRAL_CHROMA:
-        return select(m, x, y, t)
-    ok = cov & (_angle(ch, ch[y, x]) <= 90.0 * t) & (n >= NEUTRAL_CHROMA)
-    ok[y, x] = True
-    log_n, limit = torch.log(n.clamp_min(1e-6)), math.log(1.0 + 4.0 * t)
-    # (dy, dx, pixels that may join from their neighbour at (y - dy, x - dx)): both allowed, a small step
-    links = [(dy, dx, ok & _shifted(ok, dy, dx, False) & ((log_n - _shifted(log_n, dy, dx, 0.0)).abs() <= limit))
-             for dy, dx in _STEPS]
-    sel = torch.zeros_like(ok)
-    sel[y, x] = True
-    while True:  # flood fill along the links, a few steps between checks
-        before = sel
-        for _ in range(8):
-            new = sel.clone()
-            for dy, dx, link in links:
-                new |= _shifted(sel, dy, dx, False) & link
-            sel = new
-        if torch.equal(sel, before):
-            return sel
+    return select(m, x, y, t, "chroma_steps")
 
 
 CRITERIA: Dict[str, Callable] = {"current": sel_current, "colour": sel_colour, "features": sel_features,

@@ -181,6 +181,13 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     assert (w["pick_rows"], w["pick_passed"]) == (2, int(rows[0]["pick"]["pass"]))
     assert w["pick_difference_db"] == rows[0]["pick"]["difference_db"]
     bench_edit.print_pick([rows[0], failed], [])
+    # --pick-criteria: passes and the worst difference per criterion; a refused pick fails at -inf
+    pick = lambda d: {"selected": 0.1, "iou": 0.8, "difference_db": d, "pass": d >= -1.0}  # noqa: E731
+    by = [{"scene": "a", "pick_by_criterion": {"x": pick(-0.2), "y": pick(-3.0)}},
+          {"scene": "b", "pick_by_criterion": {"x": pick(-1.5), "y": {"error": "no pixel", "pass": False}}}]
+    assert bench_edit.criteria_summary(by) == {"x": {"passed": 1, "worst_db": -1.5},
+                                               "y": {"passed": 0, "worst_db": -math.inf}}
+    bench_edit.print_pick(by, [])
     # --merge: two calls' results as one table, picks re-judged, the latency lines kept
     latency = {"gaussians": 10, "image": "4x3", "renderer": "contributions", "gate_kept": 1.0, "pixel": [1, 1],
                "selected": 0.5, "live_steps": 20, "steps": 100, "repeats": 1, "target_s": 0.1,

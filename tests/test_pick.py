@@ -182,6 +182,30 @@ def test_connected_to_follows_diagonals_and_stops_at_gaps():
     assert as_set(connected_to(allowed, 6, 5)) == set()
 
 
+def test_connected_through_small_steps_matches_a_breadth_first_search():
+    """With values, a neighbour joins only through a step of at most ``step``: the same set as a plain
+    breadth-first search over random masks and values."""
+    from collections import deque
+
+    g = torch.Generator().manual_seed(3)
+    for trial in range(6):
+        allowed = torch.rand(9, 11, generator=g) < 0.7
+        value = torch.rand(9, 11, generator=g)
+        y, x = int(allowed.nonzero()[0, 0]), int(allowed.nonzero()[0, 1])
+        seen, todo = {(y, x)}, deque([(y, x)])
+        while todo:
+            cy, cx = todo.popleft()
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    ny, nx = cy + dy, cx + dx
+                    if (0 <= ny < 9 and 0 <= nx < 11 and (ny, nx) not in seen and bool(allowed[ny, nx])
+                            and abs(float(value[ny, nx]) - float(value[cy, cx])) <= 0.3):
+                        seen.add((ny, nx))
+                        todo.append((ny, nx))
+        got = {tuple(p) for p in connected_to(allowed, x, y, value, 0.3).nonzero().tolist()}
+        assert got == seen, trial
+
+
 def test_bad_picks_are_refused(world):
     S = world["S"]
     cam = S.cameras.index(EDIT_VIEW)

@@ -41,7 +41,7 @@ import statistics
 import tempfile
 import time
 from types import SimpleNamespace
-from typing import Callable
+from typing import Callable, Optional
 
 import torch
 from torch import Tensor
@@ -128,11 +128,14 @@ def pick_passes(p: dict) -> bool:
     return p["difference_db"] >= -WITHIN_DB
 
 
-def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0) -> tuple[dict, list, Tensor]:
+def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0,
+                 criterion: Optional[str] = None) -> tuple[dict, list, Tensor]:
     """One click on ``b``'s edit view by the module docstring's rule, measured as the rule edit is
-    (``rule_propagation``: its propagation PSNR on the same run). Returns (figures, the held-out
-    pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection | rule mask)."""
-    from virgi_ns.edit.pick import MIN_COVER, PickSession, commit, pick_config
+    (``rule_propagation``: its propagation PSNR on the same run), its selection grown by ``criterion``
+    (default: the product's, :data:`~virgi_ns.edit.pick.DEFAULT_CRITERION`). Returns (figures, the
+    held-out pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection | rule
+    mask)."""
+    from virgi_ns.edit.pick import DEFAULT_CRITERION, MIN_COVER, PickSession, commit, pick_config
     from virgi_ns.edit.stack import EditStack
 
     render = b.edit_base
@@ -143,7 +146,8 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0) -
     stack.to(b.scene.device)
     _sync(b.scene.device)
     t0 = time.perf_counter()
-    session = PickSession(b.scene, b.edit_camera, x, y, stack, pick_config(b.scene.device))
+    session = PickSession(b.scene, b.edit_camera, x, y, stack, pick_config(b.scene.device),
+                          criterion=criterion or DEFAULT_CRITERION)
     edit = session.update(colour, TOLERANCE, MODE)
     _sync(b.scene.device)
     fit_s = time.perf_counter() - t0
@@ -153,6 +157,7 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0) -
     union = int((sel | mask).sum())
     m = res["mean"]
     out = {"pixel": [x, y], "depth": depth, "colour": session.settings["colour"], "mode": MODE,
+           "criterion": session.criterion,
            "tolerance": TOLERANCE, "selected": session.settings["selected"],
            "iou": int((sel & mask).sum()) / union if union else float("nan"),
            "propagation_psnr": m["propagation_psnr"], "miss_psnr": m["miss_psnr"], "leak_psnr": m["leak_psnr"],

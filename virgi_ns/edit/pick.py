@@ -32,6 +32,7 @@ covers, which carries the selection to every other view.
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -127,10 +128,42 @@ def check_pixel(maps: ViewMaps, x: int, y: int) -> None:
                          f"< {MIN_COVER}); pick a pixel on an object")
 
 
+CRITERIA = ("colour_features", "chroma_steps")
+"""How :func:`select` decides which pixels join (see there)."""
+DEFAULT_CRITERION = "colour_features"
+NEUTRAL_CHROMA = 0.02
+"""``chroma_steps``: chromaticity offsets shorter than this have no hue (about 6% HSV saturation, where
+one 8-bit step of one channel of a mid grey turns the offset's direction by about 7.5 degrees, under
+half the default 18-degree limit)."""
+
+
+def check_criterion(criterion: str) -> str:
+    if criterion not in CRITERIA:
+        raise InputError(f"the selection criterion must be {' or '.join(CRITERIA)}, got {criterion!r}")
+    return criterion
+
+
+def chromaticity(rgb: Tensor) -> Tensor:
+    """[...,3] -> the rgb chromaticity's offset from grey: its direction is the hue, its length the
+    chroma, and shading (a scaling of the colour) moves neither."""
+    return rgb / rgb.sum(-1, keepdim=True).clamp_min(1e-6) - 1.0 / 3.0
+
+
 @torch.no_grad()
-def select(maps: ViewMaps, x: int, y: int, tolerance: float) -> Tensor:
-    """Bool [H,W]: the selection grown from pixel (x, y) (see the module docstring)."""
+def select(maps: ViewMaps, x: int, y: int, tolerance: float, criterion: str = DEFAULT_CRITERION) -> Tensor:
+    """Bool [H,W]: the selection grown from pixel (x, y) over covered pixels, 8-connected to it.
+    ``colour_features``: a pixel joins when its diffuse colour and its features both point within
+    ``tolerance`` x 90 degrees of the clicked pixel's (see the module docstring). ``chroma_steps``:
+    when its diffuse chromaticity's hue is within that angle of the click's, its chroma is at least
+    :data:`NEUTRAL_CHROMA`, and it is reached from the click through neighbours whose chromas differ
+    by at most a factor ``1 + 4 tolerance`` step by step (an object's pale and deep tones meet through
+    gradual blends, another object of its hue meets it at an abrupt step); a click on a neutral
+    colour falls back to ``colour_features``."""
     check_pixel(maps, x, y)
+    if check_criterion(criterion) == "chroma_steps":
+        chosen = _select_chroma_steps(maps, x, y, check_tolerance(tolerance))
+        if chosen is not None:
+            return chosen
     limit = 90.0 * check_tolerance(tolerance)
     allowed = ((maps.accumulation >= MIN_COVER)
                & (_angle(maps.diffuse, maps.diffuse[y, x]) <= limit)
@@ -139,15 +172,49 @@ def select(maps: ViewMaps, x: int, y: int, tolerance: float) -> Tensor:
     return connected_to(allowed, x, y)
 
 
-def connected_to(allowed: Tensor, x: int, y: int) -> Tensor:
-    """Bool [H,W]: the pixels of ``allowed`` [H,W] 8-connected to pixel (x, y) through ``allowed``
-    ones (empty when (x, y) is not allowed). Labelled on the host by scipy: one pass, where a flood
-    fill on the GPU takes a dilation per pixel of the object's extent and a sync every few."""
-    from scipy import ndimage
+def _select_chroma_steps(maps: ViewMaps, x: int, y: int, tolerance: float) -> Optional[Tensor]:
+    """``select``'s ``chroma_steps`` criterion; None for a neutral click."""
+    ch = chromaticity(maps.diffuse)
+    chroma = ch.norm(dim=-1)
+    if float(chroma[y, x]) < NEUTRAL_CHROMA:
+        return None
+    allowed = ((maps.accumulation >= MIN_COVER) & (_angle(ch, ch[y, x]) <= 90.0 * tolerance)
+               & (chroma >= NEUTRAL_CHROMA))
+    allowed[y, x] = True
+    log_chroma = torch.log(chroma.clamp_min(1e-6))
+    return connected_to(allowed, x, y, log_chroma, math.log(1.0 + 4.0 * tolerance))
 
-    labels, _ = ndimage.label(allowed.cpu().numpy(), structure=np.ones((3, 3), dtype=bool))
-    mine = int(labels[y, x])
-    return torch.from_numpy(labels == mine if mine else np.zeros_like(labels, dtype=bool)).to(allowed.device)
+
+def connected_to(allowed: Tensor, x: int, y: int, value: Optional[Tensor] = None, step: float = 0.0) -> Tensor:
+    """Bool [H,W]: the pixels of ``allowed`` [H,W] 8-connected to pixel (x, y) through ``allowed``
+    ones (empty when (x, y) is not allowed); with ``value`` [H,W], only through neighbours whose values
+    differ by at most ``step``. Labelled on the host by scipy in one pass, where a flood fill on the
+    GPU takes a dilation per pixel of the object's extent and a sync every few."""
+    ok = allowed.cpu().numpy()
+    if not ok[y, x]:
+        return torch.zeros_like(allowed, dtype=torch.bool)
+    if value is None:
+        from scipy import ndimage
+
+        labels, _ = ndimage.label(ok, structure=np.ones((3, 3), dtype=bool))
+        return torch.from_numpy(labels == labels[y, x]).to(allowed.device)
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    v = value.detach().cpu().double().numpy()
+    H, W = ok.shape
+    index = np.arange(H * W).reshape(H, W)
+    src, dst = [], []
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):  # each neighbour pair once
+        a = (slice(0, H - dy), slice(max(0, -dx), W - max(0, dx)))
+        b = (slice(dy, H), slice(max(0, dx), W + min(0, dx)))
+        link = ok[a] & ok[b] & (np.abs(v[a] - v[b]) <= step)
+        src.append(index[a][link])
+        dst.append(index[b][link])
+    i, j = np.concatenate(src), np.concatenate(dst)
+    graph = coo_matrix((np.ones(len(i), dtype=np.int8), (i, j)), shape=(H * W, H * W))
+    _, labels = connected_components(graph, directed=False)
+    return torch.from_numpy((labels == labels[y * W + x]).reshape(H, W)).to(allowed.device)
 
 
 def _typical(values: Tensor, mask: Tensor) -> float:
@@ -189,11 +256,13 @@ class PickSession:
     :meth:`update` selects, recolours and fits again, warm from the last fit."""
 
     def __init__(self, scene: FrozenScene, camera: Cameras, x: int, y: int, stack: Optional[EditStack] = None,
-                 cfg: Optional[EditConfig] = None, source: Optional[EditSource] = None) -> None:
+                 cfg: Optional[EditConfig] = None, source: Optional[EditSource] = None,
+                 criterion: str = DEFAULT_CRITERION) -> None:
         W, H = int(camera.widths[0]), int(camera.heights[0])
         if not (0 <= x < W and 0 <= y < H):  # before the view is rasterized
             raise InputError(f"the pixel ({x}, {y}) is outside the {W}x{H} image (x 0..{W - 1}, y 0..{H - 1})")
         self.x, self.y = int(x), int(y)
+        self.criterion = check_criterion(criterion)  # how select() grows the selection
         self.engine = EditEngine(scene, camera, None, stack, cfg or pick_config(scene.device), source)
         self.maps = view_maps(self.engine)
         check_pixel(self.maps, self.x, self.y)
@@ -214,7 +283,7 @@ class PickSession:
         tolerance, mode = check_tolerance(tolerance), check_mode(mode)
         # a drag of the colour keeps the selection (it depends on the click and the tolerance only)
         if self._selection is None or self._selection[0] != tolerance:
-            self._selection = (tolerance, select(self.maps, self.x, self.y, tolerance))
+            self._selection = (tolerance, select(self.maps, self.x, self.y, tolerance, self.criterion))
         mask = self._selection[1]
         tick("select")
         edited = recolour(self.maps.rgb, mask, colour, mode, self.maps.diffuse)
@@ -223,7 +292,8 @@ class PickSession:
         tick("retarget")
         self.mask, self.edited, self.steps_done = mask, edited, 0
         self.settings = {"pixel": [self.x, self.y], "colour": "#" + "".join(f"{round(255 * c):02x}" for c in colour),
-                         "tolerance": tolerance, "mode": mode, "selected": float(mask.float().mean())}
+                         "tolerance": tolerance, "mode": mode, "criterion": self.criterion,
+                         "selected": float(mask.float().mean())}
         edit = self.refine(self.engine.cfg.steps if steps is None else steps)
         tick("steps")
         return edit
@@ -270,5 +340,5 @@ def commit(stack: EditStack, session: PickSession, edit: Edit, replace: Optional
         raise
 
 
-__all__ = ["MIN_COVER", "MODES", "PickSession", "ViewMaps", "check_mode", "check_pixel", "check_tolerance", "commit",
+__all__ = ["CRITERIA", "DEFAULT_CRITERION", "MIN_COVER", "MODES", "NEUTRAL_CHROMA", "check_criterion", "chromaticity", "PickSession", "ViewMaps", "check_mode", "check_pixel", "check_tolerance", "commit",
            "connected_to", "parse_colour", "pick_config", "recolour", "select", "view_maps"]
