@@ -86,9 +86,14 @@ def test_the_selection_is_the_clicked_object_whole(world):
     ys, xs = torch.nonzero(cov[..., es.GREEN] > 0.95, as_tuple=True)
     green = select(s.maps, int(xs[0]), int(ys[0]), 0.2)
     assert bool((cov[..., es.GREEN][green] > 0.5).all()) and int(green.sum()) > 20
-    # the tolerance widens it: at 1 every covered pixel connected to the click joins
-    everything = select(s.maps, *world["pixel"], 1.0)
+    # the tolerance widens it; by colour and features, at 1 every covered pixel connected to the click joins
+    wider = select(s.maps, *world["pixel"], 1.0)
+    assert bool(wider[s.mask].all()) and int(wider.sum()) > int(s.mask.sum())
+    everything = select(s.maps, *world["pixel"], 1.0, "colour_features")
     assert bool(everything[(cov.sum(-1) > 0.9) & (s.maps.accumulation > 0.5)].all())
+    # both criteria take the clicked sphere and none of its neighbours here
+    by_features = select(s.maps, *world["pixel"], 0.2, "colour_features")
+    assert bool((blue[by_features] > 0.5).all()) and float(by_features[inner].float().mean()) > 0.97
 
 
 @pytest.mark.parametrize("v", HELD_OUT)

@@ -105,8 +105,13 @@ class Pick:
     camera_json: Optional[Path] = None
     """Camera: a CAM.json as the viewer's 'Save this view' and virgi-render use."""
     tolerance: float = 0.2
-    """0..1: how far (x 90 degrees) a pixel's diffuse colour and colour-field features may point from
-    the picked pixel's and still be selected."""
+    """0..1: how far (x 90 degrees) a pixel's hue may turn from the picked pixel's, and (by chroma steps)
+    how much its chroma may change from a selected neighbour's (a factor 1 + 4 x tolerance), and still be
+    selected."""
+    selection: Literal["chroma_steps", "colour_features"] = "chroma_steps"
+    """How the selection grows from the pixel: ``chroma_steps`` (the default) by the diffuse colour's hue
+    and gradual chroma; ``colour_features`` by the angles of the diffuse colour and of the colour
+    field's features (the previous default)."""
     mode: Literal["hue", "colour"] = "hue"
     """``hue``: new hue and saturation, each pixel keeps its value (shading and highlights stay);
     ``colour``: the surface takes the colour itself, shaded as it was, its highlights on it."""
@@ -412,7 +417,8 @@ def pick(args: Pick, console: "Console", pipeline=None) -> str:
     x, y = args.pixel
     source = EditSource("", cams.Ks[0].cpu(), cams.viewmats[0].cpu(), W, H, f"{where}, pixel {x} {y}")
     with torch.no_grad(), console.status("fitting the pick"):
-        session = PickSession(FrozenScene.from_model(model), cams, x, y, stack, pick_config(model.device), source)
+        session = PickSession(FrozenScene.from_model(model), cams, x, y, stack, pick_config(model.device), source,
+                              criterion=args.selection)
         edit = session.update(colour, tolerance, args.mode, args.steps)
     number = commit(stack, session, edit)
     st = session.settings

@@ -6,12 +6,15 @@ The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain to
 - :func:`view_maps`: the view's render, its diffuse render, the colour field's per-Gaussian
   features composited per pixel, and its coverage (accumulation), from an
   :class:`~virgi_ns.edit.engine.EditEngine` set up on the view;
-- :func:`select`: the selection grown from the clicked pixel. A pixel joins when it is covered
-  (accumulation >= :data:`MIN_COVER`), when both its diffuse colour and its features point within
-  ``tolerance`` x 90 degrees of the clicked pixel's (angles between the vectors: brightness and
-  shading do not count, the highlight is not in the diffuse render), and when it is connected to
-  the clicked pixel through such pixels. The colour keeps neighbours of another colour out, the
-  features keep out what only looks alike, the connection keeps to the clicked object;
+- :func:`select`: the selection grown from the clicked pixel over covered pixels (accumulation >=
+  :data:`MIN_COVER`) connected to it. By default (``chroma_steps``) a pixel joins when the hue of its
+  diffuse colour (the direction of its chromaticity, which shading does not move; the highlight is
+  not in the diffuse render) is within ``tolerance`` x 90 degrees of the click's and it is reached
+  through neighbours whose chroma changes gradually: an object's pale and deep tones meet through
+  blends, another object of the same hue meets it at a step. ``colour_features`` (the previous
+  default) asks both the diffuse colour and the colour field's features to point within that angle
+  of the click's; it stopped short of the object on most scenes of the evaluation set
+  (bench/RESULTS.md, "Pick");
 - :func:`recolour`: the edited image: ``hue`` gives the selection the colour's hue and saturation
   and keeps each pixel's value (shading and highlights stay: saturation is scaled from the
   selection's typical pixel, so a white highlight stays near white); ``colour`` makes the colour
@@ -130,7 +133,7 @@ def check_pixel(maps: ViewMaps, x: int, y: int) -> None:
 
 CRITERIA = ("colour_features", "chroma_steps")
 """How :func:`select` decides which pixels join (see there)."""
-DEFAULT_CRITERION = "colour_features"
+DEFAULT_CRITERION = "chroma_steps"
 NEUTRAL_CHROMA = 0.02
 """``chroma_steps``: chromaticity offsets shorter than this have no hue (about 6% HSV saturation, where
 one 8-bit step of one channel of a mid grey turns the offset's direction by about 7.5 degrees, under
