@@ -52,6 +52,7 @@ from rich.table import Table
 
 from virgi_ns.bench.evalset import COLOUR_STEPS, GEOMETRY_STEPS, SYNTHETIC_SIZE, EvalScene, capture_folder, \
     dataparser_config, edit_view, find
+from virgi_ns.bench.pick import parse_pick_variant
 from virgi_ns.bench.recolor import Bench, RuleArgs, _save_png
 from virgi_ns.bench.settings import split_settings, typed_like
 from virgi_ns.errors import InputError, atomic_path, cli_entry
@@ -96,6 +97,11 @@ class Args:
     """With ``--pick``: also the same click with each of these selection criteria
     (:data:`virgi_ns.edit.pick.CRITERIA`), as ``pick_by_criterion`` per row and one table, to choose
     between them; the row's ``pick`` is the product's default criterion's."""
+    pick_variants: List[str] = field(default_factory=list)
+    """With ``--pick``: also the same click with these settings, each a comma-separated list of
+    ``key=value`` (:data:`virgi_ns.bench.pick.PICK_OPTIONS`, e.g. ``reference=click`` or
+    ``recolour=rule,recipe=joint``), as ``pick_variants`` per row and one table: to measure apart
+    what separates a pick from the rule edit."""
     edit_seeds: int = 1
     """Fit every row's edit with this many seeds (``EditConfig.seed`` 0..N-1: the segmentation head's
     start and the pixel sets) and report each figure's median over them, with the seeds' figures in
@@ -306,6 +312,9 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
             rows[0]["pick_by_criterion"] = {c: rows[0]["pick"] if c == rows[0]["pick"].get("criterion") else
                                             bench_pick(args, scene, b, res["mean"]["propagation_psnr"], c)
                                             for c in args.pick_criteria}
+        if args.pick_variants:
+            rows[0]["pick_variants"] = {v: bench_pick(args, scene, b, res["mean"]["propagation_psnr"],
+                                                      **parse_pick_variant(v)) for v in args.pick_variants}
     for v in args.variants:
         only, text = variant_scene(v)
         if only is not None and only != scene.name:
@@ -356,24 +365,25 @@ def median_over_seeds(args: Args, b: Bench, fit: tuple, config: dict, rule, edit
     return {**first, **median, "per_seed": [{k: r[k] for k in SEED_FIGURES if k in r} for r in runs]}
 
 
-def bench_pick(args: Args, scene: EvalScene, b: Bench, rule_propagation: float,
-               criterion: Optional[str] = None) -> dict:
+def bench_pick(args: Args, scene: EvalScene, b: Bench, rule_propagation: float, criterion: Optional[str] = None,
+               **options: str) -> dict:
     """The scene's pick (:func:`virgi_ns.bench.pick.measure_pick`) on the run the rule edit used, by
-    ``criterion`` (default: the product's); its pictures beside the rule edit's (another criterion's:
-    its selection strip only). A pick refused (no pixel to click, an empty selection) is a failed row
-    with the reason, not the end of the call."""
+    ``criterion`` (default: the product's) and ``options`` (a pick variant's); its pictures beside the
+    rule edit's (another criterion's or variant's: its selection strip only). A pick refused (no pixel
+    to click, an empty selection) is a failed row with the reason, not the end of the call."""
     from virgi_ns.bench.pick import measure_pick
 
+    named = {**({"criterion": criterion} if criterion else {}), **options}
     try:
-        p, pics, picture = measure_pick(b, scene.rule, rule_propagation, keep=0 if criterion else args.pictures,
-                                        criterion=criterion)
+        p, pics, picture = measure_pick(b, scene.rule, rule_propagation, keep=0 if named else args.pictures,
+                                        criterion=criterion, **options)
     except InputError as e:
         console.log(f"{scene.name}: the pick failed: {e}")
-        return {"error": str(e), "rule_propagation_psnr": rule_propagation, "pass": False,
-                **({"criterion": criterion} if criterion else {})}
+        return {"error": str(e), "rule_propagation_psnr": rule_propagation, "pass": False, **named}
     for i, pic in enumerate(pics):
         _save_png(args.out / f"{scene.name}_pick_view{i}.png", pic)
-    _save_png(args.out / f"{scene.name}_pick{'_' + criterion if criterion else ''}.png", picture)
+    suffix = "".join(f"_{v}" for v in named.values())
+    _save_png(args.out / f"{scene.name}_pick{suffix}.png", picture)
     return p
 
 
@@ -522,10 +532,12 @@ def print_pick(rows: List[dict], latencies: List[dict]) -> None:
         t.add_row("worst case", "", "", "", "", "", "", "", _f(w["pick_difference_db"], "+.2f"), "",
                   f"{w['pick_passed']}/{w['pick_rows']} pass")
         console.print(t)
-    by = [r for r in rows if "pick_by_criterion" in r]
-    if by:
-        t = Table(title="the same click by each selection criterion (difference: pick - rule edit propagation, dB)")
-        names = list(by[0]["pick_by_criterion"])
+    for key, what in (("pick_by_criterion", "by each selection criterion"), ("pick_variants", "with each variant")):
+        by = [r for r in rows if key in r]
+        if not by:
+            continue
+        t = Table(title=f"the same click {what} (difference: pick - rule edit propagation, dB)")
+        names = list(by[0][key])
         t.add_column("scene")
         for c in names:
             t.add_column(f"{c}: selected / IoU / difference")
@@ -533,8 +545,8 @@ def print_pick(rows: List[dict], latencies: List[dict]) -> None:
             t.add_row(r["scene"], *[("FAIL: " + p["error"]) if "error" in p else
                                    f"{_f(p['selected'], '.1%')} / {_f(p['iou'], '.3f')} / {_f(p['difference_db'], '+.2f')}"
                                    f" {'PASS' if p['pass'] else 'FAIL'}"
-                                   for p in (r["pick_by_criterion"][c] for c in names)])
-        summary = criteria_summary(by)
+                                   for p in (r[key][c] for c in names)])
+        summary = criteria_summary(by, key)
         t.add_row("passed / worst", *[f"{summary[c]['passed']}/{len(by)} / {_f(summary[c]['worst_db'], '+.2f')}"
                                       for c in names])
         console.print(t)
@@ -542,13 +554,13 @@ def print_pick(rows: List[dict], latencies: List[dict]) -> None:
         console.print(latency_line(lat))
 
 
-def criteria_summary(rows: List[dict]) -> dict:
-    """Per selection criterion over the rows' ``pick_by_criterion``: picks passed and the worst
-    difference (a refused pick counts as failed, at -inf)."""
-    names = list(rows[0]["pick_by_criterion"])
+def criteria_summary(rows: List[dict], key: str = "pick_by_criterion") -> dict:
+    """Per selection criterion (or pick variant, ``key="pick_variants"``) over the rows: picks passed and
+    the worst difference (a refused pick counts as failed, at -inf)."""
+    names = list(rows[0][key])
     out = {}
     for c in names:
-        picks = [r["pick_by_criterion"][c] for r in rows]
+        picks = [r[key][c] for r in rows]
         out[c] = {"passed": sum(bool(p["pass"]) for p in picks),
                   "worst_db": min(p.get("difference_db", -math.inf) for p in picks)}
     return out
@@ -626,6 +638,8 @@ def main(args: Args) -> None:
     scenes = find(args.scenes)
     for v in args.variants:  # refuse a bad --variants before any training
         check_variant(v, [s.name for s in scenes])
+    for v in args.pick_variants:  # and a bad --pick-variants
+        parse_pick_variant(v)
     device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"
     rows: List[dict] = []
     loaded: dict = {}

@@ -101,6 +101,7 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     scene = EvalScene("tiny", "tiny", BROAD.rule(), "every saturated pixel")
     args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1,
                            pictures=1, pick=True, dump_targets=True,
+                           pick_variants=["recolour=rule,recipe=joint,reference=click"],
                            variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05", "other:steps=5",
                                      "tiny:recipe=staged,seg_samples=512,seg_steps=20", "steps=15,source=render",
                                      "steps=15,source=render+original,changed_target=edited"])
@@ -281,6 +282,20 @@ def _check_pick(rows, pipeline, rule, picture_png):
     assert p["difference_db"] == pytest.approx(p["propagation_psnr"] - rows[0]["propagation_psnr"])
     assert p["pass"] == (p["difference_db"] >= -1.0)
     assert len(p["per_view_propagation"]) == len(rows[0]["per_view"])
+    # the pick variants: the same click with their settings recorded; recolour=rule gives the
+    # selection the rule's colours on the render and keeps the render elsewhere
+    from virgi_ns.edit.recolor import recolor
+
+    pv = rows[0]["pick_variants"]
+    assert list(pv) == ["recolour=rule,recipe=joint,reference=click"]
+    ruled = pv["recolour=rule,recipe=joint,reference=click"]
+    assert (ruled["recolour"], ruled["recipe"], ruled["reference"]) == ("rule", "joint", "click")
+    assert ruled["pixel"] == p["pixel"] and ruled["selected"] == p["selected"]
+    strip = np.asarray(Image.open(picture_png.with_name("tiny_pick_rule_joint_click.png"))).astype(np.float64) / 255.0
+    edited, sel = strip[:, W : 2 * W], strip[:, 2 * W : 3 * W, 0] > 0.5
+    want = np.where(sel[..., None], recolor(render, rule)[0].numpy(), render.numpy())
+    assert np.abs(edited - want).max() <= 1.0 / 255.0 + 1e-6
+    assert ruled["propagation_psnr"] != p["propagation_psnr"]  # another fit
 
 
 def test_pick_tolerance_is_the_tools_default():

@@ -162,6 +162,19 @@ def test_recolour_rules_against_colorsys():
     want = rgb.double().numpy().copy()
     want[m] = np.clip(np.array(colour)[None] * hsv[..., 2][m][:, None] / v_typ, 0, 1)
     np.testing.assert_allclose(recolour(rgb, mask, colour, "colour").double().numpy(), want, atol=2e-5)
+    # at a clicked pixel: that pixel's saturation (hue) or value (colour) is the reference instead
+    cy, cx = (int(v[0]) for v in np.nonzero(m))
+    s_at, v_at = hsv[cy, cx, 1], hsv[cy, cx, 2]
+    want = rgb.double().numpy().copy()
+    for y, x in zip(*np.nonzero(m)):
+        h, s, v = hsv[y, x]
+        want[y, x] = colorsys.hsv_to_rgb(th, min(1.0, s * ts / s_at), v)
+    np.testing.assert_allclose(recolour(rgb, mask, colour, "hue", at=(cx, cy)).double().numpy(), want, atol=2e-5)
+    assert np.allclose(colorsys.rgb_to_hsv(*recolour(rgb, mask, colour, "hue", at=(cx, cy))[cy, cx].tolist())[:2],
+                       (th, ts), atol=1e-4)  # the clicked pixel takes the colour's hue and saturation
+    want = rgb.double().numpy().copy()
+    want[m] = np.clip(np.array(colour)[None] * hsv[..., 2][m][:, None] / v_at, 0, 1)
+    np.testing.assert_allclose(recolour(rgb, mask, colour, "colour", at=(cx, cy)).double().numpy(), want, atol=2e-5)
     # with a diffuse render: the colour shades the diffuse, and the render's logit offset over the
     # diffuse (its view-dependent part) goes back on
     diffuse = (rgb * 0.7).clamp(0.02, 0.98)

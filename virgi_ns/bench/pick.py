@@ -128,13 +128,40 @@ def pick_passes(p: dict) -> bool:
     return p["difference_db"] >= -WITHIN_DB
 
 
-def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0,
-                 criterion: Optional[str] = None) -> tuple[dict, list, Tensor]:
+PICK_OPTIONS = {"criterion": None, "reference": ("median", "click"), "recipe": ("joint", "staged"),
+                "recolour": ("pick", "rule")}
+"""What a pick variant (``bench/edit.py --pick-variants``) may set, each apart: the selection criterion,
+the recolour's reference pixel, the edit recipe, and ``recolour=rule`` (a diagnostic: the rule itself
+recolours the pick's selection of the render, so the pick differs from the rule edit only in its
+selection and its recipe)."""
+
+
+def parse_pick_variant(text: str) -> dict:
+    """``'criterion=colour_features,recipe=joint'`` -> ``{'criterion': ..., 'recipe': ...}``; an unknown
+    key or value is an :class:`InputError`."""
+    from virgi_ns.edit.pick import CRITERIA
+
+    out = {}
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        key, _, value = part.partition("=")
+        allowed = CRITERIA if key == "criterion" else PICK_OPTIONS.get(key)
+        if key not in PICK_OPTIONS or value not in allowed:
+            raise InputError(f"pick variant {text!r}: {part!r} is not one of "
+                             + ", ".join(f"{k}={'|'.join(CRITERIA if v is None else v)}" for k, v in PICK_OPTIONS.items()))
+        out[key] = value
+    return out
+
+
+def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, criterion: Optional[str] = None,
+                 reference: str = "median", recipe: Optional[str] = None, recolour: str = "pick"
+                 ) -> tuple[dict, list, Tensor]:
     """One click on ``b``'s edit view by the module docstring's rule, measured as the rule edit is
     (``rule_propagation``: its propagation PSNR on the same run), its selection grown by ``criterion``
-    (default: the product's, :data:`~virgi_ns.edit.pick.DEFAULT_CRITERION`). Returns (figures, the
-    held-out pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection | rule
-    mask)."""
+    (default: the product's, :data:`~virgi_ns.edit.pick.DEFAULT_CRITERION`); ``reference``, ``recipe``
+    and ``recolour``: :data:`PICK_OPTIONS` (defaults: the product's). Returns (figures, the held-out
+    pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection | rule mask)."""
+    import dataclasses
+
     from virgi_ns.edit.pick import DEFAULT_CRITERION, MIN_COVER, PickSession, commit, pick_config
     from virgi_ns.edit.stack import EditStack
 
@@ -146,9 +173,15 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0,
     stack.to(b.scene.device)
     _sync(b.scene.device)
     t0 = time.perf_counter()
-    session = PickSession(b.scene, b.edit_camera, x, y, stack, pick_config(b.scene.device),
-                          criterion=criterion or DEFAULT_CRITERION)
+    cfg = pick_config(b.scene.device)
+    cfg = cfg if recipe is None else dataclasses.replace(cfg, recipe=recipe)
+    session = PickSession(b.scene, b.edit_camera, x, y, stack, cfg, criterion=criterion or DEFAULT_CRITERION,
+                          reference=reference)
     edit = session.update(colour, TOLERANCE, MODE)
+    if recolour == "rule":  # the same selection, recoloured by the rule on the render, fitted afresh
+        session.edited = torch.where(session.mask[..., None], recolor(render, rule)[0], render)
+        session.engine.retarget(session.edited, session.mask)
+        edit = session.refine(cfg.steps)
     _sync(b.scene.device)
     fit_s = time.perf_counter() - t0
     commit(stack, session, edit)
@@ -157,7 +190,7 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0,
     union = int((sel | mask).sum())
     m = res["mean"]
     out = {"pixel": [x, y], "depth": depth, "colour": session.settings["colour"], "mode": MODE,
-           "criterion": session.criterion,
+           "criterion": session.criterion, "reference": reference, "recipe": cfg.recipe, "recolour": recolour,
            "tolerance": TOLERANCE, "selected": session.settings["selected"],
            "iou": int((sel & mask).sum()) / union if union else float("nan"),
            "propagation_psnr": m["propagation_psnr"], "miss_psnr": m["miss_psnr"], "leak_psnr": m["leak_psnr"],
@@ -328,6 +361,6 @@ def viewer_latency(scene, cams, repeats: int, cfg=None) -> dict:
             "top_up": med(top_ups), "release": med(releases), "target_s": LATENCY_TARGET_S}
 
 
-__all__ = ["LATENCY_TARGET_S", "MODE", "TOLERANCE", "WITHIN_DB", "ViewerRender", "border_distance", "click_pixel",
+__all__ = ["LATENCY_TARGET_S", "MODE", "PICK_OPTIONS", "parse_pick_variant", "TOLERANCE", "WITHIN_DB", "ViewerRender", "border_distance", "click_pixel",
            "coverage", "drag_frame", "largest_component", "measure_pick", "pick_passes", "release_frame",
            "rule_colour", "top_up_frame", "viewer_latency"]

@@ -230,24 +230,32 @@ def _logit(x: Tensor) -> Tensor:
     return torch.log(x) - torch.log1p(-x)
 
 
+REFERENCES = ("median", "click")
+"""Which pixel :func:`recolour` gives the chosen colour's saturation (hue) or value (colour): the
+selection's median one, or the clicked one (the others keep their ratio to it)."""
+
+
 @torch.no_grad()
 def recolour(rgb: Tensor, mask: Tensor, colour: tuple[float, float, float], mode: str,
-             diffuse: Optional[Tensor] = None) -> Tensor:
+             diffuse: Optional[Tensor] = None, at: Optional[tuple[int, int]] = None) -> Tensor:
     """The edited image: ``rgb`` [H,W,3] with the ``mask`` pixels recoloured towards ``colour`` by
     ``mode`` (see the module docstring); other pixels unchanged. ``diffuse`` [H,W,3]: the view's
     diffuse render, which ``colour`` shades and puts the render's view-dependent part back on
-    (without it, ``colour`` shades ``rgb`` and adds nothing)."""
+    (without it, ``colour`` shades ``rgb`` and adds nothing). ``at`` (x, y): the pixel whose saturation
+    (hue) or value (colour) becomes the colour's, the others scaled alike; default the selection's
+    typical (median) pixel."""
     check_mode(mode)
     target = torch.tensor(colour, dtype=rgb.dtype, device=rgb.device)
+    ref = (lambda v: _typical(v, mask)) if at is None else (lambda v: float(v[at[1], at[0]]))  # noqa: E731
     if mode == "hue":
         hsv = rgb_to_hsv(rgb.clamp(0.0, 1.0))
         t_hsv = rgb_to_hsv(target)
-        sat = (hsv[..., 1] * float(t_hsv[1]) / max(_typical(hsv[..., 1], mask), 0.05)).clamp(0.0, 1.0)
+        sat = (hsv[..., 1] * float(t_hsv[1]) / max(ref(hsv[..., 1]), 0.05)).clamp(0.0, 1.0)
         new = hsv_to_rgb(torch.stack([torch.full_like(sat, float(t_hsv[0])), sat, hsv[..., 2]], -1))
     else:
         base = (rgb if diffuse is None else diffuse).clamp(0.0, 1.0)
         value = base.amax(-1, keepdim=True)
-        new = (target * (value / max(_typical(value[..., 0], mask), 1e-3))).clamp(0.0, 1.0)
+        new = (target * (value / max(ref(value[..., 0]), 1e-3))).clamp(0.0, 1.0)
         if diffuse is not None:
             new = torch.sigmoid(_logit(new) + _logit(rgb) - _logit(base))
     return torch.where(mask[..., None], new, rgb)
@@ -260,12 +268,15 @@ class PickSession:
 
     def __init__(self, scene: FrozenScene, camera: Cameras, x: int, y: int, stack: Optional[EditStack] = None,
                  cfg: Optional[EditConfig] = None, source: Optional[EditSource] = None,
-                 criterion: str = DEFAULT_CRITERION) -> None:
+                 criterion: str = DEFAULT_CRITERION, reference: str = "median") -> None:
         W, H = int(camera.widths[0]), int(camera.heights[0])
         if not (0 <= x < W and 0 <= y < H):  # before the view is rasterized
             raise InputError(f"the pixel ({x}, {y}) is outside the {W}x{H} image (x 0..{W - 1}, y 0..{H - 1})")
         self.x, self.y = int(x), int(y)
         self.criterion = check_criterion(criterion)  # how select() grows the selection
+        if reference not in REFERENCES:
+            raise InputError(f"the recolour reference must be {' or '.join(REFERENCES)}, got {reference!r}")
+        self.reference = reference  # which pixel recolour() gives the colour's saturation or value
         self.engine = EditEngine(scene, camera, None, stack, cfg or pick_config(scene.device), source)
         self.maps = view_maps(self.engine)
         check_pixel(self.maps, self.x, self.y)
@@ -289,7 +300,8 @@ class PickSession:
             self._selection = (tolerance, select(self.maps, self.x, self.y, tolerance, self.criterion))
         mask = self._selection[1]
         tick("select")
-        edited = recolour(self.maps.rgb, mask, colour, mode, self.maps.diffuse)
+        edited = recolour(self.maps.rgb, mask, colour, mode, self.maps.diffuse,
+                          (self.x, self.y) if self.reference == "click" else None)
         tick("recolour")
         self.engine.retarget(edited, mask, seg_steps=seg_steps)
         tick("retarget")
@@ -343,5 +355,5 @@ def commit(stack: EditStack, session: PickSession, edit: Edit, replace: Optional
         raise
 
 
-__all__ = ["CRITERIA", "DEFAULT_CRITERION", "MIN_COVER", "MODES", "NEUTRAL_CHROMA", "check_criterion", "chromaticity", "PickSession", "ViewMaps", "check_mode", "check_pixel", "check_tolerance", "commit",
+__all__ = ["CRITERIA", "DEFAULT_CRITERION", "MIN_COVER", "MODES", "NEUTRAL_CHROMA", "REFERENCES", "check_criterion", "chromaticity", "PickSession", "ViewMaps", "check_mode", "check_pixel", "check_tolerance", "commit",
            "connected_to", "parse_colour", "pick_config", "recolour", "select", "view_maps"]
