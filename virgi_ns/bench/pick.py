@@ -153,7 +153,7 @@ def parse_pick_variant(text: str) -> dict:
 
 
 def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, criterion: Optional[str] = None,
-                 reference: str = "median", recipe: Optional[str] = None, recolour: str = "pick"
+                 reference: Optional[str] = None, recipe: Optional[str] = None, recolour: str = "pick"
                  ) -> tuple[dict, list, Tensor]:
     """One click on ``b``'s edit view by the module docstring's rule, measured as the rule edit is
     (``rule_propagation``: its propagation PSNR on the same run), its selection grown by ``criterion``
@@ -162,7 +162,7 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, c
     pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection | rule mask)."""
     import dataclasses
 
-    from virgi_ns.edit.pick import DEFAULT_CRITERION, MIN_COVER, PickSession, commit, pick_config
+    from virgi_ns.edit.pick import DEFAULT_CRITERION, DEFAULT_REFERENCE, MIN_COVER, PickSession, commit, pick_config
     from virgi_ns.edit.stack import EditStack
 
     render = b.edit_base
@@ -175,6 +175,7 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, c
     t0 = time.perf_counter()
     cfg = pick_config(b.scene.device)
     cfg = cfg if recipe is None else dataclasses.replace(cfg, recipe=recipe)
+    reference = reference or DEFAULT_REFERENCE
     session = PickSession(b.scene, b.edit_camera, x, y, stack, cfg, criterion=criterion or DEFAULT_CRITERION,
                           reference=reference)
     edit = session.update(colour, TOLERANCE, MODE)

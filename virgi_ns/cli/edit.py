@@ -115,6 +115,9 @@ class Pick:
     mode: Literal["hue", "colour"] = "hue"
     """``hue``: new hue and saturation, each pixel keeps its value (shading and highlights stay);
     ``colour``: the surface takes the colour itself, shaded as it was, its highlights on it."""
+    reference: Literal["click", "median"] = "click"
+    """Which selected pixel takes exactly the colour's saturation (hue) or value (colour), the others
+    keeping their ratio to it: the clicked one (the default), or the selection's median one."""
     steps: Optional[int] = None
     """Optimisation steps (default: the engine's)."""
 
@@ -418,7 +421,7 @@ def pick(args: Pick, console: "Console", pipeline=None) -> str:
     source = EditSource("", cams.Ks[0].cpu(), cams.viewmats[0].cpu(), W, H, f"{where}, pixel {x} {y}")
     with torch.no_grad(), console.status("fitting the pick"):
         session = PickSession(FrozenScene.from_model(model), cams, x, y, stack, pick_config(model.device), source,
-                              criterion=args.selection)
+                              criterion=args.selection, reference=args.reference)
         edit = session.update(colour, tolerance, args.mode, args.steps)
     number = commit(stack, session, edit)
     st = session.settings

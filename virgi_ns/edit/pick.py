@@ -16,9 +16,9 @@ The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain to
   of the click's; it stopped short of the object on most scenes of the evaluation set
   (bench/RESULTS.md, "Pick");
 - :func:`recolour`: the edited image: ``hue`` gives the selection the colour's hue and saturation
-  and keeps each pixel's value (shading and highlights stay: saturation is scaled from the
-  selection's typical pixel, so a white highlight stays near white); ``colour`` makes the colour
-  the surface's own: the diffuse render becomes ``colour x value / typical value`` (its shading
+  and keeps each pixel's value (shading and highlights stay: saturation is scaled so the clicked
+  pixel gets the colour's, and a white highlight stays near white); ``colour`` makes the colour the
+  surface's own: the diffuse render becomes ``colour x value / clicked pixel's value`` (its shading
   kept, its brightness that of the colour) and each pixel keeps the render's view-dependent part
   over its diffuse colour (a logit offset), so highlights sit on the new colour as they would on a
   surface of it;
@@ -233,6 +233,10 @@ def _logit(x: Tensor) -> Tensor:
 REFERENCES = ("median", "click")
 """Which pixel :func:`recolour` gives the chosen colour's saturation (hue) or value (colour): the
 selection's median one, or the clicked one (the others keep their ratio to it)."""
+DEFAULT_REFERENCE = "click"
+"""The clicked pixel takes the chosen colour (chosen over the median on run set 10 by a rule fixed
+before it ran: bench/RESULTS.md, "Pick"); a selection of pale and deep tones otherwise gets the colour's
+saturation on its median tone, and its deep tones more than the colour has."""
 
 
 @torch.no_grad()
@@ -268,7 +272,7 @@ class PickSession:
 
     def __init__(self, scene: FrozenScene, camera: Cameras, x: int, y: int, stack: Optional[EditStack] = None,
                  cfg: Optional[EditConfig] = None, source: Optional[EditSource] = None,
-                 criterion: str = DEFAULT_CRITERION, reference: str = "median") -> None:
+                 criterion: str = DEFAULT_CRITERION, reference: str = DEFAULT_REFERENCE) -> None:
         W, H = int(camera.widths[0]), int(camera.heights[0])
         if not (0 <= x < W and 0 <= y < H):  # before the view is rasterized
             raise InputError(f"the pixel ({x}, {y}) is outside the {W}x{H} image (x 0..{W - 1}, y 0..{H - 1})")
@@ -355,5 +359,5 @@ def commit(stack: EditStack, session: PickSession, edit: Edit, replace: Optional
         raise
 
 
-__all__ = ["CRITERIA", "DEFAULT_CRITERION", "MIN_COVER", "MODES", "NEUTRAL_CHROMA", "REFERENCES", "check_criterion", "chromaticity", "PickSession", "ViewMaps", "check_mode", "check_pixel", "check_tolerance", "commit",
+__all__ = ["CRITERIA", "DEFAULT_CRITERION", "DEFAULT_REFERENCE", "MIN_COVER", "MODES", "NEUTRAL_CHROMA", "REFERENCES", "check_criterion", "chromaticity", "PickSession", "ViewMaps", "check_mode", "check_pixel", "check_tolerance", "commit",
            "connected_to", "parse_colour", "pick_config", "recolour", "select", "view_maps"]
