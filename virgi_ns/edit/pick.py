@@ -37,6 +37,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional
@@ -345,9 +346,13 @@ def commit(stack: EditStack, session: PickSession, edit: Edit, replace: Optional
     try:
         if stack.directory is not None:
             pictures = [stack.directory / f"{stem}_edited.png", stack.directory / f"{stem}_selection.png"]
-            _png(pictures[0], (session.edited.detach().float().cpu().clamp(0, 1).numpy() * 255.0 + 0.5)
-                 .astype(np.uint8))
-            _png(pictures[1], session.mask.cpu().numpy().astype(np.uint8) * 255)
+            # 8-bit where the images are (a quarter of the bytes to copy), both encoded at once (zlib
+            # releases the interpreter): a release waits for these files
+            images = [(session.edited.detach().float().clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy(),
+                      session.mask.to(torch.uint8).mul(255).cpu().numpy()]
+            with ThreadPoolExecutor(2) as pool:
+                for done in [pool.submit(_png, path, image) for path, image in zip(pictures, images)]:
+                    done.result()
             edit = dataclasses.replace(edit, source=dataclasses.replace(edit.source, image=str(pictures[0])))
         if replace is None:
             return stack.add(edit)
