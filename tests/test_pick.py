@@ -251,7 +251,7 @@ def test_a_view_set_up_first_and_retargeted_fits_as_a_fresh_engine(world):
     S = world["S"]
     s, _ = world["sessions"]["hue"]
     cam = S.cameras.index(EDIT_VIEW)
-    cfg = pick_config("cpu")
+    cfg = pick_config("cpu", "staged")  # its layer restarts from the colour map: a warm fit equals a fresh one
     fresh = EditEngine(S.scene, cam, s.edited, None, cfg, changed=s.mask)
     later = EditEngine(S.scene, cam, None, None, cfg)
     later.retarget(s.edited, s.mask)

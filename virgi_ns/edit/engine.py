@@ -391,6 +391,7 @@ class EditEngine:
         self.fingerprint = stack.fingerprint if stack is not None else scene.fingerprint()
         self.batches: list[PixelBatch] = []
         self._changed: Optional[Tensor] = None
+        self._target: Optional[Tensor] = None  # the last target image [H,W,3]
         dev = scene.device
         _sync(dev)
         t0 = time.perf_counter()
@@ -504,6 +505,7 @@ class EditEngine:
         kind = resolve_composite(cfg.batch_composite, edited.device)
         same = warm and self.batches and self.batches[0].composite == kind and (
             flat is None) == (self._changed is None) and (flat is None or torch.equal(flat, self._changed))
+        previous = self._target if same else None  # the last target of the same pixels (a live drag)
         if same:  # the same pixel sets and weights: only the targets move (in place: recorded steps read them)
             for b in self.batches:
                 b.target.copy_(edited.reshape(-1, 3) if b.pixels is None else edited.reshape(-1, 3)[b.pixels])
@@ -517,7 +519,8 @@ class EditEngine:
         self.recipe = cfg.recipe if changed is not None else "joint"
         staged = self.recipe == "staged"
         # the copied layer: from the colour map of the changed pixels (EditConfig.map_init), else
-        # the base layer (a fresh fit) or where the last fit left it (warm)
+        # the base layer (a fresh fit) or where the last fit left it (warm), moved by the colour map
+        # from the last target to this one when only the colours of the same pixels changed
         self.colour_map = None
         head = self.scene.field.diffuse_head
         if changed is not None and (staged or (cfg.map_init and self.changed_fraction >= cfg.map_init_min_share)):
@@ -530,6 +533,10 @@ class EditEngine:
         elif not warm:
             self.weight.copy_(head.weight.detach().float())
             self.bias.copy_(head.bias.detach().float())
+        elif previous is not None and flat is not None:
+            M, t = logit_colour_map(previous.reshape(-1, 3)[flat], edited.reshape(-1, 3)[flat], cfg.seed).split([3, 1], 1)
+            self.weight.copy_(M @ self.weight)
+            self.bias.copy_(M @ self.bias + t[:, 0])
         if staged and not (same and self.alpha_fixed is not None):
             self._fit_segmentation(flat, warm=warm and self.alpha_fixed is not None,
                                    steps=cfg.seg_steps if seg_steps is None else seg_steps)
@@ -539,6 +546,7 @@ class EditEngine:
             for p in self.seg.parameters():
                 p.requires_grad_(True)
         self._changed = flat
+        self._target = edited
         trainable = [self.weight, self.bias] + ([] if staged else list(self.seg.parameters()))
         if self.opt is not None and [id(p) for p in self.opt.param_groups[0]["params"]] == [id(p) for p in trainable]:
             _restart_adam(self.opt)  # the same tensors, which recorded steps read and write
@@ -554,7 +562,8 @@ class EditEngine:
         pixels are the same, and so is a staged segmentation, which otherwise trains on from where it
         is (``seg_steps``: how long; default the config's); the layer starts from the new target's
         colour map where a fresh fit would (staged, or a large edit), else where the last fit left
-        it; Adam starts afresh. :meth:`fit` then runs the steps."""
+        it, moved by the colour map from the last target to this one when the changed pixels are the
+        same (a new colour for the same selection); Adam starts afresh. :meth:`fit` then runs the steps."""
         W, H = int(self.camera.widths[0]), int(self.camera.heights[0])
         self._check_images(edited, original, changed, W, H)
         dev = self.scene.device

@@ -83,12 +83,17 @@ def check_mode(mode: str) -> str:
     return mode
 
 
-def pick_config(device: torch.device) -> EditConfig:
-    """The edit settings of a pick: the ``staged`` recipe; on a CPU its classifier trains on fewer
-    samples and steps (a CPU's budget for an interactive tool)."""
-    if torch.device(device).type == "cuda":
-        return EditConfig(recipe="staged")
-    return EditConfig(recipe="staged", seg_samples=8192, seg_steps=150)
+PICK_RECIPE = "joint"
+"""The recipe of a pick's edit: ``joint``, the engine's default (chosen over ``staged`` on run set 11 by a
+rule fixed before it ran: bench/RESULTS.md, "Pick"). ``staged`` stays selectable."""
+
+
+def pick_config(device: torch.device, recipe: str = PICK_RECIPE) -> EditConfig:
+    """The edit settings of a pick: ``recipe`` (default :data:`PICK_RECIPE`); with ``staged`` on a CPU
+    its classifier trains on fewer samples and steps (a CPU's budget for an interactive tool)."""
+    if recipe == "staged" and torch.device(device).type != "cuda":
+        return EditConfig(recipe="staged", seg_samples=8192, seg_steps=150)
+    return EditConfig(recipe=recipe)
 
 
 # ------------------------------------------------------------------------- selection
