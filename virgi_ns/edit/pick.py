@@ -27,9 +27,9 @@ The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain to
   live drag needs; :func:`commit` puts the edit on a stack with its edited image and selection
   saved beside it.
 
-The edit fits the selection as its changed pixels (the rest keeps the render), with the
-``staged`` recipe by default: its segmentation is a classifier of the Gaussians the selection
-covers, which carries the selection to every other view.
+The edit fits the selection as its changed pixels (the rest keeps the render), with the engine's
+``joint`` recipe (:data:`PICK_RECIPE`; ``staged``, whose segmentation is first a classifier of the
+Gaussians the selection covers, stays selectable).
 """
 
 from __future__ import annotations
