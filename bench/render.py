@@ -344,14 +344,16 @@ def bench_cli(scene, cfg_path: Path, data: Path, out: Path) -> dict:
                       float(K[1, 2]), vm)
     write_camera_json(out / "cli_camera.json", spec)
     # the commands load the run from its files (virgi_ns/nerfstudio/saved_run.py) when virgi_run.json lies beside
-    # its checkpoint, as training writes it; a run trained before that gets it here, so the new path is measured
+    # its config.yml, as training writes it (earlier versions: in the checkpoint folder, which the load moves);
+    # a run trained before that gets it here, so the new path is measured
     from virgi_ns.nerfstudio.run_info import run_info_of, write_run_info
     from virgi_ns.nerfstudio.saved_run import RUN_INFO, run_settings
 
     ckpt_dir = run_settings(cfg_path).checkpoint_dir
-    run_info = "training" if (ckpt_dir / RUN_INFO).is_file() else "bench"
+    written = (cfg_path.parent / RUN_INFO).is_file() or (ckpt_dir / RUN_INFO).is_file()
+    run_info = "training" if written else "bench"
     if run_info == "bench":
-        write_run_info(run_info_of(dm, pipeline.model), ckpt_dir, cfg_path)
+        write_run_info(run_info_of(dm, pipeline.model), cfg_path)
     del pipeline, dm
     py = [sys.executable, "-m"]
     cfg = str(cfg_path)

@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def saved(tmp_path_factory):
-    """A run saved by ``save_run`` (virgi_run.json beside its checkpoint) and the same run loaded
+    """A run saved by ``save_run`` (virgi_run.json beside its config.yml) and the same run loaded
     through nerfstudio (:func:`virgi_ns.cli.export.load_run`, the independent path)."""
     from virgi_ns.cli.export import load_run
 
@@ -64,11 +64,32 @@ def _copy_run(saved, dest: Path) -> Path:
     run_dir = RunDirConfig(**{f.name: getattr(doc, f.name) for f in fields(TrainerConfig)})
     run_dir.output_dir = dest
     (dest / "config.yml").write_text(yaml.dump(run_dir))
-    info = dest / "nerfstudio_models" / RUN_INFO
+    info = dest / RUN_INFO
     d = json.loads(info.read_text())
     d["config_sha256"] = config_digest(dest / "config.yml")
     info.write_text(json.dumps(d))
     return dest / "config.yml"
+
+
+def test_the_run_info_stays_out_of_nerfstudios_checkpoint_folder(saved, tmp_path):
+    """nerfstudio's loaders (ns-viewer, ns-eval, ns-render) read every name in the checkpoint folder as
+    ``step-N.ckpt``: training leaves nothing else there, and a run of an earlier version, whose
+    virgi_run.json lay there, gets it moved beside config.yml when a virgi command loads it."""
+    from virgi_ns.nerfstudio.saved_run import RUN_INFO, load_saved_run
+
+    cfg = _copy_run(saved, tmp_path / "a")
+    ckpt = cfg.parent / "nerfstudio_models"
+
+    def nerfstudio_steps() -> list[int]:  # eval_utils.eval_load_checkpoint's own parse of the folder
+        return sorted(int(x[x.find("-") + 1 : x.find(".")]) for x in os.listdir(ckpt))
+
+    assert nerfstudio_steps() and (cfg.parent / RUN_INFO).is_file()
+    (cfg.parent / RUN_INFO).rename(ckpt / RUN_INFO)  # as earlier versions wrote it
+    with pytest.raises(ValueError):
+        nerfstudio_steps()
+    load_saved_run(cfg, torch.device("cpu"))  # the fast path: it found the file and moved it
+    assert (cfg.parent / RUN_INFO).is_file() and not (ckpt / RUN_INFO).exists()
+    assert nerfstudio_steps()
 
 
 def test_the_fast_loader_gives_what_nerfstudios_loader_gives(saved):
@@ -80,7 +101,7 @@ def test_the_fast_loader_gives_what_nerfstudios_loader_gives(saved):
 
     full = saved["full"]
     fm = full.model
-    assert (saved["config"].parent / "nerfstudio_models" / RUN_INFO).is_file()  # written by save_run
+    assert (saved["config"].parent / RUN_INFO).is_file()  # written by save_run
     run = load_saved_run(saved["config"], torch.device("cpu"))
     m = run.model
     for name in ("means", "scales", "quats", "opacities", "features_dc", "features_rest"):
@@ -132,7 +153,7 @@ def test_an_edit_and_an_export_are_the_same_through_either_loader(saved, tmp_pat
     cfg_a = _copy_run(saved, tmp_path / "a")
     cfg_b = _copy_run(saved, tmp_path / "b")
     for cfg, fast in ((cfg_a, True), (cfg_b, False)):
-        info = cfg.parent / "nerfstudio_models" / "virgi_run.json"
+        info = cfg.parent / "virgi_run.json"
         if not fast:
             info.unlink()
         opened = open_run(cfg, _quiet())
@@ -152,8 +173,8 @@ def test_an_edit_and_an_export_are_the_same_through_either_loader(saved, tmp_pat
     # the nerfstudio load wrote virgi_run.json, the same as training wrote
     from virgi_ns.nerfstudio.saved_run import config_digest
 
-    ja = json.loads((cfg_a.parent / "nerfstudio_models" / "virgi_run.json").read_text())
-    jb = json.loads((cfg_b.parent / "nerfstudio_models" / "virgi_run.json").read_text())
+    ja = json.loads((cfg_a.parent / "virgi_run.json").read_text())
+    jb = json.loads((cfg_b.parent / "virgi_run.json").read_text())
     assert jb.pop("config_sha256") == config_digest(cfg_b)
     ja.pop("config_sha256")
     assert ja == jb
@@ -213,7 +234,7 @@ def test_a_run_without_virgi_run_json_loads_through_nerfstudio_with_a_note(saved
     from virgi_ns.nerfstudio.saved_run import RUN_INFO
 
     cfg = _copy_run(saved, tmp_path / "run")
-    info = cfg.parent / "nerfstudio_models" / RUN_INFO
+    info = cfg.parent / RUN_INFO
     good = info.read_text()
     fingerprint = saved["full"].model.fingerprint()
     for damage, note in ((lambda: info.unlink(), f"no {RUN_INFO}"), (lambda: info.write_text("{"), "unreadable"),
@@ -272,10 +293,10 @@ def test_list_reads_timings_from_the_manifest_and_from_older_stacks_edit_files(s
     assert run(List(cfg)) == listed
 
 
-def test_virgis_trainer_writes_virgi_run_json_beside_its_checkpoint(saved, tmp_path):
-    """``ns-train``'s path: virgi's trainer saves its checkpoint, then virgi_run.json, which the
-    commands' loader takes (no nerfstudio load) and which describes the cameras nerfstudio's loader
-    sees."""
+def test_virgis_trainer_writes_virgi_run_json_beside_its_config(saved, tmp_path):
+    """``ns-train``'s path: virgi's trainer saves its checkpoint, then virgi_run.json beside config.yml
+    (the checkpoint folder holds checkpoints only, as nerfstudio's loaders need), which the commands'
+    loader takes (no nerfstudio load) and which describes the cameras nerfstudio's loader sees."""
     from viewer_run import tiny_config
 
     from virgi_ns.cli.runs import open_run
@@ -292,7 +313,8 @@ def test_virgis_trainer_writes_virgi_run_json_beside_its_checkpoint(saved, tmp_p
     trainer.setup()
     trainer.train()
     ckpt_dir = cfg.get_checkpoint_dir()
-    assert list(ckpt_dir.glob("step-*.ckpt")) and (ckpt_dir / RUN_INFO).is_file()
+    assert [p.name for p in ckpt_dir.iterdir()] == [p.name for p in ckpt_dir.glob("step-*.ckpt")] != []
+    assert (cfg.get_base_dir() / RUN_INFO).is_file()
     opened = open_run(cfg.get_base_dir() / "config.yml", _quiet())
     assert opened.pipeline is None
     assert opened.model.fingerprint() == trainer.pipeline.model.fingerprint()

@@ -2,7 +2,7 @@
 
 :func:`open_run` loads a run from its files (:mod:`virgi_ns.nerfstudio.saved_run`: no nerfstudio import, no
 dataparser, only the model's tensors built); a run that cannot be loaded so (no ``virgi_run.json``
-beside its checkpoint, a config it does not recognise) goes through nerfstudio's loader
+beside its ``config.yml``, a config it does not recognise) goes through nerfstudio's loader
 (:func:`virgi_ns.cli.export.load_run`) with a one-line note, and gets its ``virgi_run.json`` written
 then, so the next command is fast. :meth:`OpenRun.from_pipeline` wraps a pipeline already loaded
 (the Python API, tests, benchmarks) in the same interface.
@@ -79,7 +79,7 @@ def open_run(config_path: Path, console=None) -> OpenRun:
 
 
 def _open_through_nerfstudio(config_path: Path) -> OpenRun:
-    """nerfstudio's loader; then ``virgi_run.json`` is written beside the checkpoint (when it can
+    """nerfstudio's loader; then ``virgi_run.json`` is written beside ``config.yml`` (when it can
     be: a read-only run stays as it is)."""
     from virgi_ns.cli.export import load_run
     from virgi_ns.nerfstudio.saved_run import newest_checkpoint, run_settings
@@ -91,7 +91,7 @@ def _open_through_nerfstudio(config_path: Path) -> OpenRun:
 
         ckpt_dir = run_settings(config_path).checkpoint_dir
         if newest_checkpoint(ckpt_dir) is not None:
-            write_run_info(run_info_of(pipeline.datamanager, pipeline.model), ckpt_dir, config_path)
+            write_run_info(run_info_of(pipeline.datamanager, pipeline.model), config_path)
     except Exception:  # noqa: BLE001 - a config this loader does not read, a read-only folder: no file, no harm
         pass
     return run

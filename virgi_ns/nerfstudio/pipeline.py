@@ -152,7 +152,7 @@ class RunDirConfig(TrainerConfig):
 def save_run(trainer_config, pipeline, optimizers, step: int, directory=None) -> Path:
     """Save an in-process run as nerfstudio's trainer would (``config.yml`` and
     ``nerfstudio_models/step-NNNNNNNNN.ckpt``, without a grad scaler, with virgi's trainer's
-    ``virgi_run.json`` beside the checkpoint); with ``directory`` the run
+    ``virgi_run.json`` beside ``config.yml``); with ``directory`` the run
     sits there (a :class:`RunDirConfig` with the model class :class:`VirgiModel` and the method
     ``virgi``, whatever trained it), else where ``trainer_config`` puts it. Returns the path of ``config.yml``."""
     cfg = copy.deepcopy(trainer_config)
@@ -173,5 +173,5 @@ def save_run(trainer_config, pipeline, optimizers, step: int, directory=None) ->
         tmp.write_text(yaml.dump(cfg), "utf8")
     from virgi_ns.nerfstudio.run_info import training_run_info, write_run_info
 
-    write_run_info(training_run_info(cfg, pipeline.model), ckpt_dir, base / "config.yml")
+    write_run_info(training_run_info(cfg, pipeline.model), base / "config.yml")
     return base / "config.yml"

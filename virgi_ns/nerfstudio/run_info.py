@@ -1,4 +1,4 @@
-"""Writing ``virgi_run.json`` (:class:`virgi_ns.nerfstudio.saved_run.RunInfo`) beside a run's checkpoint.
+"""Writing ``virgi_run.json`` (:class:`virgi_ns.nerfstudio.saved_run.RunInfo`) beside a run's ``config.yml``.
 
 The file records the cameras as nerfstudio's loader of the run sees them: a datamanager set up for
 inference (``test_mode="inference"``: no image is read, the dataparser runs at downscale 1, the
@@ -61,9 +61,9 @@ def training_run_info(trainer_config, model) -> RunInfo:
     return run_info_of(dm, model, config_path)
 
 
-def write_run_info(info: RunInfo, ckpt_dir: Path, config_path: Optional[Path] = None) -> Path:
-    """Write ``info`` beside the checkpoints; with ``config_path`` its digest is (re)taken now, after
-    ``config.yml`` was written."""
-    if config_path is not None and Path(config_path).is_file():
+def write_run_info(info: RunInfo, config_path: Path) -> Path:
+    """Write ``info`` beside the run's ``config_path`` (not into the checkpoint folder, whose every
+    name nerfstudio reads as a step); its digest is (re)taken now, after ``config.yml`` was written."""
+    if Path(config_path).is_file():
         info.config_sha256 = config_digest(config_path)
-    return info.write(ckpt_dir)
+    return info.write(Path(config_path).parent)

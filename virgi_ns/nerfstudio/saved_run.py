@@ -8,9 +8,10 @@ for a handful of tensors. Here instead
 
 - ``config.yml`` is read with a safe YAML loader that takes its python tags as plain mappings; the
   few settings the tools need are picked out (:func:`run_settings`);
-- the cameras come from ``virgi_run.json`` (:class:`RunInfo`), which training writes beside the
-  checkpoint: the training and evaluation cameras as nerfstudio's loader sees them (after the
-  dataparser's transforms), their image files, the capture frame, the scene box and the background;
+- the cameras come from ``virgi_run.json`` (:class:`RunInfo`), which training writes beside
+  ``config.yml`` (outside the checkpoint folder, where nerfstudio reads every name as a step): the
+  training and evaluation cameras as nerfstudio's loader sees them (after the dataparser's
+  transforms), their image files, the capture frame, the scene box and the background;
 - the checkpoint is memory-mapped and only the Gaussians, the colour field and the specular gate are
   built from it (:class:`SavedModel`).
 
@@ -24,6 +25,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 from dataclasses import dataclass, fields
 from pathlib import Path
 from types import SimpleNamespace
@@ -253,7 +255,7 @@ class Views:
 # ----------------------------------------------------------------------------- the sidecar
 @dataclass
 class RunInfo:
-    """``virgi_run.json`` beside a run's checkpoint: what the tools need of the data, as
+    """``virgi_run.json`` beside a run's ``config.yml``: what the tools need of the data, as
     nerfstudio's loader of the run would see it. Floats are stored as JSON numbers (float32
     values are exact in them)."""
 
@@ -289,20 +291,29 @@ class RunInfo:
                        torch.tensor(d["capture_transform"], dtype=torch.float64).reshape(3, 4),
                        float(d["capture_scale"]), d.get("config_sha256"))
 
-    def write(self, ckpt_dir: Path) -> Path:
-        """Write ``ckpt_dir/virgi_run.json`` atomically."""
-        path = Path(ckpt_dir) / RUN_INFO
+    def write(self, run_dir: Path) -> Path:
+        """Write ``run_dir/virgi_run.json`` atomically (``run_dir``: the folder of ``config.yml``; never
+        the checkpoint folder, where nerfstudio reads every name as ``step-N.ckpt``)."""
+        path = Path(run_dir) / RUN_INFO
         with atomic_path(path) as tmp:
             tmp.write_text(json.dumps(self.to_json()))
         return path
 
     @staticmethod
-    def read(ckpt_dir: Path) -> "RunInfo":
-        """Read ``ckpt_dir/virgi_run.json``; :class:`FullLoadNeeded` with a note when it is missing
-        or unreadable."""
-        path = Path(ckpt_dir) / RUN_INFO
+    def read(run_dir: Path, ckpt_dir: Optional[Path] = None) -> "RunInfo":
+        """Read ``run_dir/virgi_run.json``; :class:`FullLoadNeeded` with a note when it is missing
+        or unreadable. One that earlier versions wrote into ``ckpt_dir`` (where it stops nerfstudio's
+        ``ns-viewer``, ``ns-eval`` and ``ns-render`` from finding the checkpoint) is moved beside
+        ``config.yml`` first, where the folder allows."""
+        path = Path(run_dir) / RUN_INFO
+        legacy = None if ckpt_dir is None else Path(ckpt_dir) / RUN_INFO
+        if not path.is_file() and legacy is not None and legacy.is_file():
+            try:
+                os.replace(legacy, path)
+            except OSError:  # a read-only run: read it where it is
+                path = legacy
         if not path.is_file():
-            raise FullLoadNeeded(f"no {path.name} beside the checkpoint (a run saved before it existed)")
+            raise FullLoadNeeded(f"no {path.name} beside {Path(run_dir) / 'config.yml'} (a run saved before it existed)")
         try:
             return RunInfo.from_json(json.loads(path.read_text()))
         except (OSError, ValueError, KeyError, TypeError, RuntimeError) as e:
@@ -439,7 +450,7 @@ def load_saved_run(config_path: Path, device: Optional[torch.device] = None) -> 
     if ckpt is None:
         raise InputError(f"{config_path}: no checkpoint (step-*.ckpt) in {ckpt_dir} (nerfstudio looks where the "
                          "run was trained, relative to the current directory)")
-    info = RunInfo.read(ckpt_dir)
+    info = RunInfo.read(config_path.parent, ckpt_dir)
     if info.config_sha256 is not None and info.config_sha256 != config_digest(config_path):
         raise FullLoadNeeded(f"{config_path.name} changed since {RUN_INFO} was written")
     if device is None:

@@ -139,7 +139,7 @@ class VirgiTrainer(Trainer):
 
     def save_checkpoint(self, step: int) -> None:
         """nerfstudio's checkpoint, then (once per training, on the main process) ``virgi_run.json``
-        beside it: what the virgi commands load instead of nerfstudio's dataparser. A failure to write
+        beside ``config.yml``: what the virgi commands load instead of nerfstudio's dataparser. A failure to write
         it never stops training (the commands then load the run through nerfstudio)."""
         super().save_checkpoint(step)
         if not distributed.is_main() or getattr(self, "_run_info_written", False):
@@ -148,7 +148,7 @@ class VirgiTrainer(Trainer):
         try:
             from virgi_ns.nerfstudio.run_info import training_run_info, write_run_info
 
-            write_run_info(training_run_info(self.config, self.pipeline.model), self.checkpoint_dir,
+            write_run_info(training_run_info(self.config, self.pipeline.model),
                            Path(self.config.get_base_dir()) / "config.yml")
         except Exception as e:  # noqa: BLE001 - a convenience file; training goes on
             CONSOLE.log(f"virgi: virgi_run.json not written ({type(e).__name__}: {e}); the virgi commands will "
