@@ -53,6 +53,7 @@ from rich.table import Table
 from virgi_ns.bench.evalset import COLOUR_STEPS, GEOMETRY_STEPS, SYNTHETIC_SIZE, EvalScene, capture_folder, \
     dataparser_config, edit_view, find
 from virgi_ns.bench.pick import parse_pick_variant
+from virgi_ns.edit.pick import check_criterion
 from virgi_ns.bench.recolor import Bench, RuleArgs, _save_png
 from virgi_ns.bench.settings import split_settings, typed_like
 from virgi_ns.errors import InputError, atomic_path, cli_entry
@@ -638,8 +639,10 @@ def main(args: Args) -> None:
     scenes = find(args.scenes)
     for v in args.variants:  # refuse a bad --variants before any training
         check_variant(v, [s.name for s in scenes])
-    for v in args.pick_variants:  # and a bad --pick-variants
+    for v in args.pick_variants:  # and a bad --pick-variants or --pick-criteria
         parse_pick_variant(v)
+    for c in args.pick_criteria:
+        check_criterion(c)
     device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"
     rows: List[dict] = []
     loaded: dict = {}

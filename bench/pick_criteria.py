@@ -144,7 +144,7 @@ def crit_maps(m: ViewMaps, x: int, y: int) -> Dict[str, Tensor]:
 
 
 def sel_current(m, x, y, t):
-    return select(m, x, y, t)
+    return select(m, x, y, t, "colour_features")
 
 
 def sel_colour(m, x, y, t):
@@ -180,7 +180,7 @@ def sel_features_z(m, x, y, t):
 def sel_region(m, x, y, t, k: float = 3.0, rounds: int = 8):
     cov = m.accumulation >= MIN_COVER
     v = torch.cat([chromaticity(m.diffuse), standardised(m.features, cov)], -1)
-    sel = select(m, x, y, t)
+    sel = select(m, x, y, t, "colour_features")
     for _ in range(rounds):
         s = v[sel]
         mu, sd = s.mean(0), s.std(0).clamp_min(1e-6) if len(s) > 1 else torch.ones_like(s[0])

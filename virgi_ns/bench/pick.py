@@ -160,9 +160,8 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, c
     (default: the product's, :data:`~virgi_ns.edit.pick.DEFAULT_CRITERION`); ``reference``, ``recipe``
     and ``recolour``: :data:`PICK_OPTIONS` (defaults: the product's). Returns (figures, the held-out
     pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection | rule mask)."""
-    import dataclasses
-
-    from virgi_ns.edit.pick import DEFAULT_CRITERION, DEFAULT_REFERENCE, MIN_COVER, PickSession, commit, pick_config
+    from virgi_ns.edit.pick import (DEFAULT_CRITERION, DEFAULT_REFERENCE, MIN_COVER, PICK_RECIPE, PickSession,
+                                    colour_hex, commit, pick_config, select)
     from virgi_ns.edit.stack import EditStack
 
     render = b.edit_base
@@ -173,16 +172,18 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, c
     stack.to(b.scene.device)
     _sync(b.scene.device)
     t0 = time.perf_counter()
-    cfg = pick_config(b.scene.device)
-    cfg = cfg if recipe is None else dataclasses.replace(cfg, recipe=recipe)
+    cfg = pick_config(b.scene.device, recipe or PICK_RECIPE)
     reference = reference or DEFAULT_REFERENCE
     session = PickSession(b.scene, b.edit_camera, x, y, stack, cfg, criterion=criterion or DEFAULT_CRITERION,
                           reference=reference)
-    edit = session.update(colour, TOLERANCE, MODE)
-    if recolour == "rule":  # the same selection, recoloured by the rule on the render, fitted afresh
+    if recolour == "rule":  # the pick's selection, recoloured by the rule on the render: the session's first fit
+        session.mask = select(session.maps, x, y, TOLERANCE, session.criterion)
         session.edited = torch.where(session.mask[..., None], recolor(render, rule)[0], render)
+        session.settings = {"colour": colour_hex(colour), "selected": float(session.mask.float().mean())}
         session.engine.retarget(session.edited, session.mask)
         edit = session.refine(cfg.steps)
+    else:
+        edit = session.update(colour, TOLERANCE, MODE)
     _sync(b.scene.device)
     fit_s = time.perf_counter() - t0
     commit(stack, session, edit)

@@ -188,7 +188,8 @@ class EditConfig:
 
     cuda_graphs: bool = True
     """On a GPU, record each pixel set's step once as a CUDA graph and replay it (the same kernels,
-    without a Python and launch round trip per kernel); fits of a few steps run eagerly."""
+    without a Python and launch round trip per kernel); a first fit of a few steps runs eagerly, and
+    later fits replay the recorded steps while a warm retarget keeps them valid."""
 
     def __post_init__(self) -> None:
         self.check()

@@ -16,12 +16,13 @@ The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain to
   of the click's; it stopped short of the object on most scenes of the evaluation set
   (bench/RESULTS.md, "Pick");
 - :func:`recolour`: the edited image: ``hue`` gives the selection the colour's hue and saturation
-  and keeps each pixel's value (shading and highlights stay: saturation is scaled so the clicked
+  and keeps each pixel's value (shading and highlights stay: saturation is scaled so a reference
   pixel gets the colour's, and a white highlight stays near white); ``colour`` makes the colour the
-  surface's own: the diffuse render becomes ``colour x value / clicked pixel's value`` (its shading
+  surface's own: the diffuse render becomes ``colour x value / reference value`` (its shading
   kept, its brightness that of the colour) and each pixel keeps the render's view-dependent part
   over its diffuse colour (a logit offset), so highlights sit on the new colour as they would on a
-  surface of it;
+  surface of it. The reference is the selection's median pixel for :func:`recolour` alone and the
+  clicked pixel in a :class:`PickSession` (:data:`DEFAULT_REFERENCE`);
 - :class:`PickSession`: one click on one view: every :meth:`~PickSession.update` (a new colour,
   tolerance or mode) refits warm from the last fit (:meth:`EditEngine.retarget`), which is what a
   live drag needs; :func:`commit` puts the edit on a stack with its edited image and selection
@@ -68,6 +69,11 @@ def parse_colour(text: str) -> tuple[float, float, float]:
         raise InputError(f"cannot read the colour {text!r}: give it as #RRGGBB, e.g. '#d02020'")
     h = m.group(1)
     return tuple(int(h[i : i + 2], 16) / 255.0 for i in (0, 2, 4))  # type: ignore[return-value]
+
+
+def colour_hex(colour: tuple[float, float, float]) -> str:
+    """RGB in [0, 1] -> ``'#rrggbb'`` (the inverse of :func:`parse_colour` to 8 bits)."""
+    return "#" + "".join(f"{round(255 * c):02x}" for c in colour)
 
 
 def check_tolerance(tolerance: float) -> float:
@@ -316,8 +322,8 @@ class PickSession:
         self.engine.retarget(edited, mask, seg_steps=seg_steps)
         tick("retarget")
         self.mask, self.edited, self.steps_done = mask, edited, 0
-        self.settings = {"pixel": [self.x, self.y], "colour": "#" + "".join(f"{round(255 * c):02x}" for c in colour),
-                         "tolerance": tolerance, "mode": mode, "criterion": self.criterion,
+        self.settings = {"pixel": [self.x, self.y], "colour": colour_hex(colour),
+                         "tolerance": tolerance, "mode": mode, "criterion": self.criterion, "reference": self.reference,
                          "selected": float(mask.float().mean())}
         edit = self.refine(self.engine.cfg.steps if steps is None else steps)
         tick("steps")
@@ -369,5 +375,7 @@ def commit(stack: EditStack, session: PickSession, edit: Edit, replace: Optional
         raise
 
 
-__all__ = ["CRITERIA", "DEFAULT_CRITERION", "DEFAULT_REFERENCE", "MIN_COVER", "MODES", "NEUTRAL_CHROMA", "REFERENCES", "check_criterion", "chromaticity", "PickSession", "ViewMaps", "check_mode", "check_pixel", "check_tolerance", "commit",
-           "connected_to", "parse_colour", "pick_config", "recolour", "select", "view_maps"]
+__all__ = ["CRITERIA", "DEFAULT_CRITERION", "DEFAULT_REFERENCE", "MIN_COVER", "MODES", "NEUTRAL_CHROMA", "PICK_RECIPE",
+           "REFERENCES", "PickSession", "ViewMaps", "check_criterion", "check_mode", "check_pixel", "check_tolerance",
+           "chromaticity", "colour_hex", "commit", "connected_to", "parse_colour", "pick_config", "recolour", "select",
+           "view_maps"]

@@ -108,8 +108,8 @@ class VirgiPanel(PanelActions, PickActions, ViewerElement[None], ViewerControl):
         self.pick_colour = ViewerRGB("New colour", (208, 32, 32), cb_hook=lambda e: self._on_pick_params(),
                                      hint="The picked selection's new colour")
         self.tolerance = ViewerSlider("Tolerance", 0.2, 0.0, 1.0, 0.01, cb_hook=lambda e: self._on_pick_params(),
-                                      hint="How far (x 90 degrees) colour and features may differ from the clicked "
-                                           "pixel's")
+                                      hint="How far (x 90 degrees) a pixel's hue may turn from the clicked pixel's, "
+                                           "and how fast its chroma may change between neighbours")
         self.pick_recolour = ViewerDropdown("Recolour mode", "hue", ["hue", "colour"],
                                             cb_hook=lambda e: self._on_pick_params(),
                                             hint="hue: keep shading and highlights; colour: the surface takes the "

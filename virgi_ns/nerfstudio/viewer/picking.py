@@ -89,7 +89,7 @@ class PickActions:
 
     def pick_at(self, camera, x: int, y: int, wait: bool = False) -> None:
         """Pick pixel (x, y) of ``camera`` (a nerfstudio camera of one view) with the panel's colour,
-        tolerance and mode (``wait``: until the live edit shows)."""
+        tolerance and mode (``wait``: until the live edit shows and its fit is topped up)."""
         self._check_idle()
         with self._pick_cond:
             self._pick_click = (camera, int(x), int(y))
@@ -142,11 +142,12 @@ class PickActions:
         is due)."""
         if self._pick_click is not None:
             return "click", None
-        if self._pick_session is None:
+        session = self._pick_session  # read once: settle_pick may end the pick from another thread
+        if session is None:
             return "", None
         if self._pick_version != self._pick_done:
             return "live", None
-        if self._pick_live is not None and self._pick_session.steps_done < self._pick_session.engine.cfg.steps:
+        if self._pick_live is not None and session.steps_done < session.engine.cfg.steps:
             return "top-up", None
         if self._pick_live is not None:
             due = self._pick_last_change + self.commit_after_s - now
@@ -228,9 +229,9 @@ class PickActions:
         left = session.engine.cfg.steps - session.steps_done
         edit = session.refine(min(LIVE_STEPS, left))
         if session.steps_done >= session.engine.cfg.steps:
+            self._pick_live = edit  # what a commit takes, even if showing it fails
             with self._lock():
                 self._model.set_live_edit(edit)
-            self._pick_live = edit
             self._rerender()
 
     def _commit_pick(self) -> None:
