@@ -227,7 +227,11 @@ class PickActions:
         """One chunk of the live fit's top-up to the config's steps; the last one shows the result."""
         session = self._pick_session
         left = session.engine.cfg.steps - session.steps_done
-        edit = session.refine(min(LIVE_STEPS, left))
+        try:
+            edit = session.refine(min(LIVE_STEPS, left))
+        except Exception:
+            session.steps_done = session.engine.cfg.steps  # no retry loop: a commit takes the live fit as it is
+            raise
         if session.steps_done >= session.engine.cfg.steps:
             self._pick_live = edit  # what a commit takes, even if showing it fails
             with self._lock():
