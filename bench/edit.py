@@ -538,31 +538,30 @@ def print_pick(rows: List[dict], latencies: List[dict]) -> None:
         if not by:
             continue
         t = Table(title=f"the same click {what} (difference: pick - rule edit propagation, dB)")
-        names = list(by[0][key])
+        summary = criteria_summary(by, key)
         t.add_column("scene")
-        for c in names:
+        for c in summary:
             t.add_column(f"{c}: selected / IoU / difference")
         for r in by:
-            t.add_row(r["scene"], *[("FAIL: " + p["error"]) if "error" in p else
+            t.add_row(r["scene"], *["-" if p is None else ("FAIL: " + p["error"]) if "error" in p else
                                    f"{_f(p['selected'], '.1%')} / {_f(p['iou'], '.3f')} / {_f(p['difference_db'], '+.2f')}"
                                    f" {'PASS' if p['pass'] else 'FAIL'}"
-                                   for p in (r[key][c] for c in names)])
-        summary = criteria_summary(by, key)
-        t.add_row("passed / worst", *[f"{summary[c]['passed']}/{len(by)} / {_f(summary[c]['worst_db'], '+.2f')}"
-                                      for c in names])
+                                   for p in (r[key].get(c) for c in summary)])
+        t.add_row("passed / worst", *[f"{v['passed']}/{v['rows']} / {_f(v['worst_db'], '+.2f')}" for v in summary.values()])
         console.print(t)
     for lat in latencies:
         console.print(latency_line(lat))
 
 
 def criteria_summary(rows: List[dict], key: str = "pick_by_criterion") -> dict:
-    """Per selection criterion (or pick variant, ``key="pick_variants"``) over the rows: picks passed and
-    the worst difference (a refused pick counts as failed, at -inf)."""
-    names = list(rows[0][key])
+    """Per selection criterion (or pick variant, ``key="pick_variants"``), in the order the rows first name
+    them, over the rows that measured it (merged calls may differ): picks passed, rows, and the worst
+    difference (a refused pick counts as failed, at -inf)."""
+    names = list(dict.fromkeys(c for r in rows for c in r.get(key, {})))
     out = {}
     for c in names:
-        picks = [r[key][c] for r in rows]
-        out[c] = {"passed": sum(bool(p["pass"]) for p in picks),
+        picks = [r[key][c] for r in rows if c in r.get(key, {})]
+        out[c] = {"passed": sum(bool(p["pass"]) for p in picks), "rows": len(picks),
                   "worst_db": min(p.get("difference_db", -math.inf) for p in picks)}
     return out
 
@@ -618,8 +617,10 @@ def merged(paths: List[Path]) -> dict:
             row["variant"] = label_against_today(row)  # a default may have changed since the call
             if "engine_defaults" in row:  # the label is today's now: a merge of this merge keeps it
                 row["engine_defaults"] = engine_defaults()
-            if "difference_db" in row.get("pick", {}):
-                row["pick"]["pass"] = pick_passes(row["pick"])
+            for p in [row.get("pick", {}), *row.get("pick_by_criterion", {}).values(),
+                      *row.get("pick_variants", {}).values()]:
+                if "difference_db" in p:  # the pass mark as today's WITHIN_DB has it
+                    p["pass"] = pick_passes(p)
         rows += r["scenes"]
         if "pick_latency" in r:
             latencies.append({"device": r.get("device"), **r["pick_latency"]})

@@ -186,19 +186,28 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     pick = lambda d: {"selected": 0.1, "iou": 0.8, "difference_db": d, "pass": d >= -1.0}  # noqa: E731
     by = [{"scene": "a", "pick_by_criterion": {"x": pick(-0.2), "y": pick(-3.0)}},
           {"scene": "b", "pick_by_criterion": {"x": pick(-1.5), "y": {"error": "no pixel", "pass": False}}}]
-    assert bench_edit.criteria_summary(by) == {"x": {"passed": 1, "worst_db": -1.5},
-                                               "y": {"passed": 0, "worst_db": -math.inf}}
+    assert bench_edit.criteria_summary(by) == {"x": {"passed": 1, "rows": 2, "worst_db": -1.5},
+                                               "y": {"passed": 0, "rows": 2, "worst_db": -math.inf}}
+    # merged calls may have measured other criteria: each is summed over the rows that have it
+    by.append({"scene": "c", "pick_by_criterion": {"z": pick(-0.5)}})
+    assert bench_edit.criteria_summary(by)["z"] == {"passed": 1, "rows": 1, "worst_db": -0.5}
+    assert bench_edit.criteria_summary(by)["x"]["rows"] == 2
     bench_edit.print_pick(by, [])
     # --merge: two calls' results as one table, picks re-judged, the latency lines kept
     latency = {"gaussians": 10, "image": "4x3", "renderer": "contributions", "gate_kept": 1.0, "pixel": [1, 1],
                "selected": 0.5, "live_steps": 20, "steps": 100, "repeats": 1, "target_s": 0.1,
                "drag": {"fit_s": 0.02, "render_s": 0.01, "total_s": 0.03},
                "release": {"fit_s": 0.05, "commit_s": 0.02, "render_s": 0.01, "total_s": 0.08}}
+    stale = json.loads(json.dumps(rows, default=float))  # pass marks as another WITHIN_DB would have set them
+    for p in stale[0]["pick_variants"].values():
+        p["pass"] = not p["pass"]
     for name in ("a", "b"):
-        (tmp_path / f"{name}.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": rows,
+        (tmp_path / f"{name}.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": stale,
                                                            **({"pick_latency": latency} if name == "a" else {})},
                                                           default=float))
     m = bench_edit.merged([tmp_path / "a.json", tmp_path / "b.json"])
+    for p in m["scenes"][0]["pick_variants"].values():  # judged again on merging
+        assert p["pass"] == (p["difference_db"] >= -1.0)
     assert len(m["scenes"]) == 2 * len(rows) and m["worst_case"]["rows"] == 2
     w = m["worst_case"]
     assert w["pick_rows"] == 2 and w["pick_difference_db"] == rows[0]["pick"]["difference_db"]
