@@ -528,16 +528,13 @@ class EditEngine:
             self.colour_map = logit_colour_map(current.reshape(-1, 3)[flat], edited.reshape(-1, 3)[flat], cfg.seed)
             # (fitted on the current render, earlier edits and specular included, but applied to
             # the base layer: with a stack, c_d' starts at M c_d_base + t; only a starting point)
-            M, t = self.colour_map[:, :3], self.colour_map[:, 3]
-            self.weight.copy_(M @ head.weight.detach().float())
-            self.bias.copy_(M @ head.bias.detach().float() + t)
+            self._set_layer_mapped(self.colour_map, head.weight.detach().float(), head.bias.detach().float())
         elif not warm:
             self.weight.copy_(head.weight.detach().float())
             self.bias.copy_(head.bias.detach().float())
         elif previous is not None and flat is not None:
-            M, t = logit_colour_map(previous.reshape(-1, 3)[flat], edited.reshape(-1, 3)[flat], cfg.seed).split([3, 1], 1)
-            self.weight.copy_(M @ self.weight)
-            self.bias.copy_(M @ self.bias + t[:, 0])
+            self._set_layer_mapped(logit_colour_map(previous.reshape(-1, 3)[flat], edited.reshape(-1, 3)[flat],
+                                                    cfg.seed), self.weight, self.bias)
         if staged and not (same and self.alpha_fixed is not None):
             self._fit_segmentation(flat, warm=warm and self.alpha_fixed is not None,
                                    steps=cfg.seg_steps if seg_steps is None else seg_steps)
@@ -555,6 +552,14 @@ class EditEngine:
             on_gpu = self.scene.device.type == "cuda"
             self.opt = torch.optim.Adam(trainable, lr=cfg.lr, fused=on_gpu, capturable=on_gpu)
             self._graphs = None
+
+    def _set_layer_mapped(self, colour_map: Tensor, weight: Tensor, bias: Tensor) -> None:
+        """The copied layer set to ``weight``, ``bias`` followed by the logit colour map ``[M | t]``
+        (in place: recorded steps read the layer)."""
+        M, t = colour_map[:, :3], colour_map[:, 3]
+        new_weight, new_bias = M @ weight, M @ bias + t  # before writing: weight may be the layer itself
+        self.weight.copy_(new_weight)
+        self.bias.copy_(new_bias)
 
     def retarget(self, edited: Float[Tensor, "H W 3"], changed: Optional[Tensor] = None,
                  original: Optional[Float[Tensor, "H W 3"]] = None, seg_steps: Optional[int] = None) -> None:
@@ -679,32 +684,28 @@ class EditEngine:
         Adam's state in place; anything else drops them). Returns (steps done, last loss): where a
         graph cannot be recorded, only the first step is done and the caller runs the rest eagerly."""
         nb = len(self.batches)
-        if self._graphs:
-            graphs, losses = self._graphs
-            for i in range(n):
-                graphs[i % nb].replay()
-                if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
-                    progress(i + 1, n)
-            return n, losses[(n - 1) % nb].clone()
-        side = torch.cuda.Stream(self.scene.device)
-        side.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(side):
-            loss = self.step(self.batches[0])
-        torch.cuda.current_stream().wait_stream(side)
-        graphs: list = []
-        losses: list[Tensor] = []
-        try:
-            for b in range(nb):
-                g = torch.cuda.CUDAGraph()
-                with torch.cuda.graph(g, pool=graphs[0].pool() if graphs else None):
-                    losses.append(self.step(self.batches[b]))
-                graphs.append(g)
-        except RuntimeError as e:  # a kernel that cannot be recorded (a library's host sync)
-            warnings.warn(f"edit steps run without CUDA graphs: {str(e).splitlines()[0]}")
-            self.cfg.cuda_graphs = False
-            return 1, loss
-        self._graphs = [graphs, losses]
-        for i in range(1, n):
+        start = 0
+        if not self._graphs:
+            side = torch.cuda.Stream(self.scene.device)
+            side.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(side):
+                loss = self.step(self.batches[0])
+            torch.cuda.current_stream().wait_stream(side)
+            graphs: list = []
+            losses: list[Tensor] = []
+            try:
+                for b in range(nb):
+                    g = torch.cuda.CUDAGraph()
+                    with torch.cuda.graph(g, pool=graphs[0].pool() if graphs else None):
+                        losses.append(self.step(self.batches[b]))
+                    graphs.append(g)
+            except RuntimeError as e:  # a kernel that cannot be recorded (a library's host sync)
+                warnings.warn(f"edit steps run without CUDA graphs: {str(e).splitlines()[0]}")
+                self.cfg.cuda_graphs = False
+                return 1, loss
+            self._graphs, start = [graphs, losses], 1
+        graphs, losses = self._graphs
+        for i in range(start, n):
             graphs[i % nb].replay()
             if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
                 progress(i + 1, n)
