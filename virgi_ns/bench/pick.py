@@ -290,8 +290,8 @@ def top_up_frame(host: ViewerRender, session, camera) -> tuple[dict, dict, objec
     edits: list = []
 
     def top_up() -> None:
-        while session.steps_done < session.engine.cfg.steps:
-            edits.append(session.refine(min(LIVE_STEPS, session.engine.cfg.steps - session.steps_done)))
+        while session.steps_left:
+            edits.append(session.refine(min(LIVE_STEPS, session.steps_left)))
         host.set_live_edit(edits[-1])
 
     times, frame = _timed(host.device, [("fit_s", top_up), ("render_s", lambda: host.frame(camera))])
@@ -307,8 +307,8 @@ def release_frame(host: ViewerRender, stack, session, camera, topped=None) -> tu
     edit: list = []
 
     def top_up() -> None:
-        left = session.engine.cfg.steps - session.steps_done
-        edit.append(session.refine(left) if left > 0 or topped is None else topped)
+        left = session.steps_left
+        edit.append(session.refine(left) if left or topped is None else topped)
 
     return _timed(host.device, [("fit_s", top_up), ("commit_s", lambda: commit(stack, session, edit[0])),
                                 ("clear_s", lambda: host.set_live_edit(None)), ("render_s", lambda: host.frame(camera))])

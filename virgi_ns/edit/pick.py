@@ -175,11 +175,12 @@ def select(maps: ViewMaps, x: int, y: int, tolerance: float, criterion: str = DE
     gradual blends, another object of its hue meets it at an abrupt step); a click on a neutral
     colour falls back to ``colour_features``."""
     check_pixel(maps, x, y)
+    tolerance = check_tolerance(tolerance)
     if check_criterion(criterion) == "chroma_steps":
-        chosen = _select_chroma_steps(maps, x, y, check_tolerance(tolerance))
+        chosen = _select_chroma_steps(maps, x, y, tolerance)
         if chosen is not None:
             return chosen
-    limit = 90.0 * check_tolerance(tolerance)
+    limit = 90.0 * tolerance
     allowed = ((maps.accumulation >= MIN_COVER)
                & (_angle(maps.diffuse, maps.diffuse[y, x]) <= limit)
                & (_angle(maps.features, maps.features[y, x]) <= limit))
@@ -328,6 +329,11 @@ class PickSession:
         edit = self.refine(self.engine.cfg.steps if steps is None else steps)
         tick("steps")
         return edit
+
+    @property
+    def steps_left(self) -> int:
+        """Steps of the config's count the current fit has yet to run (the top-up after a live update)."""
+        return max(0, self.engine.cfg.steps - self.steps_done)
 
     def refine(self, steps: int) -> Edit:
         """``steps`` more steps of the current fit; returns the edit."""

@@ -147,7 +147,7 @@ class PickActions:
             return "", None
         if self._pick_version != self._pick_done:
             return "live", None
-        if self._pick_live is not None and session.steps_done < session.engine.cfg.steps:
+        if self._pick_live is not None and session.steps_left:
             return "top-up", None
         if self._pick_live is not None:
             due = self._pick_last_change + self.commit_after_s - now
@@ -226,13 +226,12 @@ class PickActions:
     def _top_up_pick(self) -> None:
         """One chunk of the live fit's top-up to the config's steps; the last one shows the result."""
         session = self._pick_session
-        left = session.engine.cfg.steps - session.steps_done
         try:
-            edit = session.refine(min(LIVE_STEPS, left))
+            edit = session.refine(min(LIVE_STEPS, session.steps_left))
         except Exception:
             session.steps_done = session.engine.cfg.steps  # no retry loop: a commit takes the live fit as it is
             raise
-        if session.steps_done >= session.engine.cfg.steps:
+        if not session.steps_left:
             self._pick_live = edit  # what a commit takes, even if showing it fails
             with self._lock():
                 self._model.set_live_edit(edit)
@@ -244,8 +243,7 @@ class PickActions:
         from virgi_ns.edit.pick import commit
 
         session = self._pick_session
-        left = session.engine.cfg.steps - session.steps_done
-        edit = session.refine(left) if left > 0 else self._pick_live
+        edit = session.refine(session.steps_left) if session.steps_left else self._pick_live
         stack = self._stack()
         with self._lock():
             number = commit(stack, session, edit, self._pick_committed)
