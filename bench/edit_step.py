@@ -122,28 +122,44 @@ class Bench:
 
     @torch.no_grad()
     def check(self, kind: str, eng: EditEngine) -> dict:
-        """The first batch's forward and backward against csr's (set by the csr row)."""
+        """The first batch's forward and backward against csr's (set by the csr row); for the fused
+        kind, its loss and gradient to the colours against csr's loss and autograd gradient."""
         b = eng.batches[0]
         if not self.ref:  # the csr row: the reference colours, gradient and products
             C = eng.colours()[0].detach()
             gen = torch.Generator(device=self.dev).manual_seed(2)
             grad = torch.randn(b.target.shape, generator=gen, device=self.dev)
+            Cg = C.clone().requires_grad_(True)
+            with torch.enable_grad():
+                loss = b.loss(Cg)
+                (loss_grad,) = torch.autograd.grad(loss, Cg)
             self.ref = {"C": C, "grad": grad, "fwd": b.render(C), "bwd": b.render_transpose(grad),
-                        "pixels": b.pixels}
+                        "batch_loss": loss.detach(), "loss_grad": loss_grad, "pixels": b.pixels}
         r = self.ref
         if (b.pixels is None) != (r["pixels"] is None) or (b.pixels is not None and not torch.equal(b.pixels, r["pixels"])):
             raise RuntimeError("the first pixel batch is not csr's (the pixel sets differ)")
-        fwd, bwd = b.render(r["C"]), b.render_transpose(r["grad"])
-        d_f, d_b = float((fwd - r["fwd"]).abs().max()), float((bwd - r["bwd"]).abs().max())
-        rel_f = d_f / max(float(r["fwd"].abs().max()), 1e-30)
-        rel_b = d_b / max(float(r["bwd"].abs().max()), 1e-30)
+        if b.sets is not None:  # the kernel's loss and gradient for the first set
+            b.sets.restart()
+            loss, grad = b.sets.loss_and_grad(r["C"])
+            d_f, d_b = float((loss - r["batch_loss"]).abs()), float((grad - r["loss_grad"]).abs().max())
+            rel_f = d_f / max(float(r["batch_loss"].abs()), 1e-30)
+            rel_b = d_b / max(float(r["loss_grad"].abs().max()), 1e-30)
+        else:
+            fwd, bwd = b.render(r["C"]), b.render_transpose(r["grad"])
+            d_f, d_b = float((fwd - r["fwd"]).abs().max()), float((bwd - r["bwd"]).abs().max())
+            rel_f = d_f / max(float(r["fwd"].abs().max()), 1e-30)
+            rel_b = d_b / max(float(r["bwd"].abs().max()), 1e-30)
         return {"fwd_max_abs_diff": d_f, "bwd_max_abs_diff": d_b, "fwd_rel_diff": rel_f, "bwd_rel_diff": rel_b,
                 "passed": bool(rel_f <= self.args.tol and rel_b <= self.args.tol)}
 
     def op_times(self, eng: EditEngine) -> dict:
-        """One forward, one backward, and the two through autograd, on the first batch."""
+        """One forward, one backward, and the two through autograd, on the first batch (fused: the
+        loss and its gradient, one kernel, as fwd+bwd)."""
         b, n = eng.batches[0], self.args.op_repeats
         C, grad = self.ref["C"], self.ref["grad"]
+        if b.sets is not None:
+            return {"fwd_s": float("nan"), "bwd_s": float("nan"),
+                    "fwd_bwd_s": _timer(self.dev, lambda: b.sets.loss_and_grad(C), n)}
         Cg = C.clone().requires_grad_(True)
 
         def both() -> None:
@@ -191,7 +207,8 @@ class Bench:
                 eng = EditEngine(self.scene, self.cams, self.edited, cfg=self.cfg(kind))
             b0 = eng.batches[0]
             row["batch_pixels"] = int(b0.target.shape[0])
-            row["batch_entries"] = int(b0.A._nnz() if b0.op is None else b0.op.forward_side.gather.numel())
+            row["batch_entries"] = int(b0.sets.pixel_offsets[b0.pixels + 1].sum() - b0.sets.pixel_offsets[b0.pixels].sum()
+                                       if b0.sets is not None else b0.op.forward_side.gather.numel())
             row.update(self.check(kind, eng))
             row.update(self.op_times(eng))
             del eng
@@ -227,8 +244,9 @@ def fastest(rows: List[dict]) -> dict:
     ok = [r for r in rows if _ok(r)]
     out: dict = {"edit": min(ok, key=lambda r: r["total_s"])["variant"] if ok else None}
     single = [r for r in rows if "error" not in r and r.get("passed") and "/" not in r["variant"]]
-    for side in ("fwd", "bwd"):
-        out[side] = min(single, key=lambda r: r[f"{side}_s"])["variant"] if single else None
+    for side in ("fwd", "bwd"):  # (the fused kind does both in one kernel: no time of its own for either)
+        timed = [r for r in single if not math.isnan(r[f"{side}_s"])]
+        out[side] = min(timed, key=lambda r: r[f"{side}_s"])["variant"] if timed else None
     csr = next((r for r in ok if r["variant"] == "csr"), None)
     if csr is not None and out["edit"] is not None:
         best = next(r for r in ok if r["variant"] == out["edit"])

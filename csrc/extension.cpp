@@ -702,6 +702,42 @@ torch::Tensor deferred_composite_backward(torch::Tensor grad_images, int64_t num
   return grad_colors;
 }
 
+// One step of an edit's weighted L1 pixel loss for the pixel set counter % num_sets, and its
+// gradient to the colours; advances the counter. Returns {loss [1], grad_colors [U, 4]} (the
+// fourth column is padding).
+std::vector<torch::Tensor> edit_l1_step(torch::Tensor colors, torch::Tensor pair, torch::Tensor weight,
+                                        torch::Tensor pixel_offsets, torch::Tensor rows,
+                                        torch::Tensor starts, torch::Tensor counter,
+                                        torch::Tensor background, torch::Tensor target,
+                                        torch::Tensor loss_weight, int64_t max_rows) {
+  check_f32(colors, "colors");
+  check_i32(pair, "pair");
+  check_f32(weight, "weight");
+  check_f32(background, "background");
+  check_f32(target, "target");
+  check_f32(loss_weight, "loss_weight");
+  for (const auto* t : {&pixel_offsets, &rows, &starts, &counter})
+    TORCH_CHECK(t->is_cuda() && t->is_contiguous() && t->scalar_type() == torch::kInt64,
+                "pixel_offsets, rows, starts and counter must be contiguous int64 CUDA tensors");
+  TORCH_CHECK(colors.dim() == 2 && colors.size(1) == 3, "colors must be [U, 3]");
+  const int64_t R = rows.numel();
+  TORCH_CHECK(background.numel() == 3 * R && target.numel() == 3 * R && loss_weight.numel() == R,
+              "background and target must be [R, 3] and loss_weight [R] for R rows");
+  TORCH_CHECK(starts.numel() >= 2 && counter.numel() == 1, "starts needs num_sets + 1 entries, counter one");
+  TORCH_CHECK(pair.numel() == weight.numel(), "pair and weight must have one entry each");
+  const OnDevice on(colors);
+  auto loss = torch::zeros({1}, colors.options());
+  auto grad_colors = torch::zeros({colors.size(0), 4}, colors.options());
+  VIRGI_CUDA_CHECK(launch_edit_l1(max_rows, colors.data_ptr<float>(), pair.data_ptr<int>(),
+                                  weight.data_ptr<float>(), pixel_offsets.data_ptr<int64_t>(),
+                                  rows.data_ptr<int64_t>(), starts.data_ptr<int64_t>(),
+                                  counter.data_ptr<int64_t>(), starts.numel() - 1,
+                                  background.data_ptr<float>(), target.data_ptr<float>(),
+                                  loss_weight.data_ptr<float>(), loss.data_ptr<float>(),
+                                  grad_colors.data_ptr<float>(), on.stream));
+  return {loss, grad_colors};
+}
+
 }  // namespace virgi
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -717,4 +753,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "Composite straight from deferred tile lists");
   m.def("deferred_composite_backward", &virgi::deferred_composite_backward,
         "Gradient of deferred_composite_forward to colours");
+  m.def("edit_l1_step", &virgi::edit_l1_step,
+        "One step of an edit's weighted L1 pixel loss and its gradient to the colours");
 }

@@ -136,4 +136,16 @@ cudaError_t launch_deferred_backward(int num_units, int D, const int* units, con
 cudaError_t launch_list_pair(int64_t n, const int* sorted_vals, const uint8_t* mark,
                              const int* rank_incl, int* list_pair, cudaStream_t stream);
 
+// One step of an edit's weighted L1 pixel loss (edit_kernels.cu): for the pixel set
+// counter % num_sets (rows [starts[set], starts[set + 1]) of rows / background / target /
+// loss_weight, rows naming the view's pixels whose entries start at offsets[row]), loss[0] (pre-
+// zeroed) += sum of loss_weight * mean_c |composite + background - target|, and grad_colors
+// [U, 4] (pre-zeroed) += that loss's gradient to colors [U, 3]; then counter += 1. max_rows: the
+// largest set.
+cudaError_t launch_edit_l1(int64_t max_rows, const float* colors, const int* pair,
+                           const float* weight, const int64_t* offsets, const int64_t* rows,
+                           const int64_t* starts, int64_t* counter, int64_t num_sets,
+                           const float* background, const float* target, const float* loss_weight,
+                           float* loss, float* grad_colors, cudaStream_t stream);
+
 }  // namespace virgi

@@ -11,7 +11,7 @@ from script_module import script_module
 def test_edit_step_bench_cpu_smoke(tmp_path):
     with script_module("bench/edit_step.py", "bench_edit_step") as mod:
         args = mod.Args(out=tmp_path / "es", cpu_smoke=True, variants=["segment", "no_such_kind", "embedding_bag",
-                                                                        "index_add", "csr4"])
+                                                                        "index_add", "csr4", "fused"])
         res = mod.main(args)
     saved = json.loads((tmp_path / "es" / "results.json").read_text())
     assert saved["device"] == "cpu" and saved["image"] == "40x24"
@@ -24,6 +24,10 @@ def test_edit_step_bench_cpu_smoke(tmp_path):
         assert r["passed"] and r["fwd_rel_diff"] <= 1e-5 and r["bwd_rel_diff"] <= 1e-5, kind
         assert r["fwd_s"] > 0 and r["bwd_s"] > 0 and r["steps_s"] > 0 and r["steps"] == 6
         assert r["preview_max_diff_vs_csr"] < 1e-3 and r["batch_entries"] > 0
+    fused = rows["fused"]  # one kernel (here its torch reference) for the loss and its gradient
+    assert "error" not in fused, fused.get("traceback")
+    assert fused["passed"] and fused["fwd_rel_diff"] <= 1e-5 and fused["bwd_rel_diff"] <= 1e-5
+    assert fused["fwd_bwd_s"] > 0 and fused["steps"] == 6 and fused["preview_max_diff_vs_csr"] < 1e-3
     assert rows["csr"]["preview_max_diff_vs_csr"] == 0.0
     best = saved["fastest"]
     assert best["edit"] in rows and best["edit"] != "no_such_kind" and best["fwd"] in rows and best["bwd"] in rows

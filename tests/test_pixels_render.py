@@ -19,6 +19,7 @@ from virgi_ns.edit.recolor import RecolorRule, recolor  # noqa: E402
 from virgi_ns.edit.scene import render_view  # noqa: E402
 
 KINDS = list(COMPOSITES) + ["embedding_bag/index_add", "segment/csr32"]
+MATRIX_KINDS = [k for k in KINDS if k != "fused"]  # the kinds that apply a CompositeOp
 
 
 def random_entries(p: int = 200, U: int = 150, used: int = 120, max_per_row: int = 30, seed: int = 0):
@@ -41,7 +42,7 @@ def rel_err(got: torch.Tensor, ref: torch.Tensor) -> float:
     return float((got.detach().double() - ref).abs().max() / ref.abs().max())
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", MATRIX_KINDS)
 def test_composite_matches_dense_oracle(kind):
     """Forward ``A @ C`` and the gradient ``A^T @ g`` equal a float64 dense product to float32 rounding."""
     p, U = 200, 150
@@ -65,7 +66,7 @@ def test_composite_matches_dense_oracle(kind):
 def test_composite_without_entries():
     """A batch that meets no Gaussian renders zeros and passes a zero gradient, whatever the kind."""
     e = torch.zeros(0, dtype=torch.long)
-    for kind in KINDS:
+    for kind in MATRIX_KINDS:
         op = CompositeOp(kind, e, e, torch.zeros(0), 4, 5)
         C = torch.rand(5, 3, requires_grad=True)
         out = op(C)
@@ -74,10 +75,71 @@ def test_composite_without_entries():
         assert bool((grad == 0).all()), kind
 
 
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_fused_sets_match_a_dense_oracle(device):
+    """The ``fused`` kind's loss of each pixel set and its gradient to the colours equal a float64 dense
+    computation (the composite, the weighted L1 mean, its subgradient); the device counter takes the
+    sets in turn and wraps. On a GPU this checks the CUDA kernel, on the CPU the torch reference."""
+    P, U = 300, 150
+    rows, cols, vals = random_entries(P, U, seed=4)
+    dev = torch.device(device)
+    contrib = SimpleNamespace(num_pixels=P, pair_gaussian=torch.arange(U), pixel=rows.to(dev), pair=cols.to(dev),
+                              weight=vals.to(dev), transmittance=torch.rand(P).to(dev))
+    g = torch.Generator().manual_seed(3)
+    target, bg = torch.rand(P, 3, generator=g).to(dev), torch.tensor([0.2, 0.3, 0.4], device=dev)
+    changed = (torch.rand(P, generator=g) < 0.2).to(dev)
+    C = torch.rand(U, 3, generator=g).to(dev)
+    A = dense(rows, cols, vals, P, U)
+    for weighted in (False, True):
+        batches = pixel_batches(contrib, target, bg, 3, 7, changed if weighted else None, 0.6, composite="fused")
+        sets = batches[0].sets
+        assert sets is not None and all(b.sets is sets for b in batches) and len(sets) == 3
+        sets.restart()
+        for step in range(4):  # the fourth wraps to the first set
+            b = batches[step % 3]
+            Cg = C.clone().requires_grad_(True)
+            loss = b.loss(Cg)
+            (grad,) = torch.autograd.grad(loss, Cg)
+            pix = b.pixels.cpu()
+            img = A[pix] @ C.double().cpu() + contrib.transmittance[pix, None].double().cpu() * bg.double().cpu()
+            err = img - target[pix].double().cpu()
+            w = (torch.full((len(pix),), 1.0 / len(pix), dtype=torch.float64) if not weighted
+                 else b.weight.double().cpu())
+            assert weighted == (b.weight is not None)
+            ref_loss = (err.abs().mean(-1) * w).sum()
+            ref_grad = A[pix].T @ (w[:, None] / 3.0 * torch.sign(err))
+            assert float(loss.detach()) == pytest.approx(float(ref_loss), rel=2e-6)
+            assert rel_err(grad.cpu(), ref_grad) < 2e-6
+        assert int(sets.counter) == 4
+    assert bool((grad.cpu()[cols.bincount(minlength=U) == 0] == 0).all())
+
+
+def test_fused_sets_render_the_same_pixels_as_the_matrix_kinds():
+    """A ``fused`` batch renders its pixels as a csr batch does, and its sets are csr's sets."""
+    P, U = 200, 120
+    rows, cols, vals = random_entries(P, U, seed=6)
+    contrib = SimpleNamespace(num_pixels=P, pair_gaussian=torch.arange(U), pixel=rows, pair=cols, weight=vals,
+                              transmittance=torch.rand(P))
+    target, bg = torch.rand(P, 3), torch.tensor([0.1, 0.5, 0.9])
+    C = torch.rand(U, 3)
+    for n in (1, 4):
+        ref = pixel_batches(contrib, target, bg, n, 2)
+        got = pixel_batches(contrib, target, bg, n, 2, composite="fused")
+        for a, b in zip(ref, got):
+            if a.pixels is not None:
+                assert torch.equal(a.pixels, b.pixels)
+            torch.testing.assert_close(b.render(C), a.render(C), rtol=1e-5, atol=1e-6)
+            torch.testing.assert_close(b.background, a.background, rtol=0, atol=0)
+            torch.testing.assert_close(b.target, a.target, rtol=0, atol=0)
+
+
 def test_composite_names_are_checked():
     assert parse_composite("segment") == ("segment", "segment")
     assert parse_composite("embedding_bag/index_add") == ("embedding_bag", "index_add")
-    for bad in ("cusparse", "segment/", "a/b/c", ""):
+    for bad in ("cusparse", "segment/", "a/b/c", "", "fused/csr", "segment/fused"):
         with pytest.raises(ValueError, match="batch_composite"):
             EditConfig(batch_composite=bad)
     cfg = EditConfig()
@@ -234,10 +296,14 @@ def test_every_kind_records_as_cuda_graphs(tiny, kind):
 
 
 def test_auto_is_csr_on_a_cpu_and_the_measured_kinds_on_a_gpu():
-    from virgi_ns.edit.pixels import AUTO_GPU, resolve_composite
+    from virgi_ns.edit.pixels import AUTO_GPU, AUTO_GPU_WITHOUT_KERNELS, resolve_composite
+    from virgi_ns.raster import cuda
 
     assert resolve_composite("auto", torch.device("cpu")) == "csr"
-    assert resolve_composite("auto", torch.device("cuda")) == AUTO_GPU
-    assert parse_composite(AUTO_GPU) == tuple(AUTO_GPU.split("/"))
+    # the fused kernel where our extension runs; the fastest torch kinds on a GPU without it
+    expected = AUTO_GPU if cuda.available()[0] else AUTO_GPU_WITHOUT_KERNELS
+    assert resolve_composite("auto", torch.device("cuda")) == expected
+    parse_composite(AUTO_GPU_WITHOUT_KERNELS)
+    assert parse_composite(AUTO_GPU) == (tuple(AUTO_GPU.split("/")) * 2)[:2]
     assert resolve_composite("index_add", torch.device("cuda")) == "index_add"
     assert EditConfig().batch_composite == "auto"

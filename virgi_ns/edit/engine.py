@@ -86,13 +86,15 @@ class EditConfig:
     image every step); 4 is as accurate as 1 and cheaper per step (bench/RESULTS.md, "Edit")."""
     batch_composite: str = "auto"
     """How a step applies its pixel set's sparse matrix ``A`` (pixels x Gaussians) to the colours, and
-    ``A^T`` to the gradient (:mod:`virgi_ns.edit.pixels`): ``csr`` (cuSPARSE, int64 indices),
-    ``csr32`` (int32 indices), ``csr4`` (int32, colours padded to 4 columns), ``csr_cm`` (int32,
-    colours column-major), ``segment`` (gather, weight, ``torch.segment_reduce`` per pixel / per
-    Gaussian), ``index_add`` (gather, weight, ``index_add_``: atomics), ``embedding_bag`` (one fused
-    gather-weight-sum kernel each way); or ``FWD/BWD``, one kind per pass (e.g.
-    ``embedding_bag/index_add``); ``auto`` (the default): the fastest on a GPU by ``bench/edit_step.py``,
-    ``csr`` on a CPU. All give the same edit up to float rounding."""
+    ``A^T`` to the gradient (:mod:`virgi_ns.edit.pixels`): ``fused`` (one CUDA kernel for the
+    composite, the L1 loss and its gradient, reading the view's own entries: no matrix per set, and
+    one recorded graph for every set; the torch reference on a CPU), ``csr`` (cuSPARSE, int64
+    indices), ``csr32`` (int32 indices), ``csr4`` (int32, colours padded to 4 columns), ``csr_cm``
+    (int32, colours column-major), ``segment`` (gather, weight, ``torch.segment_reduce`` per pixel /
+    per Gaussian), ``index_add`` (gather, weight, ``index_add_``: atomics), ``embedding_bag`` (one
+    fused gather-weight-sum kernel each way); or ``FWD/BWD``, one matrix kind per pass (e.g.
+    ``embedding_bag/index_add``); ``auto`` (the default): the fastest on a GPU by
+    ``bench/edit_step.py`` (``fused``), ``csr`` on a CPU. All give the same edit up to float rounding."""
     seed: int = 0
     """Seeds the segmentation head's initialisation and the pixel sets."""
     unchanged_tol: float = 3.0 / 255.0
@@ -643,12 +645,11 @@ class EditEngine:
         c_dd = alpha * c_dp + (1.0 - alpha) * self.c_d
         return torch.sigmoid(c_dd + self.k * self.c_s), alpha
 
-    def step(self, batch: PixelBatch) -> Tensor:
+    def step(self, i: int) -> Tensor:
+        """Step ``i`` of a fit: one Adam step on pixel set ``i % len(self.batches)``."""
         self.opt.zero_grad(set_to_none=True)
         C, _ = self.colours()
-        img = batch.render(C) + batch.background
-        err = (img - batch.target).abs()
-        loss = err.mean() if batch.weight is None else (err.mean(-1) * batch.weight).sum()
+        loss = self.batches[i % len(self.batches)].loss(C)
         loss.backward()
         self.opt.step()
         return loss.detach()
@@ -662,13 +663,15 @@ class EditEngine:
         _sync(dev)
         t0 = time.perf_counter()
         loss = torch.zeros((), device=dev)
-        nb = len(self.batches)
+        sets = self.batches[0].sets
+        if sets is not None:  # the fused kind picks its set on the device: step 0 takes the first
+            sets.restart()
         with torch.enable_grad():  # callers may hold a no_grad context (viewer threads, scripts)
             done = 0
-            if self.cfg.cuda_graphs and dev.type == "cuda" and (n > 2 * nb or (self._graphs and n > 0)):
+            if self.cfg.cuda_graphs and dev.type == "cuda" and (n > 2 * len(self.batches) or (self._graphs and n > 0)):
                 done, loss = self._fit_graphed(n, progress)
             for i in range(done, n):
-                loss = self.step(self.batches[i % nb])
+                loss = self.step(i)
                 if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
                     progress(i + 1, n)
         _sync(dev)
@@ -677,27 +680,28 @@ class EditEngine:
         return self.edit(timing), timing
 
     def _fit_graphed(self, n: int, progress: Optional[Callable[[int, int], None]]) -> tuple[int, Tensor]:
-        """Up to ``n`` steps as replays of one recorded CUDA graph per pixel set, in the eager order.
+        """Up to ``n`` steps as replays of recorded CUDA graphs, in the eager order: one graph per
+        pixel set, or one for all when the sets are chosen on the device (the ``fused`` kind).
         The graphs are recorded at the first such fit, after one eager step on a side stream (it
         creates Adam's state and warms the libraries up), and replayed by later fits while the
         tensors they read stay the same (a warm :meth:`retarget` writes its targets, alpha and
         Adam's state in place; anything else drops them). Returns (steps done, last loss): where a
         graph cannot be recorded, only the first step is done and the caller runs the rest eagerly."""
-        nb = len(self.batches)
+        ng = 1 if self.batches[0].sets is not None else len(self.batches)
         start = 0
         if not self._graphs:
             side = torch.cuda.Stream(self.scene.device)
             side.wait_stream(torch.cuda.current_stream())
             with torch.cuda.stream(side):
-                loss = self.step(self.batches[0])
+                loss = self.step(0)
             torch.cuda.current_stream().wait_stream(side)
             graphs: list = []
             losses: list[Tensor] = []
             try:
-                for b in range(nb):
+                for b in range(ng):
                     g = torch.cuda.CUDAGraph()
                     with torch.cuda.graph(g, pool=graphs[0].pool() if graphs else None):
-                        losses.append(self.step(self.batches[b]))
+                        losses.append(self.step(b))
                     graphs.append(g)
             except RuntimeError as e:  # a kernel that cannot be recorded (a library's host sync)
                 warnings.warn(f"edit steps run without CUDA graphs: {str(e).splitlines()[0]}")
@@ -706,10 +710,10 @@ class EditEngine:
             self._graphs, start = [graphs, losses], 1
         graphs, losses = self._graphs
         for i in range(start, n):
-            graphs[i % nb].replay()
+            graphs[i % ng].replay()
             if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
                 progress(i + 1, n)
-        return n, losses[(n - 1) % nb].clone()
+        return n, losses[(n - 1) % ng].clone()
 
     def edit(self, timing: Optional[EditTiming] = None) -> Edit:
         """The current heads as an :class:`Edit` (copies)."""

@@ -9,6 +9,8 @@ How a batch applies ``A`` (and ``A^T`` in the backward pass) is ``EditConfig.bat
 of :data:`COMPOSITES` (or ``"FWD/BWD"``: one kind for each pass; ``"csr"`` on both, cuSPARSE with a
 precomputed transpose, is the reference). Every kind is built once per batch
 and then runs without a host sync and with shapes fixed, so a step can be recorded as a CUDA graph.
+The ``fused`` kind builds no matrix per batch: one kernel reads the view's own entries for the
+step's pixels and gives the loss and its gradient at once (:class:`FusedSets`).
 """
 
 from __future__ import annotations
@@ -31,22 +33,31 @@ COMPOSITES = {
     "segment": "gather x[cols] * vals, then torch.segment_reduce over each row's entries (A^T: by Gaussian)",
     "index_add": "gather x[cols] * vals, then index_add_ by row (atomics; A^T: the same entries, by Gaussian)",
     "embedding_bag": "torch.embedding_bag, mode sum with per-sample weights: gather, weight and sum in one kernel",
+    "fused": "the whole step's loss in one CUDA kernel (composite, weighted L1, its gradient to the colours by "
+             "atomics), the step's pixel set chosen on the device; no per-set matrices (:class:`FusedSets`)",
 }
 """The kinds of :attr:`EditConfig.batch_composite` (a name, or ``"FWD/BWD"`` for one kind per pass)."""
 
 _CSR_KINDS = ("csr", "csr32", "csr4", "csr_cm")
 
 
-AUTO_GPU = "segment/csr32"
-"""What ``"auto"`` picks on a GPU: the fastest kinds that gave csr's edit in ``bench/edit_step.py``
-(bench/RESULTS.md, "Edit"); on a CPU ``"auto"`` is ``"csr"``."""
+AUTO_GPU = "fused"
+"""What ``"auto"`` picks on a GPU: the fastest kind that gave csr's edit in ``bench/edit_step.py``
+(bench/RESULTS.md, "Edit speed at 1M Gaussians"); on a CPU ``"auto"`` is ``"csr"``."""
+
+AUTO_GPU_WITHOUT_KERNELS = "segment/csr32"
+"""``"auto"`` on a GPU where our CUDA extension is not available (the fastest torch kinds there)."""
 
 
 def resolve_composite(name: str, device: torch.device) -> str:
     """``name`` with ``"auto"`` replaced by the kinds for ``device``."""
     if name != "auto":
         return name
-    return AUTO_GPU if torch.device(device).type == "cuda" else "csr"
+    if torch.device(device).type != "cuda":
+        return "csr"
+    from virgi_ns.raster import cuda
+
+    return AUTO_GPU if cuda.available()[0] else AUTO_GPU_WITHOUT_KERNELS
 
 
 def parse_composite(name: str) -> tuple[str, str]:
@@ -55,6 +66,9 @@ def parse_composite(name: str) -> tuple[str, str]:
     if name == "auto":
         return parse_composite(AUTO_GPU)
     parts = str(name).split("/")
+    if "fused" in parts and len(parts) != 1:
+        raise ValueError(f"EditConfig.batch_composite 'fused' does both passes in one kernel: it cannot be paired, "
+                         f"got {name!r}")
     if len(parts) == 1:
         parts = parts * 2
     if len(parts) != 2 or any(p not in COMPOSITES for p in parts):
@@ -153,25 +167,142 @@ def _csr_of(crow: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int]) ->
         return torch.sparse_csr_tensor(crow, cols, vals, shape, check_invariants=False)
 
 
+class _FusedLoss(torch.autograd.Function):
+    """The loss of the pixel set :class:`FusedSets`' counter names, with its gradient to the colours
+    computed in the same pass (an L1 loss's gradient is known with the pixel)."""
+
+    @staticmethod
+    def forward(ctx, colours: Tensor, sets: "FusedSets") -> Tensor:  # type: ignore[override]
+        loss, grad = sets.loss_and_grad(colours)
+        ctx.save_for_backward(grad)
+        return loss
+
+    @staticmethod
+    def backward(ctx, g: Tensor):  # type: ignore[override]
+        (grad,) = ctx.saved_tensors
+        return grad * g, None
+
+
+class FusedSets:
+    """The pixel sets of the ``fused`` kind: every set's rows in one array ordered by set (``rows``:
+    the view's pixels; ``background``, ``target``, ``loss_weight`` alike, each set's slice being its
+    :class:`PixelBatch`'s), read with the view's own entries (``pixel_offsets``, ``pair``,
+    ``weight``), so nothing is built per set. Which set a step uses is a counter on the device, set
+    ``counter % len(starts) - 1`` and advanced by each :meth:`loss`: one recorded CUDA graph of a step
+    replays every set in turn. :meth:`restart` sets it to the first set."""
+
+    kind = "fused"
+
+    def __init__(self, contrib: Contributions, rows: Tensor, starts: list[int], background: Tensor, target: Tensor,
+                 loss_weight: Tensor, U: int) -> None:
+        dev = target.device
+        offsets = getattr(contrib, "pixel_offsets", None)
+        self.pixel_offsets = (offsets if offsets is not None else
+                              _offsets(contrib.pixel.to(dev).long(), contrib.num_pixels, torch.long)).to(dev).long()
+        self.pair = contrib.pair.to(dev, torch.int32).contiguous()
+        self.weight = contrib.weight.detach().to(dev, torch.float32).contiguous()
+        self.rows, self.background, self.target, self.loss_weight = rows, background, target, loss_weight
+        self.starts_host = starts
+        self.starts = torch.tensor(starts, dtype=torch.long, device=dev)
+        self.counter = torch.zeros(1, dtype=torch.long, device=dev)
+        self.max_rows = max(b - a for a, b in zip(starts[:-1], starts[1:]))
+        self.U = U
+        self._kernel: Optional[bool] = None
+
+    def __len__(self) -> int:
+        return len(self.starts_host) - 1
+
+    def restart(self) -> None:
+        self.counter.zero_()
+
+    def loss(self, colours: Tensor) -> Tensor:
+        """The loss of the counter's set (a scalar, differentiable in ``colours`` [U, 3]); advances the counter."""
+        return _FusedLoss.apply(colours, self)
+
+    def _use_kernel(self, colours: Tensor) -> bool:
+        if self._kernel is None:
+            from virgi_ns.raster import cuda
+
+            self._kernel = colours.is_cuda and cuda.available()[0]
+        return self._kernel
+
+    def loss_and_grad(self, colours: Tensor) -> tuple[Tensor, Tensor]:
+        """(loss, its gradient [U, 3]) of the counter's set; advances the counter. The CUDA kernel on a
+        GPU (no host sync), else the same sums in torch (the reference, which reads the counter)."""
+        colours = colours.detach().float().contiguous()
+        if self._use_kernel(colours):
+            from virgi_ns.raster.cuda import edit_l1_step
+
+            loss, grad = edit_l1_step(colours, self.pair, self.weight, self.pixel_offsets, self.rows, self.starts,
+                                      self.counter, self.background, self.target, self.loss_weight, self.max_rows)
+            return loss[0], grad[:, :3]
+        s = int(self.counter) % len(self)
+        self.counter += 1
+        a, b = self.starts_host[s], self.starts_host[s + 1]
+        img, entries, local = self._composite(colours, a, b)
+        err = img + self.background[a:b] - self.target[a:b]
+        k = self.loss_weight[a:b, None] / 3.0
+        g = k * torch.sign(err)
+        grad = torch.zeros(self.U, 3, dtype=colours.dtype, device=colours.device)
+        grad.index_add_(0, self.pair[entries].long(), self.weight[entries, None] * g[local])
+        return (k * err.abs()).sum(), grad
+
+    def _composite(self, colours: Tensor, a: int, b: int) -> tuple[Tensor, Tensor, Tensor]:
+        """(``A @ colours`` over rows ``a:b``, the entries read, the local row of each)."""
+        rows = self.rows[a:b]
+        first, count = self.pixel_offsets[rows], self.pixel_offsets[rows + 1] - self.pixel_offsets[rows]
+        local = torch.repeat_interleave(torch.arange(b - a, device=rows.device), count)
+        before = torch.cumsum(count, 0) - count
+        entries = torch.repeat_interleave(first - before, count) + torch.arange(local.numel(), device=rows.device)
+        terms = self.weight[entries, None].to(colours.dtype) * colours[self.pair[entries].long()]
+        img = torch.zeros(b - a, colours.shape[1], dtype=colours.dtype, device=colours.device)
+        return img.index_add(0, local, terms), entries, local
+
+    def render(self, colours: Tensor, s: int) -> Tensor:
+        """``A @ colours`` over set ``s``'s rows (differentiable; tests and benchmarks)."""
+        return self._composite(colours, self.starts_host[s], self.starts_host[s + 1])[0]
+
+
 @dataclass
 class PixelBatch:
-    op: CompositeOp  # the batch's A [p, U] and how it is applied
+    op: "CompositeOp | FusedSets"  # the batch's A [p, U] and how it is applied (FusedSets: shared by every set)
     background: Tensor  # [p, 3] T * bg
     target: Tensor  # [p, 3]
     weight: Optional[Tensor] = None  # [p] per-pixel loss weights summing to 1 (None: the plain mean)
     pixels: Optional[Tensor] = None  # [p] the view's pixels in this batch (None: all, in order)
+    index: int = 0  # which set of the view's this is
 
     @property
     def composite(self) -> str:
         return self.op.kind
 
+    @property
+    def sets(self) -> Optional[FusedSets]:
+        """The ``fused`` kind's sets, which every batch of the view shares (None for the other kinds)."""
+        return self.op if isinstance(self.op, FusedSets) else None
+
     def render(self, colours: Tensor) -> Tensor:
         """``A @ colours`` [p, 3] by the batch's composite kind, differentiable in ``colours``."""
+        if self.sets is not None:
+            return self.sets.render(colours, self.index)
         return self.op(colours)
 
     def render_transpose(self, grad: Tensor) -> Tensor:
         """``A^T @ grad`` [U, 3]: what :meth:`render`'s backward pass computes (for benchmarks)."""
+        if self.sets is not None:
+            C = torch.zeros(self.sets.U, grad.shape[1], dtype=grad.dtype, device=grad.device, requires_grad=True)
+            with torch.enable_grad():
+                return torch.autograd.grad(self.render(C), C, grad)[0]
         return _apply(self.op.bwd, self.op.backward_side, grad.contiguous())
+
+    def loss(self, colours: Tensor) -> Tensor:
+        """The step's loss on this batch: the (weighted) mean over its pixels and channels of
+        ``|A colours + background - target|``. For the ``fused`` kind the set the device counter
+        names (:class:`FusedSets`), which the engine keeps equal to this batch's."""
+        if self.sets is not None:
+            return self.sets.loss(colours)
+        err = (self.render(colours) + self.background - self.target).abs()
+        return err.mean() if self.weight is None else (err.mean(-1) * self.weight).sum()
 
 
 def _group_weights(changed: Optional[Tensor], share: float) -> Optional[Tensor]:
@@ -199,35 +330,28 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
     dev, dt = target.device, target.dtype
     P = contrib.num_pixels
     U = int(contrib.pair_gaussian.shape[0])
-    # int64 indices: backends may hand int32 (CUDA), and the CSR index arrays must share one dtype
-    if n_batches == 1:  # the whole image: entries are already grouped by pixel
+    T = contrib.transmittance.detach().to(dev, dt)
+    if n_batches == 1 and composite != "fused":  # the whole image: entries are already grouped by pixel
         pix, pair = contrib.pixel.to(dev).long(), contrib.pair.to(dev).long()
         w = contrib.weight.detach().to(dev, dt)
-        T = contrib.transmittance.detach().to(dev, dt)
         op = CompositeOp(composite, pix, pair, w, P, U)
         return [PixelBatch(op, T[:, None] * bg[None, :], target, _group_weights(changed, share))]
-    # drawn on the view's device (a CPU permutation of a megapixel view costs tens of milliseconds)
-    gen = torch.Generator(device=dev).manual_seed(seed)
-    batch_of = torch.empty(P, dtype=torch.long, device=dev)
-    if changed is None:
-        batch_of[torch.randperm(P, generator=gen, device=dev)] = torch.arange(P, device=dev) % n_batches
-    else:  # stratified: each set gets its part of the changed pixels and of the others
-        ch = changed.to(dev)
-        for idx in (ch.nonzero().flatten(), (~ch).nonzero().flatten()):
-            perm = torch.randperm(len(idx), generator=gen, device=dev)
-            batch_of[idx[perm]] = torch.arange(len(idx), device=dev) % n_batches
-    # local row of each pixel: its rank among its batch's pixels, in ascending pixel order
+    batch_of = _assign_sets(P, n_batches, seed, changed, dev)
+    # the sets' pixels one after another, ascending within a set
     order = torch.argsort(batch_of, stable=True)
     counts = torch.bincount(batch_of, minlength=n_batches)
     starts = torch.cumsum(counts, 0) - counts
+    if composite == "fused":
+        return _fused_batches(contrib, order, counts.tolist(), T, bg, target, changed, share, U)
+    # local row of each pixel: its rank among its batch's pixels, in ascending pixel order
     local = torch.empty(P, dtype=torch.long, device=dev)
     local[order] = torch.arange(P, device=dev) - starts[batch_of[order]]
+    # int64 indices: backends may hand int32 (CUDA), and the CSR index arrays must share one dtype
     pix, pair = contrib.pixel.to(dev).long(), contrib.pair.to(dev).long()
     w = contrib.weight.detach().to(dev, dt)
     eb = batch_of[pix]
     e_order = torch.argsort(eb, stable=True)  # entries stay in pixel order within a batch
     e_counts = torch.bincount(eb, minlength=n_batches).tolist()
-    T = contrib.transmittance.detach().to(dev, dt)
     out = []
     e0 = 0
     for b in range(n_batches):
@@ -238,9 +362,44 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
         op = CompositeOp(composite, rows, cols, vals, p_b, U)
         pixels = order[int(starts[b]) : int(starts[b]) + p_b]
         out.append(PixelBatch(op, T[pixels, None] * bg[None, :], target[pixels],
-                              None if changed is None else _group_weights(changed[pixels], share), pixels))
+                              None if changed is None else _group_weights(changed[pixels], share), pixels, b))
     return out
 
 
-__all__ = ["AUTO_GPU", "COMPOSITES", "CompositeOp", "PixelBatch", "parse_composite", "pixel_batches",
+def _assign_sets(P: int, n_batches: int, seed: int, changed: Optional[Tensor], dev: torch.device) -> Tensor:
+    """[P] the set of each pixel: a random split into equal sets (stratified by ``changed``: each set
+    gets its part of the changed pixels and of the others), drawn on the view's device (a CPU
+    permutation of a megapixel view costs tens of milliseconds)."""
+    if n_batches == 1:
+        return torch.zeros(P, dtype=torch.long, device=dev)
+    gen = torch.Generator(device=dev).manual_seed(seed)
+    batch_of = torch.empty(P, dtype=torch.long, device=dev)
+    if changed is None:
+        batch_of[torch.randperm(P, generator=gen, device=dev)] = torch.arange(P, device=dev) % n_batches
+    else:
+        ch = changed.to(dev)
+        for idx in (ch.nonzero().flatten(), (~ch).nonzero().flatten()):
+            perm = torch.randperm(len(idx), generator=gen, device=dev)
+            batch_of[idx[perm]] = torch.arange(len(idx), device=dev) % n_batches
+    return batch_of
+
+
+def _fused_batches(contrib: Contributions, order: Tensor, counts: list[int], T: Tensor, bg: Tensor, target: Tensor,
+                   changed: Optional[Tensor], share: float, U: int) -> list[PixelBatch]:
+    """The ``fused`` kind's batches: slices of one :class:`FusedSets` (no per-set matrices)."""
+    starts = [0]
+    for c in counts:
+        starts.append(starts[-1] + c)
+    background = (T[order, None] * bg[None, :]).contiguous()
+    rows_target = target[order].contiguous()
+    loss_weight = torch.empty(order.numel(), dtype=torch.float32, device=order.device)
+    for a, b in zip(starts[:-1], starts[1:]):
+        loss_weight[a:b] = (1.0 / max(b - a, 1)) if changed is None else _group_weights(changed[order[a:b]], share)
+    sets = FusedSets(contrib, order, starts, background, rows_target, loss_weight, U)
+    return [PixelBatch(sets, background[a:b], rows_target[a:b],
+                       None if changed is None else loss_weight[a:b], order[a:b], i)
+            for i, (a, b) in enumerate(zip(starts[:-1], starts[1:]))]
+
+
+__all__ = ["AUTO_GPU", "COMPOSITES", "CompositeOp", "FusedSets", "PixelBatch", "parse_composite", "pixel_batches",
            "resolve_composite"]

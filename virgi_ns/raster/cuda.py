@@ -38,7 +38,7 @@ from virgi_ns.raster.contract import composite as _composite
 from virgi_ns.raster.contract import composite_plain as _plain_composite
 
 CSRC = Path(__file__).resolve().parents[2] / "csrc"
-SOURCES = ("extension.cpp", "raster_kernels.cu", "composite_kernels.cu")
+SOURCES = ("extension.cpp", "raster_kernels.cu", "composite_kernels.cu", "edit_kernels.cu")
 EXTENSION_NAME = "virgi_ns_raster"
 
 TILE_BACKWARD_MIN_PIXELS = 1 << 20  # measured on an H200: per-entry atomics win below ~1 Mpix
@@ -330,7 +330,18 @@ def composite(colors: Tensor, contrib: Contributions, background: Tensor | float
     return _composite(colors, contrib, background)
 
 
-__all__ = ["available", "build", "composite", "cuda_home", "rasterize", "CudaContributions",
+def edit_l1_step(colors: Tensor, pair: Tensor, weight: Tensor, pixel_offsets: Tensor, rows: Tensor, starts: Tensor,
+                 counter: Tensor, background: Tensor, target: Tensor, loss_weight: Tensor,
+                 max_rows: int) -> tuple[Tensor, Tensor]:
+    """One step of an edit's weighted L1 pixel loss on the pixel set ``counter % (len(starts) - 1)``
+    (:class:`virgi_ns.edit.pixels.FusedSets` says what each argument holds): (loss [1], its gradient
+    to ``colors`` [U, 4], the last column padding); advances ``counter``. No host sync."""
+    loss, grad = _load().edit_l1_step(colors, pair, weight, pixel_offsets, rows, starts, counter, background, target,
+                                      loss_weight, int(max_rows))
+    return loss, grad
+
+
+__all__ = ["available", "build", "composite", "cuda_home", "edit_l1_step", "rasterize", "CudaContributions",
            "DeferredCudaContributions"]
 
 if __name__ == "__main__":  # pragma: no cover - manual build check: python -m virgi_ns.raster.cuda
