@@ -259,13 +259,13 @@ def test_a_view_set_up_first_and_retargeted_fits_as_a_fresh_engine(world):
     torch.testing.assert_close(a.head_weight, b.head_weight, atol=0, rtol=0)
     torch.testing.assert_close(fresh.alpha_fixed, later.alpha_fixed, atol=0, rtol=0)
     batches, alpha = later.batches, later.alpha_fixed
-    targets, moments = [bt.target for bt in batches], [t for st in later.opt.state.values() for t in st.values()]
+    targets, moments = [bt.target for bt in batches], later.opt.state_tensors()
     green = recolour(s.maps.rgb, s.mask, (0.1, 0.8, 0.2), "hue")
     later.retarget(green, s.mask)
     assert later.batches is batches and later.alpha_fixed is alpha
     # the same tensors (recorded GPU steps read them), holding what a fresh engine's would
     assert all(bt.target is t for bt, t in zip(later.batches, targets))
-    assert [t for st in later.opt.state.values() for t in st.values()] == moments
+    assert later.opt.state_tensors() == moments
     assert all(float(t.abs().max()) == 0.0 for t in moments)
     c = EditEngine(S.scene, cam, green, None, cfg, changed=s.mask).fit(10)[0]
     torch.testing.assert_close(later.fit(10)[0].head_weight, c.head_weight, atol=0, rtol=0)

@@ -60,6 +60,7 @@ from torch import Tensor
 
 from virgi_ns.colour.field import view_directions
 from virgi_ns.edit.colour_change import fit_colour_change
+from virgi_ns.edit.optim import EditAdam
 from virgi_ns.edit.pixels import PixelBatch, parse_composite, pixel_batches, resolve_composite
 from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead, new_edit_info
@@ -239,14 +240,6 @@ class EditTiming:
 def _sync(dev: torch.device) -> None:
     if dev.type == "cuda":
         torch.cuda.synchronize(dev)
-
-
-def _restart_adam(opt: torch.optim.Adam) -> None:
-    """Put ``opt`` back to a fresh Adam's state (no moments, step 0) without replacing its tensors."""
-    for state in opt.state.values():
-        for value in state.values():
-            if torch.is_tensor(value):
-                value.zero_()
 
 
 def _logit(x: Tensor, eps: float = 0.02) -> Tensor:
@@ -454,7 +447,7 @@ class EditEngine:
         self.weight = head.weight.detach().float().clone().requires_grad_(True)
         self.bias = head.bias.detach().float().clone().requires_grad_(True)
         self.alpha_fixed: Optional[Tensor] = None
-        self.opt: Optional[torch.optim.Adam] = None
+        self.opt: Optional[EditAdam] = None
         self._graphs: Optional[list] = None  # the recorded steps, one per pixel set (_fit_graphed)
         self.colour_map: Optional[Tensor] = None
         self.map_explained: Optional[float] = None  # changed_target="map": share of changed pixels it explains
@@ -548,11 +541,10 @@ class EditEngine:
         self._changed = flat
         self._target = edited
         trainable = [self.weight, self.bias] + ([] if staged else list(self.seg.parameters()))
-        if self.opt is not None and [id(p) for p in self.opt.param_groups[0]["params"]] == [id(p) for p in trainable]:
-            _restart_adam(self.opt)  # the same tensors, which recorded steps read and write
+        if self.opt is not None and [id(p) for p in self.opt.params] == [id(p) for p in trainable]:
+            self.opt.restart()  # the same tensors, which recorded steps read and write
         else:
-            on_gpu = self.scene.device.type == "cuda"
-            self.opt = torch.optim.Adam(trainable, lr=cfg.lr, fused=on_gpu, capturable=on_gpu)
+            self.opt = EditAdam(trainable, lr=cfg.lr)
             self._graphs = None
 
     def _set_layer_mapped(self, colour_map: Tensor, weight: Tensor, bias: Tensor) -> None:
@@ -619,10 +611,10 @@ class EditEngine:
         params = list(self.seg.parameters())
         for p in params:
             p.requires_grad_(True)
-        opt = torch.optim.Adam(params, lr=cfg.seg_lr, fused=dev.type == "cuda")
+        opt = EditAdam(params, lr=cfg.seg_lr)
         with torch.enable_grad():
             for _ in range(cfg.seg_steps if steps is None else steps):
-                opt.zero_grad(set_to_none=True)
+                opt.zero_grad()
                 torch.nn.functional.binary_cross_entropy_with_logits(self.seg.logits_of(x), y).backward()
                 opt.step()
         for p in params:
@@ -647,7 +639,7 @@ class EditEngine:
 
     def step(self, i: int) -> Tensor:
         """Step ``i`` of a fit: one Adam step on pixel set ``i % len(self.batches)``."""
-        self.opt.zero_grad(set_to_none=True)
+        self.opt.zero_grad()
         C, _ = self.colours()
         loss = self.batches[i % len(self.batches)].loss(C)
         loss.backward()

@@ -1,0 +1,62 @@
+"""Adam for an edit's few small tensors, through torch's own fused Adam kernel.
+
+``torch.optim.Adam(fused=True)`` runs the same kernel, but building any ``torch.optim`` optimizer
+imports ``torch._dynamo`` (the optimizer's methods are wrapped to keep the compiler out of them),
+which costs about a second in a fresh process: the first edit of every CLI call and viewer session
+paid it (bench/RESULTS.md, "Render: the colour model in a view"). :class:`EditAdam` keeps Adam's
+state itself and calls the kernel (``torch._fused_adam_``) directly; where that kernel is missing it
+falls back to ``torch.optim.Adam``.
+"""
+
+from __future__ import annotations
+
+from typing import Iterable
+
+import torch
+from torch import Tensor
+
+
+class EditAdam:
+    """Adam (no weight decay, no AMSGrad) over ``params``; capturable in a CUDA graph: the step counts
+    live on the parameters' device and nothing reads them on the host."""
+
+    def __init__(self, params: Iterable[Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.999),
+                 eps: float = 1e-8) -> None:
+        self.params = list(params)
+        self.lr, self.betas, self.eps = float(lr), betas, float(eps)
+        self._fallback = None if hasattr(torch, "_fused_adam_") else torch.optim.Adam(self.params, lr=lr, betas=betas,
+                                                                                       eps=eps)
+        self.exp_avg = [torch.zeros_like(p) for p in self.params]
+        self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
+        self.steps = [torch.zeros((), dtype=torch.float32, device=p.device) for p in self.params]
+
+    def zero_grad(self) -> None:
+        for p in self.params:
+            p.grad = None
+
+    @torch.no_grad()
+    def step(self) -> None:
+        if self._fallback is not None:
+            self._fallback.step()
+            return
+        grads = [p.grad for p in self.params]
+        if any(g is None for g in grads):
+            raise RuntimeError("EditAdam.step: a parameter has no gradient")
+        torch._foreach_add_(self.steps, 1.0)
+        torch._fused_adam_(self.params, grads, self.exp_avg, self.exp_avg_sq, [], self.steps, lr=self.lr,
+                           beta1=self.betas[0], beta2=self.betas[1], weight_decay=0.0, eps=self.eps, amsgrad=False,
+                           maximize=False)
+
+    def state_tensors(self) -> list[Tensor]:
+        """Every tensor of Adam's state (moments and step counts)."""
+        if self._fallback is not None:
+            return [v for state in self._fallback.state.values() for v in state.values() if torch.is_tensor(v)]
+        return self.exp_avg + self.exp_avg_sq + self.steps
+
+    def restart(self) -> None:
+        """A fresh Adam's state (no moments, step 0), written in place: recorded steps read these tensors."""
+        for t in self.state_tensors():
+            t.zero_()
+
+
+__all__ = ["EditAdam"]
