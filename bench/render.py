@@ -49,6 +49,7 @@ import re
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -391,7 +392,8 @@ def bench_cli(scene, cfg_path: Path, data: Path, out: Path) -> dict:
     env = dict(os.environ)
     walls, (edit_setup, edit_steps) = walls_in(env)
     cached_env = {k: v for k, v in env.items() if k != "PYTHONDONTWRITEBYTECODE"}
-    cached_env["PYTHONPYCACHEPREFIX"] = str(out / "pycache")
+    # (outside --out: thousands of small files that are no result)
+    cached_env["PYTHONPYCACHEPREFIX"] = str(Path(tempfile.gettempdir()) / "virgi_bench_pycache")
     walls_in(cached_env)
     cached, (cached_setup, cached_steps) = walls_in(cached_env)
     probe = subprocess.run([sys.executable, "-c", "import sys, os, torch; print(int(sys.flags.dont_write_bytecode), "
