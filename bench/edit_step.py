@@ -158,7 +158,7 @@ class Bench:
         b, n = eng.batches[0], self.args.op_repeats
         C, grad = self.ref["C"], self.ref["grad"]
         if b.sets is not None:
-            return {"fwd_s": float("nan"), "bwd_s": float("nan"),
+            return {"fwd_s": None, "bwd_s": None,
                     "fwd_bwd_s": _timer(self.dev, lambda: b.sets.loss_and_grad(C), n)}
         Cg = C.clone().requires_grad_(True)
 
@@ -245,7 +245,7 @@ def fastest(rows: List[dict]) -> dict:
     out: dict = {"edit": min(ok, key=lambda r: r["total_s"])["variant"] if ok else None}
     single = [r for r in rows if "error" not in r and r.get("passed") and "/" not in r["variant"]]
     for side in ("fwd", "bwd"):  # (the fused kind does both in one kernel: no time of its own for either)
-        timed = [r for r in single if not math.isnan(r[f"{side}_s"])]
+        timed = [r for r in single if r.get(f"{side}_s") is not None]
         out[side] = min(timed, key=lambda r: r[f"{side}_s"])["variant"] if timed else None
     csr = next((r for r in ok if r["variant"] == "csr"), None)
     if csr is not None and out["edit"] is not None:

@@ -295,6 +295,31 @@ def test_every_kind_records_as_cuda_graphs(tiny, kind):
     assert t_g.final_loss == pytest.approx(t_e.final_loss, rel=1e-4)
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+def test_the_fused_kernel_fits_as_csr_does_on_a_gpu(tiny):
+    """The fused kind's CUDA kernel (graphed) fits the edit csr fits on the same GPU, and so does a warm
+    re-fit of a new target: the counter starts each fit at the first pixel set."""
+    import copy
+
+    from virgi_ns.edit.scene import FrozenScene
+
+    S, cam, edited = tiny
+    sc = S.scene
+    gpu = FrozenScene(sc.means.cuda(), sc.quats.cuda(), sc.scales.cuda(), sc.opacities.cuda(),
+                      copy.deepcopy(sc.field).cuda(), sc.background.cuda(), backend="auto")
+    other = edited.flip(1).contiguous().cuda()
+    fits = {}
+    for kind in ("csr", "fused"):
+        eng = EditEngine(gpu, cam, edited.cuda(), cfg=EditConfig(steps=20, batch_composite=kind, whole_image=True))
+        first = eng.fit()
+        eng.retarget(other)
+        fits[kind] = (first, eng.fit())
+    for (ref, ref_t), (got, got_t) in zip(fits["csr"], fits["fused"]):
+        torch.testing.assert_close(got.head_weight, ref.head_weight, atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(got.head_bias, ref.head_bias, atol=1e-4, rtol=1e-4)
+        assert got_t.final_loss == pytest.approx(ref_t.final_loss, rel=1e-4)
+
+
 def test_auto_is_csr_on_a_cpu_and_the_measured_kinds_on_a_gpu():
     from virgi_ns.edit.pixels import AUTO_GPU, AUTO_GPU_WITHOUT_KERNELS, resolve_composite
     from virgi_ns.raster import cuda

@@ -638,7 +638,8 @@ class EditEngine:
         return torch.sigmoid(c_dd + self.k * self.c_s), alpha
 
     def step(self, i: int) -> Tensor:
-        """Step ``i`` of a fit: one Adam step on pixel set ``i % len(self.batches)``."""
+        """Step ``i`` of a fit: one Adam step on pixel set ``i % len(self.batches)`` (the ``fused`` kind
+        takes the set its device counter names, which :meth:`fit` keeps equal to it)."""
         self.opt.zero_grad()
         C, _ = self.colours()
         loss = self.batches[i % len(self.batches)].loss(C)

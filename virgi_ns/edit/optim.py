@@ -16,6 +16,15 @@ import torch
 from torch import Tensor
 
 
+def _has_fused_kernel(params: list[Tensor]) -> bool:
+    """Whether torch's fused Adam kernel runs on these parameters' devices: CUDA, and the CPU from
+    torch 2.4 on."""
+    if not hasattr(torch, "_fused_adam_"):
+        return False
+    major, minor = (int(v) for v in torch.__version__.split(".")[:2])
+    return all(p.device.type == "cuda" or (p.device.type == "cpu" and (major, minor) >= (2, 4)) for p in params)
+
+
 class EditAdam:
     """Adam (no weight decay, no AMSGrad) over ``params``; capturable in a CUDA graph: the step counts
     live on the parameters' device and nothing reads them on the host."""
@@ -24,7 +33,7 @@ class EditAdam:
                  eps: float = 1e-8) -> None:
         self.params = list(params)
         self.lr, self.betas, self.eps = float(lr), betas, float(eps)
-        self._fallback = None if hasattr(torch, "_fused_adam_") else torch.optim.Adam(self.params, lr=lr, betas=betas,
+        self._fallback = None if _has_fused_kernel(self.params) else torch.optim.Adam(self.params, lr=lr, betas=betas,
                                                                                        eps=eps)
         self.exp_avg = [torch.zeros_like(p) for p in self.params]
         self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]

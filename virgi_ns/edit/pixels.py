@@ -242,7 +242,7 @@ class FusedSets:
         img, entries, local = self._composite(colours, a, b)
         err = img + self.background[a:b] - self.target[a:b]
         k = self.loss_weight[a:b, None] / 3.0
-        g = k * torch.sign(err)
+        g = (k * torch.sign(err)).to(colours.dtype)
         grad = torch.zeros(self.U, 3, dtype=colours.dtype, device=colours.device)
         grad.index_add_(0, self.pair[entries].long(), self.weight[entries, None] * g[local])
         return (k * err.abs()).sum(), grad
