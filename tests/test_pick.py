@@ -298,6 +298,13 @@ def test_a_live_update_reaches_a_new_colour_in_few_steps(world):
     assert s.mask is kept
     s.update(green, 1.0, "hue", steps=0)
     assert torch.equal(s.mask, select(s.maps, *world["pixel"], 1.0)) and not torch.equal(s.mask, kept)
+    # so does a new contiguity, which the edit's settings record
+    s.update(green, 1.0, "hue", steps=0, contiguous=False)
+    assert torch.equal(s.mask, select(s.maps, *world["pixel"], 1.0, contiguous=False))
+    assert s.settings["contiguous"] is False
+    anywhere = s.mask
+    s.update(parse_colour(RED), 1.0, "hue", steps=0, contiguous=False)
+    assert s.mask is anywhere
 
 
 def test_commit_saves_the_pictures_beside_the_edit_and_replaces_it(world, tmp_path):

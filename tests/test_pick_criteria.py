@@ -34,3 +34,21 @@ def test_chroma_steps_follows_gradual_tones_and_stops_at_steps():
         row = torch.stack([DEEP] * 4 + [PALE] * 4)  # the same hue, met at an abrupt step
         sel = pc.sel_chroma_steps(_maps(row), 0, 1, 0.2)[1]
         assert bool(sel[:4].all()) and not bool(sel[4:].any())
+
+
+def test_an_unticked_contiguous_box_takes_the_same_colour_anywhere_in_the_view():
+    """``contiguous=False`` selects every pixel that passes the criterion's colour tests, wherever it is:
+    both patches of the clicked blue, not the grey between them nor the red; the default only the
+    clicked patch."""
+    from virgi_ns.edit.pick import select
+
+    RED = torch.tensor([0.8, 0.15, 0.1])
+    row = torch.stack([DEEP] * 3 + [GREY] * 2 + [DEEP] * 3 + [RED] * 2)
+    diffuse = row[None].expand(3, -1, -1).clone()
+    maps = ViewMaps(diffuse, diffuse, diffuse.clone(), torch.ones(3, 10))  # features follow the colour
+    for criterion in ("chroma_steps", "colour_features"):
+        one = select(maps, 1, 1, 0.2, criterion)
+        every = select(maps, 1, 1, 0.2, criterion, contiguous=False)
+        assert bool(one[:, :3].all()) and not bool(one[:, 3:].any()), criterion
+        assert bool(every[:, :3].all()) and bool(every[:, 5:8].all()), criterion
+        assert not bool(every[:, 3:5].any()) and not bool(every[:, 8:].any()), criterion

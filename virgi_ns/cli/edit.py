@@ -108,6 +108,9 @@ class Pick:
     """0..1: how far (x 90 degrees) a pixel's hue may turn from the picked pixel's, and (by chroma steps)
     how much its chroma may change from a selected neighbour's (a factor 1 + 4 x tolerance), and still be
     selected."""
+    contiguous: bool = True
+    """Select only what is connected to the pixel (``--no-contiguous``: every pixel of the view that
+    passes the same colour tests, e.g. leaves all over a plant)."""
     selection: Literal["chroma_steps", "colour_features"] = "chroma_steps"
     """How the selection grows from the pixel: ``chroma_steps`` (the default) by the diffuse colour's hue
     and gradual chroma; ``colour_features`` by the angles of the diffuse colour and of the colour
@@ -422,7 +425,7 @@ def pick(args: Pick, console: "Console", pipeline=None) -> str:
     with torch.no_grad(), console.status("fitting the pick"):
         session = PickSession(FrozenScene.from_model(model), cams, x, y, stack, pick_config(model.device), source,
                               criterion=args.selection, reference=args.reference)
-        edit = session.update(colour, tolerance, args.mode, args.steps)
+        edit = session.update(colour, tolerance, args.mode, args.steps, contiguous=args.contiguous)
     number = commit(stack, session, edit)
     st = session.settings
     return (f"edit {number} saved to {stack.directory / stack.entries[-1].file} (pick at {x} {y} of {where}: "

@@ -165,8 +165,11 @@ def chromaticity(rgb: Tensor) -> Tensor:
 
 
 @torch.no_grad()
-def select(maps: ViewMaps, x: int, y: int, tolerance: float, criterion: str = DEFAULT_CRITERION) -> Tensor:
-    """Bool [H,W]: the selection grown from pixel (x, y) over covered pixels, 8-connected to it.
+def select(maps: ViewMaps, x: int, y: int, tolerance: float, criterion: str = DEFAULT_CRITERION,
+           contiguous: bool = True) -> Tensor:
+    """Bool [H,W]: the selection grown from pixel (x, y) over covered pixels, 8-connected to it
+    (``contiguous=False``: every covered pixel of the view that passes the criterion's colour tests,
+    connected or not, as a magic wand's "contiguous" box unticked: leaves all over a plant).
     ``colour_features``: a pixel joins when its diffuse colour and its features both point within
     ``tolerance`` x 90 degrees of the clicked pixel's (see the module docstring). ``chroma_steps``:
     when its diffuse chromaticity's hue is within that angle of the click's, its chroma is at least
@@ -177,7 +180,7 @@ def select(maps: ViewMaps, x: int, y: int, tolerance: float, criterion: str = DE
     check_pixel(maps, x, y)
     tolerance = check_tolerance(tolerance)
     if check_criterion(criterion) == "chroma_steps":
-        chosen = _select_chroma_steps(maps, x, y, tolerance)
+        chosen = _select_chroma_steps(maps, x, y, tolerance, contiguous)
         if chosen is not None:
             return chosen
     limit = 90.0 * tolerance
@@ -185,11 +188,12 @@ def select(maps: ViewMaps, x: int, y: int, tolerance: float, criterion: str = DE
                & (_angle(maps.diffuse, maps.diffuse[y, x]) <= limit)
                & (_angle(maps.features, maps.features[y, x]) <= limit))
     allowed[y, x] = True
-    return connected_to(allowed, x, y)
+    return connected_to(allowed, x, y) if contiguous else allowed
 
 
-def _select_chroma_steps(maps: ViewMaps, x: int, y: int, tolerance: float) -> Optional[Tensor]:
-    """``select``'s ``chroma_steps`` criterion; None for a neutral click."""
+def _select_chroma_steps(maps: ViewMaps, x: int, y: int, tolerance: float, contiguous: bool = True) -> Optional[Tensor]:
+    """``select``'s ``chroma_steps`` criterion; None for a neutral click. Not ``contiguous``: the
+    pixels of the click's hue with a chroma, wherever they are (no chroma steps: they join no path)."""
     ch = chromaticity(maps.diffuse)
     chroma = ch.norm(dim=-1)
     if float(chroma[y, x]) < NEUTRAL_CHROMA:
@@ -197,6 +201,8 @@ def _select_chroma_steps(maps: ViewMaps, x: int, y: int, tolerance: float) -> Op
     allowed = ((maps.accumulation >= MIN_COVER) & (_angle(ch, ch[y, x]) <= 90.0 * tolerance)
                & (chroma >= NEUTRAL_CHROMA))
     allowed[y, x] = True
+    if not contiguous:
+        return allowed
     log_chroma = torch.log(chroma.clamp_min(1e-6))
     return connected_to(allowed, x, y, log_chroma, math.log(1.0 + 4.0 * tolerance))
 
@@ -298,23 +304,26 @@ class PickSession:
         self.maps = view_maps(self.engine)
         check_pixel(self.maps, self.x, self.y)
         self.mask: Optional[Tensor] = None
-        self._selection: Optional[tuple[float, Tensor]] = None  # (tolerance, the selection it gave)
+        self._selection: Optional[tuple[tuple[float, bool], Tensor]] = None  # ((tolerance, contiguous), its selection)
         self.edited: Optional[Tensor] = None
         self.settings: dict = {}
         self.steps_done = 0
 
     def update(self, colour: tuple[float, float, float], tolerance: float, mode: str, steps: Optional[int] = None,
-               seg_steps: Optional[int] = None, timer: Optional[Callable[[str], None]] = None) -> Edit:
-        """Select with ``tolerance``, recolour towards ``colour`` by ``mode`` and fit ``steps``
+               seg_steps: Optional[int] = None, timer: Optional[Callable[[str], None]] = None,
+               contiguous: bool = True) -> Edit:
+        """Select with ``tolerance`` (``contiguous``: only what is connected to the click, :func:`select`),
+        recolour towards ``colour`` by ``mode`` and fit ``steps``
         (default: the config's) from the last fit; ``seg_steps``: the staged segmentation's steps
         when the selection changed (default: the config's). Returns the edit. ``timer(part)``, if
         given, is called as each part ends (``select``, ``recolour``, ``retarget``, ``steps``): a
         benchmark's breakdown."""
         tick = timer or (lambda part: None)
         tolerance, mode = check_tolerance(tolerance), check_mode(mode)
-        # a drag of the colour keeps the selection (it depends on the click and the tolerance only)
-        if self._selection is None or self._selection[0] != tolerance:
-            self._selection = (tolerance, select(self.maps, self.x, self.y, tolerance, self.criterion))
+        # a drag of the colour keeps the selection (it depends on the click, the tolerance and contiguity only)
+        key = (tolerance, bool(contiguous))
+        if self._selection is None or self._selection[0] != key:
+            self._selection = (key, select(self.maps, self.x, self.y, tolerance, self.criterion, bool(contiguous)))
         mask = self._selection[1]
         tick("select")
         edited = recolour(self.maps.rgb, mask, colour, mode, self.maps.diffuse,
@@ -324,7 +333,8 @@ class PickSession:
         tick("retarget")
         self.mask, self.edited, self.steps_done = mask, edited, 0
         self.settings = {"pixel": [self.x, self.y], "colour": colour_hex(colour),
-                         "tolerance": tolerance, "mode": mode, "criterion": self.criterion, "reference": self.reference,
+                         "tolerance": tolerance, "contiguous": bool(contiguous), "mode": mode, "criterion": self.criterion,
+                         "reference": self.reference,
                          "selected": float(mask.float().mean())}
         edit = self.refine(self.engine.cfg.steps if steps is None else steps)
         tick("steps")

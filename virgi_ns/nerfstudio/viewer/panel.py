@@ -110,6 +110,9 @@ class VirgiPanel(PanelActions, PickActions, ViewerElement[None], ViewerControl):
         self.tolerance = ViewerSlider("Tolerance", 0.2, 0.0, 1.0, 0.01, cb_hook=lambda e: self._on_pick_params(),
                                       hint="How far (x 90 degrees) a pixel's hue may turn from the clicked pixel's, "
                                            "and how fast its chroma may change between neighbours")
+        self.contiguous = ViewerCheckbox("Contiguous", True, cb_hook=lambda e: self._on_pick_params(),
+                                         hint="Select only what is connected to the clicked pixel; untick to take "
+                                              "every pixel of the view that passes the same colour tests")
         self.pick_recolour = ViewerDropdown("Recolour mode", "hue", ["hue", "colour"],
                                             cb_hook=lambda e: self._on_pick_params(),
                                             hint="hue: keep shading and highlights; colour: the surface takes the "
@@ -126,8 +129,9 @@ class VirgiPanel(PanelActions, PickActions, ViewerElement[None], ViewerControl):
         with self.gui_handle:  # type: ignore[union-attr]
             self._status_md = viser_server.gui.add_markdown(self._status_text())
             self._progress_bar = viser_server.gui.add_progress_bar(0.0, visible=False)
-            for e in (self.display, self.specular, self.pick_mode, self.pick_colour, self.tolerance, self.pick_recolour,
-                      self.save_size, self.save_button, self.upload_element, self.apply_button, self.selected):
+            for e in (self.display, self.specular, self.pick_mode, self.pick_colour, self.tolerance, self.contiguous,
+                      self.pick_recolour, self.save_size, self.save_button, self.upload_element, self.apply_button,
+                      self.selected):
                 e.install(viser_server)
             self._edits_folder = viser_server.gui.add_folder("Edits")
             for e in (self.undo_button, self.reset_button, self.export_button):

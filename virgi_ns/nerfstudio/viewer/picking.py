@@ -7,7 +7,7 @@ How it runs (mixed into :class:`~virgi_ns.nerfstudio.viewer.panel.VirgiPanel`):
   orbits, so the callback is registered only while the box is ticked;
 - a click arrives on one of viser's pool threads with its place in the canvas; the panel renders
   the client's view at the save size, maps the place to a pixel of it and hands (camera, pixel) to
-  the pick worker; colour, tolerance and mode changes only bump a counter. Callbacks never wait
+  the pick worker; colour, tolerance, contiguity and mode changes only bump a counter. Callbacks never wait
   for a fit or the render lock;
 - one worker thread does the work, always on the newest request: a click starts a
   :class:`~virgi_ns.edit.pick.PickSession` and fits it; a change refits it warm in a few steps
@@ -69,8 +69,8 @@ class PickActions:
             if server is not None:
                 server.scene.on_pointer_event("click")(lambda ev: self._guard(lambda: self._on_scene_click(ev)))
                 self._pick_registered = True
-            self.set_status("Pick mode: click on the render to select what it shows; the colour, tolerance and mode "
-                            f"recolour it live, {self.commit_after_s:g} s without a change commits it")
+            self.set_status("Pick mode: click on the render to select what it shows; the colour, tolerance, "
+                            f"contiguity and mode recolour it live, {self.commit_after_s:g} s without a change commits it")
             return
         if server is not None and self._pick_registered:
             server.scene.remove_pointer_callback()
@@ -100,7 +100,7 @@ class PickActions:
             self.wait_pick(commit=False)
 
     def _on_pick_params(self) -> None:
-        """A colour, tolerance or mode change: the worker refits the current pick."""
+        """A colour, tolerance, contiguity or mode change: the worker refits the current pick."""
         with self._pick_cond:
             self._pick_version += 1
             self._pick_last_change = time.monotonic()
@@ -186,8 +186,10 @@ class PickActions:
                     self._pick_cond.notify_all()
 
     def _pick_params(self) -> tuple:
+        """(colour, tolerance, mode, contiguous) as the panel shows them."""
         r, g, b = self.pick_colour.value
-        return (r / 255.0, g / 255.0, b / 255.0), float(self.tolerance.value), str(self.pick_recolour.value)
+        return ((r / 255.0, g / 255.0, b / 255.0), float(self.tolerance.value), str(self.pick_recolour.value),
+                bool(self.contiguous.value))
 
     def _start_pick(self, camera, x: int, y: int, version: int) -> None:
         """A click: commit the last pick, set up the new one, fit it and show it."""
@@ -210,11 +212,12 @@ class PickActions:
         self._live_pick(version, first=True)
 
     def _live_pick(self, version: int, first: bool = False) -> None:
-        """Refit the pick for the panel's current colour, tolerance and mode; show it, unwritten."""
+        """Refit the pick for the panel's current colour, tolerance, contiguity and mode; show it, unwritten."""
         session = self._pick_session
-        colour, tolerance, mode = self._pick_params()
+        colour, tolerance, mode, contiguous = self._pick_params()
         seg = session.engine.cfg.seg_steps
-        edit = session.update(colour, tolerance, mode, LIVE_STEPS, None if first else max(1, seg // 4))
+        edit = session.update(colour, tolerance, mode, LIVE_STEPS, None if first else max(1, seg // 4),
+                              contiguous=contiguous)
         with self._lock():
             self._model.set_live_edit(edit)
         self._pick_live, self._pick_done = edit, version
