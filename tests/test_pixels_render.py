@@ -241,18 +241,22 @@ def test_a_warm_retarget_writes_its_own_targets_not_the_callers_image(tiny):
     torch.testing.assert_close(edited, kept, atol=0, rtol=0)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
-def test_recorded_steps_are_replayed_after_a_warm_retarget(tiny):
-    """A warm retarget keeps the recorded steps, and replaying them fits the new target as eager steps
-    after the same warm retarget do."""
+def _gpu_scene(scene):
+    """A copy of ``scene`` on the GPU, rasterized by the CUDA backend where it builds."""
     import copy
 
     from virgi_ns.edit.scene import FrozenScene
 
+    return FrozenScene(scene.means.cuda(), scene.quats.cuda(), scene.scales.cuda(), scene.opacities.cuda(),
+                       copy.deepcopy(scene.field).cuda(), scene.background.cuda(), backend="auto")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+def test_recorded_steps_are_replayed_after_a_warm_retarget(tiny):
+    """A warm retarget keeps the recorded steps, and replaying them fits the new target as eager steps
+    after the same warm retarget do."""
     S, cam, edited = tiny
-    sc = S.scene
-    gpu = FrozenScene(sc.means.cuda(), sc.quats.cuda(), sc.scales.cuda(), sc.opacities.cuda(),
-                      copy.deepcopy(sc.field).cuda(), sc.background.cuda(), backend="auto")
+    gpu = _gpu_scene(S.scene)
     other = edited.flip(1).contiguous().cuda()
     fits = {}
     for graphs in (True, False):
@@ -273,15 +277,10 @@ def test_recorded_steps_are_replayed_after_a_warm_retarget(tiny):
 def test_every_kind_records_as_cuda_graphs(tiny, kind):
     """On a GPU each kind's steps record as CUDA graphs (no host sync, no fallback warning) and give
     the eager steps' edit."""
-    import copy
     import warnings
 
-    from virgi_ns.edit.scene import FrozenScene
-
     S, cam, edited = tiny
-    sc = S.scene
-    gpu = FrozenScene(sc.means.cuda(), sc.quats.cuda(), sc.scales.cuda(), sc.opacities.cuda(),
-                      copy.deepcopy(sc.field).cuda(), sc.background.cuda(), backend="auto")
+    gpu = _gpu_scene(S.scene)
     fits = {}
     for graphs in (True, False):
         cfg = EditConfig(steps=20, cuda_graphs=graphs, batch_composite=kind, whole_image=True)
@@ -299,14 +298,8 @@ def test_every_kind_records_as_cuda_graphs(tiny, kind):
 def test_the_fused_kernel_fits_as_csr_does_on_a_gpu(tiny):
     """The fused kind's CUDA kernel (graphed) fits the edit csr fits on the same GPU, and so does a warm
     re-fit of a new target: the counter starts each fit at the first pixel set."""
-    import copy
-
-    from virgi_ns.edit.scene import FrozenScene
-
     S, cam, edited = tiny
-    sc = S.scene
-    gpu = FrozenScene(sc.means.cuda(), sc.quats.cuda(), sc.scales.cuda(), sc.opacities.cuda(),
-                      copy.deepcopy(sc.field).cuda(), sc.background.cuda(), backend="auto")
+    gpu = _gpu_scene(S.scene)
     other = edited.flip(1).contiguous().cuda()
     fits = {}
     for kind in ("csr", "fused"):
