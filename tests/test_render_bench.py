@@ -75,3 +75,26 @@ def test_the_splatfacto_baseline_is_splatfacto_on_the_same_gaussians_built_offli
             assert torch.equal(sf.features_rest[:, : model.features_rest.shape[1]], model.features_rest.detach())
             assert min(sf.step // sf.config.sh_degree_interval, sf.config.sh_degree) == 3
         assert torch.equal(sf.background_color, model.background_color)
+
+
+def test_the_warm_edit_is_the_apply_edit_fitted_in_process(scene, bench_render, capsys):  # noqa: F811
+    """``warm_edit`` fits an edited training photo of a trained run in the bench's own process (set-up and
+    steps, positive), and the CLI table prints the first edit of a fresh process as a multiple of it."""
+    import torch
+
+    _, pipeline, optimizers, cbs = build(scene, steps=2)
+    train(pipeline, optimizers, cbs, 2)
+    pipeline.eval()
+    cam = pipeline.datamanager.train_dataset.cameras[0]
+    H, W = int(cam.height), int(cam.width)
+    photo = torch.rand(H, W, 3, generator=torch.Generator().manual_seed(0))
+    edited = photo.clone()
+    edited[: H // 2, : W // 2] = torch.tensor([0.9, 0.1, 0.1])
+    warm = bench_render.warm_edit(pipeline.model, cam, edited, photo, repeats=1)
+    assert warm["setup_s"] > 0 and warm["steps_s"] > 0
+    cli = {"scene": "tiny", "walls_s": {"apply": 2.0}, "edit_setup_s": 0.5, "edit_steps_s": 0.1,
+           "edit_warm_setup_s": 0.02, "edit_warm_steps_s": 0.04}
+    capsys.readouterr()
+    bench_render.print_tables([], cli, "cpu")
+    shown = capsys.readouterr().out
+    assert "10.0x" in shown and "60 ms" in shown  # first edit 0.6 s against the warm 60 ms
