@@ -7,7 +7,8 @@ The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain to
   features composited per pixel, and its coverage (accumulation), from an
   :class:`~virgi_ns.edit.engine.EditEngine` set up on the view;
 - :func:`select`: the selection grown from the clicked pixel over covered pixels (accumulation >=
-  :data:`MIN_COVER`) connected to it. By default (``chroma_steps``) a pixel joins when the hue of its
+  :data:`MIN_COVER`) connected to it (or, ``contiguous=False``, every covered pixel of the view that
+  passes the same colour tests). By default (``chroma_steps``) a pixel joins when the hue of its
   diffuse colour (the direction of its chromaticity, which shading does not move; the highlight is
   not in the diffuse render) is within ``tolerance`` x 90 degrees of the click's and it is reached
   through neighbours whose chroma changes gradually: an object's pale and deep tones meet through
@@ -24,7 +25,7 @@ The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain to
   surface of it. The reference is the selection's median pixel for :func:`recolour` alone and the
   clicked pixel in a :class:`PickSession` (:data:`DEFAULT_REFERENCE`);
 - :class:`PickSession`: one click on one view: every :meth:`~PickSession.update` (a new colour,
-  tolerance or mode) refits warm from the last fit (:meth:`EditEngine.retarget`), which is what a
+  tolerance, contiguity or mode) refits warm from the last fit (:meth:`EditEngine.retarget`), which is what a
   live drag needs; :func:`commit` puts the edit on a stack with its edited image and selection
   saved beside it.
 
