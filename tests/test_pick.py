@@ -110,6 +110,33 @@ def test_hue_pick_recolours_the_object_in_held_out_views_and_leaves_the_others(w
     assert float((after - before).abs()[others].mean()) < 0.01
 
 
+def test_a_click_on_the_highlight_recolours_as_a_click_on_the_surface(world):
+    """In hue mode the clicked pixel's saturation is the reference; a click on the sphere's near-white
+    highlight (its render keeps under half its diffuse colour's saturation) takes the selection's
+    median pixel instead, so the sphere is not scaled to full saturation by the highlight's near-zero
+    one. A click on the surface keeps its own reference."""
+    from virgi_ns.edit.pick import HIGHLIGHT_SATURATION_SHARE, _on_highlight
+    from virgi_ns.edit.recolor import rgb_to_hsv
+
+    s, _ = world["sessions"]["hue"]
+    m, mask = s.maps, s.mask
+    hsv = rgb_to_hsv(m.rgb.clamp(0.0, 1.0))
+    sat = torch.where(mask, hsv[..., 1], torch.full_like(hsv[..., 1], 9.0))
+    y, x = divmod(int(sat.argmin()), sat.shape[1])
+    surface = float(rgb_to_hsv(m.diffuse[y, x].clamp(0.0, 1.0))[1])
+    assert float(hsv[y, x, 1]) < HIGHLIGHT_SATURATION_SHARE * surface and float(hsv[y, x, 2]) > 0.8  # a highlight
+    assert _on_highlight(hsv, m.diffuse, (x, y)) and not _on_highlight(hsv, m.diffuse, world["pixel"])
+    red = parse_colour(RED)
+    on_highlight = recolour(m.rgb, mask, red, "hue", m.diffuse, (x, y))
+    by_median = recolour(m.rgb, mask, red, "hue", m.diffuse)
+    torch.testing.assert_close(on_highlight, by_median, atol=0, rtol=0)
+    on_surface = recolour(m.rgb, mask, red, "hue", m.diffuse, world["pixel"])
+    px, py = world["pixel"]
+    target_sat = float(rgb_to_hsv(torch.tensor(red))[1])
+    assert abs(float(rgb_to_hsv(on_surface[py, px])[1]) - target_sat) < 0.02  # the clicked pixel gets the colour's
+    assert float(rgb_to_hsv(on_highlight)[..., 1][mask].median()) < 0.97  # not the whole sphere at full saturation
+
+
 @pytest.mark.parametrize("v", (EDIT_VIEW,) + HELD_OUT)
 def test_hue_pick_keeps_the_highlight_and_the_brightness(world, v):
     cov, before = world["cover"][v], world["before"][v]

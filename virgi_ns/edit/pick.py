@@ -259,6 +259,19 @@ before it ran: bench/RESULTS.md, "Pick"); a selection of pale and deep tones oth
 saturation on its median tone, and its deep tones more than the colour has."""
 
 
+HIGHLIGHT_SATURATION_SHARE = 0.5
+"""A pixel whose render keeps less than this share of its diffuse colour's saturation is mostly
+highlight: in ``hue`` mode a click there takes its reference saturation from the selection's median
+pixel instead (scaling the selection by a highlight's near-zero saturation would saturate it all)."""
+
+
+def _on_highlight(hsv: Tensor, diffuse: Tensor, at: tuple[int, int]) -> bool:
+    """Whether the render's pixel ``at`` (x, y) is mostly highlight (:data:`HIGHLIGHT_SATURATION_SHARE`)."""
+    x, y = at
+    surface = float(rgb_to_hsv(diffuse[y, x].clamp(0.0, 1.0))[1])
+    return float(hsv[y, x, 1]) < HIGHLIGHT_SATURATION_SHARE * surface
+
+
 @torch.no_grad()
 def recolour(rgb: Tensor, mask: Tensor, colour: tuple[float, float, float], mode: str,
              diffuse: Optional[Tensor] = None, at: Optional[tuple[int, int]] = None) -> Tensor:
@@ -267,13 +280,15 @@ def recolour(rgb: Tensor, mask: Tensor, colour: tuple[float, float, float], mode
     diffuse render, which ``colour`` shades and puts the render's view-dependent part back on
     (without it, ``colour`` shades ``rgb`` and adds nothing). ``at`` (x, y): the pixel whose saturation
     (hue) or value (colour) becomes the colour's, the others scaled alike; default the selection's
-    typical (median) pixel."""
+    typical (median) pixel, which also stands in for an ``at`` on a highlight in ``hue`` mode."""
     check_mode(mode)
     target = torch.tensor(colour, dtype=rgb.dtype, device=rgb.device)
     ref = (lambda v: _typical(v, mask)) if at is None else (lambda v: float(v[at[1], at[0]]))  # noqa: E731
     if mode == "hue":
         hsv = rgb_to_hsv(rgb.clamp(0.0, 1.0))
         t_hsv = rgb_to_hsv(target)
+        if at is not None and diffuse is not None and _on_highlight(hsv, diffuse, at):
+            ref = lambda v: _typical(v, mask)  # noqa: E731  (a highlight's saturation is not the surface's)
         sat = (hsv[..., 1] * float(t_hsv[1]) / max(ref(hsv[..., 1]), 0.05)).clamp(0.0, 1.0)
         new = hsv_to_rgb(torch.stack([torch.full_like(sat, float(t_hsv[0])), sat, hsv[..., 2]], -1))
     else:
