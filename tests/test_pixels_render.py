@@ -313,14 +313,17 @@ def test_the_fused_kernel_fits_as_csr_does_on_a_gpu(tiny):
         assert got_t.final_loss == pytest.approx(ref_t.final_loss, rel=1e-4)
 
 
-def test_auto_is_csr_on_a_cpu_and_the_measured_kinds_on_a_gpu():
+def test_auto_is_csr_on_a_cpu_and_the_measured_kinds_on_a_gpu(monkeypatch):
     from virgi_ns.edit.pixels import AUTO_GPU, AUTO_GPU_WITHOUT_KERNELS, resolve_composite
     from virgi_ns.raster import cuda
 
     assert resolve_composite("auto", torch.device("cpu")) == "csr"
     # the fused kernel where our extension runs; the fastest torch kinds on a GPU without it
-    expected = AUTO_GPU if cuda.available()[0] else AUTO_GPU_WITHOUT_KERNELS
-    assert resolve_composite("auto", torch.device("cuda")) == expected
+    monkeypatch.setattr(cuda, "available", lambda: (True, ""))
+    assert resolve_composite("auto", torch.device("cuda")) == AUTO_GPU == "fused"
+    monkeypatch.setattr(cuda, "available", lambda: (False, "nvcc not found"))
+    assert resolve_composite("auto", torch.device("cuda")) == AUTO_GPU_WITHOUT_KERNELS
+    assert resolve_composite("auto", torch.device("cpu")) == "csr"
     parse_composite(AUTO_GPU_WITHOUT_KERNELS)
     assert parse_composite(AUTO_GPU) == (tuple(AUTO_GPU.split("/")) * 2)[:2]
     assert resolve_composite("index_add", torch.device("cuda")) == "index_add"
