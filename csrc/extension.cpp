@@ -182,6 +182,11 @@ void check_i32(const torch::Tensor& t, const char* name) {
               " must be a contiguous int32 CUDA tensor");
 }
 
+void check_i64(const torch::Tensor& t, const char* name) {
+  TORCH_CHECK(t.is_cuda() && t.is_contiguous() && t.scalar_type() == torch::kInt64, name,
+              " must be a contiguous int64 CUDA tensor");
+}
+
 struct OnDevice {
   c10::cuda::CUDAGuard guard;
   cudaStream_t stream;
@@ -710,16 +715,16 @@ std::vector<torch::Tensor> edit_l1_step(torch::Tensor colors, torch::Tensor pair
                                         torch::Tensor starts, torch::Tensor counter,
                                         torch::Tensor background, torch::Tensor target,
                                         torch::Tensor loss_weight, int64_t max_rows) {
-  check_f32(colors, "colors");
+  check_input(colors, "colors", 3);
   check_i32(pair, "pair");
   check_f32(weight, "weight");
   check_f32(background, "background");
   check_f32(target, "target");
   check_f32(loss_weight, "loss_weight");
-  for (const auto* t : {&pixel_offsets, &rows, &starts, &counter})
-    TORCH_CHECK(t->is_cuda() && t->is_contiguous() && t->scalar_type() == torch::kInt64,
-                "pixel_offsets, rows, starts and counter must be contiguous int64 CUDA tensors");
-  TORCH_CHECK(colors.dim() == 2 && colors.size(1) == 3, "colors must be [U, 3]");
+  check_i64(pixel_offsets, "pixel_offsets");
+  check_i64(rows, "rows");
+  check_i64(starts, "starts");
+  check_i64(counter, "counter");
   const int64_t R = rows.numel();
   TORCH_CHECK(background.numel() == 3 * R && target.numel() == 3 * R && loss_weight.numel() == R,
               "background and target must be [R, 3] and loss_weight [R] for R rows");

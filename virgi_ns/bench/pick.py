@@ -363,6 +363,6 @@ def viewer_latency(scene, cams, repeats: int, cfg=None) -> dict:
             "top_up": med(top_ups), "release": med(releases), "target_s": LATENCY_TARGET_S}
 
 
-__all__ = ["LATENCY_TARGET_S", "MODE", "PICK_OPTIONS", "parse_pick_variant", "TOLERANCE", "WITHIN_DB", "ViewerRender", "border_distance", "click_pixel",
-           "coverage", "drag_frame", "largest_component", "measure_pick", "pick_passes", "release_frame",
-           "rule_colour", "top_up_frame", "viewer_latency"]
+__all__ = ["LATENCY_TARGET_S", "MODE", "PICK_OPTIONS", "TOLERANCE", "WITHIN_DB", "ViewerRender", "border_distance",
+           "click_pixel", "coverage", "drag_frame", "largest_component", "measure_pick", "parse_pick_variant",
+           "pick_passes", "release_frame", "rule_colour", "top_up_frame", "viewer_latency"]

@@ -448,7 +448,7 @@ class EditEngine:
         self.bias = head.bias.detach().float().clone().requires_grad_(True)
         self.alpha_fixed: Optional[Tensor] = None
         self.opt: Optional[EditAdam] = None
-        self._graphs: Optional[list] = None  # the recorded steps, one per pixel set (_fit_graphed)
+        self._graphs: Optional[list] = None  # the recorded steps (_fit_graphed)
         self.colour_map: Optional[Tensor] = None
         self.map_explained: Optional[float] = None  # changed_target="map": share of changed pixels it explains
         self.recipe = self.cfg.recipe

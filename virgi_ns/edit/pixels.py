@@ -15,6 +15,7 @@ step's pixels and gives the loss and its gradient at once (:class:`FusedSets`).
 
 from __future__ import annotations
 
+import itertools
 import warnings
 from dataclasses import dataclass
 from typing import NamedTuple, Optional
@@ -387,9 +388,7 @@ def _assign_sets(P: int, n_batches: int, seed: int, changed: Optional[Tensor], d
 def _fused_batches(contrib: Contributions, order: Tensor, counts: list[int], T: Tensor, bg: Tensor, target: Tensor,
                    changed: Optional[Tensor], share: float, U: int) -> list[PixelBatch]:
     """The ``fused`` kind's batches: slices of one :class:`FusedSets` (no per-set matrices)."""
-    starts = [0]
-    for c in counts:
-        starts.append(starts[-1] + c)
+    starts = [0, *itertools.accumulate(counts)]
     background = (T[order, None] * bg[None, :]).contiguous()
     rows_target = target[order].contiguous()
     loss_weight = torch.empty(order.numel(), dtype=torch.float32, device=order.device)
