@@ -432,3 +432,76 @@ def test_available_reports_a_reason_without_gpu():
         pytest.skip("a GPU is present")
     ok, why = cuda.available()
     assert not ok and "GPU" in why
+
+
+# ------------------------------------------------------------------ CPU: the cached build's stamp
+def _fake_library(tmp_path: Path, monkeypatch) -> Path:
+    """A stand-in for the built library (a Python module: the loader imports either kind), with the
+    stamp directory in ``tmp_path``."""
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "ext"))
+    lib = tmp_path / "fake_virgi_ext.py"
+    lib.write_text("VALUE = 7\n")
+    return lib
+
+
+def _stamp_for(lib: Path):
+    from types import SimpleNamespace
+
+    from virgi_ns.raster import cuda
+
+    cuda._write_stamp(SimpleNamespace(__file__=str(lib), __name__="fake_virgi_ext"), cuda.build_key())
+    return cuda
+
+
+def test_a_current_stamp_imports_the_cached_build(tmp_path, monkeypatch):
+    """The stamp written for a build lets a later process import that build directly."""
+    cuda = _stamp_for(_fake_library(tmp_path, monkeypatch))
+    assert cuda.stamp_path().parent == tmp_path / "ext"
+    module = cuda.load_cached()
+    assert module is not None and module.VALUE == 7
+
+
+@pytest.mark.parametrize("change", ["source", "library", "missing stamp", "corrupt stamp"])
+def test_a_stale_stamp_takes_the_slow_path(change, tmp_path, monkeypatch):
+    """Anything that makes the cached build another one sends the loader back to torch's build tools:
+    a changed source file, a library rebuilt since the stamp, no stamp, an unreadable stamp."""
+    lib = _fake_library(tmp_path, monkeypatch)
+    src = tmp_path / "csrc"
+    src.mkdir()
+    for f in CSRC.iterdir():
+        (src / f.name).write_bytes(f.read_bytes())
+    from virgi_ns.raster import cuda
+
+    monkeypatch.setattr(cuda, "CSRC", src)
+    _stamp_for(lib)
+    assert cuda.load_cached() is not None
+    if change == "source":
+        k = src / "edit_kernels.cu"
+        k.write_text(k.read_text() + "\n// one more line\n")
+    elif change == "library":
+        st = lib.stat()
+        os.utime(lib, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    elif change == "missing stamp":
+        cuda.stamp_path().unlink()
+    else:
+        cuda.stamp_path().write_text("{not json")
+    assert cuda.load_cached() is None
+
+
+def test_the_build_key_follows_the_sources_and_the_flags(tmp_path, monkeypatch):
+    from virgi_ns.raster import cuda
+
+    src = tmp_path / "csrc"
+    src.mkdir()
+    for f in CSRC.iterdir():
+        (src / f.name).write_bytes(f.read_bytes())
+    monkeypatch.setattr(cuda, "CSRC", src)
+    key = cuda.build_key()
+    assert cuda.build_key() == key
+    (src / "notes.txt").write_text("not a source")
+    assert cuda.build_key() == key
+    (src / "atomics.cuh").write_text((src / "atomics.cuh").read_text().replace("16-byte", "16 byte"))
+    changed = cuda.build_key()
+    assert changed != key
+    monkeypatch.setattr(cuda, "_build_flags", lambda: {"extra_cflags": ["-O2"]})
+    assert cuda.build_key() != changed

@@ -3,7 +3,8 @@
 The extension is compiled with :func:`torch.utils.cpp_extension.load` the first time it is
 needed and cached in torch's extensions directory (``TORCH_EXTENSIONS_DIR``, by default
 ``~/.cache/torch_extensions``); ``TORCH_CUDA_ARCH_LIST`` chooses the GPU architectures as for any
-torch extension. Each request projects every Gaussian once per requested view, bins and sorts
+torch extension. A stamp beside the cache notes what the build was made from (:func:`build_key`),
+so later processes import it directly (:func:`load_cached`). Each request projects every Gaussian once per requested view, bins and sorts
 only the requested 16-px grid tiles, and emits the contribution lists of :mod:`contract`.
 
 Weights carry no autograd history to the geometry here (use the reference backend for geometry
@@ -22,6 +23,9 @@ Gaussians that reach none of them. The entries
 
 from __future__ import annotations
 
+import hashlib
+import importlib.util
+import json
 import os
 import shutil
 import sys
@@ -85,6 +89,7 @@ def build(verbose: bool = False) -> ModuleType:
     """Compile (or load the cached build of) the extension; needs nvcc, not a GPU."""
     from torch.utils import cpp_extension
 
+    key = build_key()  # before CUDA_HOME is set below, as a later process will see the environment
     root = cuda_home()
     if root is None:
         raise RuntimeError("nvcc and the CUDA headers were not found (set CUDA_HOME)")
@@ -93,22 +98,88 @@ def build(verbose: bool = False) -> ModuleType:
     os.environ.setdefault("CUDA_HOME", root)
     if not os.environ.get("TORCH_CUDA_ARCH_LIST") and not torch.cuda.is_available():
         raise RuntimeError("no GPU to build for: set TORCH_CUDA_ARCH_LIST (e.g. 9.0) to build without one")
-    return cpp_extension.load(
+    module = cpp_extension.load(
         name=EXTENSION_NAME,
         sources=[str(CSRC / s) for s in SOURCES],
         verbose=verbose,
         **_build_flags(),
     )
+    _write_stamp(module, key)
+    return module
+
+
+def build_key() -> str:
+    """What a build of the extension depends on: every file of ``csrc/``, the flags, torch, the CUDA
+    toolkit, the architectures and the interpreter. Equal keys mean the cached build is this one."""
+    h = hashlib.sha256()
+    for f in sorted(CSRC.iterdir()):
+        if f.suffix in (".cpp", ".cu", ".h", ".cuh"):
+            h.update(f.name.encode() + b"\0" + f.read_bytes() + b"\0")
+    arch = os.environ.get("TORCH_CUDA_ARCH_LIST", "")
+    if not arch and torch.cuda.is_available():  # the build targets the GPU it was made on
+        arch = "sm_%d%d" % torch.cuda.get_device_capability()
+    toolkit = os.environ.get("CUDA_HOME") or os.environ.get("CUDA_PATH") or shutil.which("nvcc") or ""
+    h.update(json.dumps([_build_flags(), torch.__version__, torch.version.cuda, toolkit, arch, sys.version]).encode())
+    return h.hexdigest()
+
+
+def stamp_path() -> Path:
+    """Where the last build's key and library are noted (beside torch's extension builds)."""
+    root = os.environ.get("TORCH_EXTENSIONS_DIR") or str(Path.home() / ".cache" / "torch_extensions")
+    return Path(root) / f"{EXTENSION_NAME}.stamp.json"
+
+
+def _write_stamp(module: ModuleType, key: str) -> None:
+    lib = Path(module.__file__).resolve()
+    stamp = {"key": key, "library": str(lib), "name": module.__name__, "mtime_ns": lib.stat().st_mtime_ns}
+    path = stamp_path()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(stamp))
+        os.replace(tmp, path)
+    except OSError:  # a read-only cache: later processes take the slow path
+        pass
+
+
+def load_cached() -> ModuleType | None:
+    """The cached build, imported directly, when its stamp's key is this tree's; else None.
+    ``torch.utils.cpp_extension.load`` gives the same module but first imports the build tools and
+    runs ninja to check the build, most of a second in a fresh process."""
+    try:
+        stamp = json.loads(stamp_path().read_text())
+        lib = Path(stamp["library"])
+        if stamp["key"] != build_key() or lib.stat().st_mtime_ns != stamp["mtime_ns"]:
+            return None
+        spec = importlib.util.spec_from_file_location(stamp["name"], lib)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+    except (OSError, ValueError, KeyError, TypeError, ImportError, AttributeError):
+        return None
+
+
+def _loaded_from_cache() -> bool:
+    """Whether the extension is loaded, trying the cached build (no build tools) if it is not yet."""
+    global _MODULE
+    with _LOCK:
+        if _MODULE is None:
+            _MODULE = load_cached()
+        return _MODULE is not None
 
 
 def _load() -> ModuleType:
-    """The extension module, compiled on first use with a console notice."""
+    """The extension module: the cached build when it is current, else compiled (or checked by
+    torch's build tools) with a console notice."""
     global _MODULE, _FAILURE
     with _LOCK:
         if _MODULE is not None:
             return _MODULE
         if _FAILURE is not None:
             raise RuntimeError(_FAILURE)
+        _MODULE = load_cached()
+        if _MODULE is not None:
+            return _MODULE
         try:
             from rich.console import Console
 
@@ -128,7 +199,7 @@ def available() -> tuple[bool, str]:
         return False, "no CUDA GPU is visible to torch"
     if torch.version.cuda is None:
         return False, "this torch build has no CUDA support"
-    if cuda_home() is None:
+    if not _loaded_from_cache() and cuda_home() is None:
         return False, "nvcc and the CUDA headers were not found (set CUDA_HOME)"
     try:
         _load()
