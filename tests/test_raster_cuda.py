@@ -444,6 +444,18 @@ def _fake_library(tmp_path: Path, monkeypatch) -> Path:
     return lib
 
 
+def _csrc_copy(tmp_path: Path, monkeypatch) -> Path:
+    """A copy of ``csrc/`` that the loader hashes instead of the real one (the tests change it)."""
+    from virgi_ns.raster import cuda
+
+    src = tmp_path / "csrc"
+    src.mkdir()
+    for f in CSRC.iterdir():
+        (src / f.name).write_bytes(f.read_bytes())
+    monkeypatch.setattr(cuda, "CSRC", src)
+    return src
+
+
 def _stamp_for(lib: Path):
     from types import SimpleNamespace
 
@@ -466,14 +478,8 @@ def test_a_stale_stamp_takes_the_slow_path(change, tmp_path, monkeypatch):
     """Anything that makes the cached build another one sends the loader back to torch's build tools:
     a changed source file, a library rebuilt since the stamp, no stamp, an unreadable stamp."""
     lib = _fake_library(tmp_path, monkeypatch)
-    src = tmp_path / "csrc"
-    src.mkdir()
-    for f in CSRC.iterdir():
-        (src / f.name).write_bytes(f.read_bytes())
-    from virgi_ns.raster import cuda
-
-    monkeypatch.setattr(cuda, "CSRC", src)
-    _stamp_for(lib)
+    src = _csrc_copy(tmp_path, monkeypatch)
+    cuda = _stamp_for(lib)
     assert cuda.load_cached() is not None
     if change == "source":
         k = src / "edit_kernels.cu"
@@ -491,11 +497,7 @@ def test_a_stale_stamp_takes_the_slow_path(change, tmp_path, monkeypatch):
 def test_the_build_key_follows_the_sources_and_the_flags(tmp_path, monkeypatch):
     from virgi_ns.raster import cuda
 
-    src = tmp_path / "csrc"
-    src.mkdir()
-    for f in CSRC.iterdir():
-        (src / f.name).write_bytes(f.read_bytes())
-    monkeypatch.setattr(cuda, "CSRC", src)
+    src = _csrc_copy(tmp_path, monkeypatch)
     key = cuda.build_key()
     assert cuda.build_key() == key
     (src / "notes.txt").write_text("not a source")

@@ -4,8 +4,9 @@ The extension is compiled with :func:`torch.utils.cpp_extension.load` the first 
 needed and cached in torch's extensions directory (``TORCH_EXTENSIONS_DIR``, by default
 ``~/.cache/torch_extensions``); ``TORCH_CUDA_ARCH_LIST`` chooses the GPU architectures as for any
 torch extension. A stamp beside the cache notes what the build was made from (:func:`build_key`),
-so later processes import it directly (:func:`load_cached`). Each request projects every Gaussian once per requested view, bins and sorts
-only the requested 16-px grid tiles, and emits the contribution lists of :mod:`contract`.
+so later processes import it directly (:func:`load_cached`). Each request projects every Gaussian
+once per requested view, bins and sorts only the requested 16-px grid tiles, and emits the
+contribution lists of :mod:`contract`.
 
 Weights carry no autograd history to the geometry here (use the reference backend for geometry
 gradients). The ordinary :func:`virgi_ns.raster.composite` runs a fused forward/backward to the
