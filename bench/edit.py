@@ -15,7 +15,9 @@ recolours most with the scene's rule, fit the edit, and measure the held-out vie
                               features cached (as a viewer session keeps them); cold beside it
 
 Targets (issue 16): propagation >= 35 dB, miss and leak >= 30, recolour within 0.5 dB of unedited,
-truth >= 35 dB on the synthetic scenes, edit <= 0.25 s warm. The last row is the set's worst case.
+truth >= 35 dB on the synthetic scenes, edit <= 0.25 s warm. The last row is the set's worst case. Beside
+each missed target, its ceiling on that run (:data:`CEILINGS`): "cannot" where even that misses the target
+(the rule's or the reconstruction's limit, not the edit's), "short of" where the edit falls short of it.
 A second table gives the diagnostics that tell the suspects apart: how closely the edited view itself
 reaches the edited photo on the changed pixels, the segmentation's mean alpha inside and outside the
 rule's mask, and (synthetic) on each object's pixels.
@@ -266,6 +268,49 @@ def targets(m: dict, edit_s: float, synthetic: bool) -> Dict[str, bool]:
     return out
 
 
+CEILINGS = {
+    "propagation>=35": ("the rule per Gaussian", lambda m: m.get("per_gaussian_rule_propagation_psnr", math.nan)),
+    "miss>=30": ("the rule per Gaussian", lambda m: m.get("per_gaussian_rule_miss_psnr", math.nan)),
+    "leak>=30": ("the rule per Gaussian", lambda m: m.get("per_gaussian_rule_leak_psnr", math.nan)),
+    "recolour within 0.5 dB of unedited": ("a perfect edit", lambda m: m.get("perfect_edit_recolour_psnr", math.nan)
+                                           - m["unedited_psnr"]),
+    "truth>=35": ("the reconstruction", lambda m: m["unedited_psnr"]),
+}
+"""For each target, the same figure of an edit no fit can beat on this run, from the row's own measures: the
+rule applied to every Gaussian's colour (a scene edit that puts each Gaussian's colour where the rule on a
+pixel of it alone would), the rule on the render scored as the recolour (``perfect_edit_recolour_psnr``), and
+the unedited render against its photo (on a synthetic scene, what any render of the model reaches against a
+photo, the recoloured truth's included). Where that figure misses the target too, the row cannot pass on
+this run: the rule or the reconstruction, not the edit, sets the limit."""
+
+
+def limits(m: dict) -> Dict[str, dict]:
+    """Each missed target of a row (``m`` with its ``targets``): the ceiling's figure, what it is, and
+    whether it passes (``reachable``: False where the target cannot be met on this run). A row measured
+    before a ceiling was recorded gets NaN there, and reachable None."""
+    out = {}
+    for name, ok in m["targets"].items():
+        if ok or name not in CEILINGS:
+            continue
+        what, figure = CEILINGS[name]
+        value = figure(m)
+        threshold = TARGETS["recolour_gap"] if name.startswith("recolour") else float(name.split(">=")[1])
+        out[name] = {"ceiling": what, "value": value,
+                     "reachable": None if math.isnan(value) else bool(value >= threshold)}
+    return out
+
+
+def limits_text(m: dict) -> str:
+    """The table's words for :func:`limits`: ``cannot (the reconstruction 32.67)`` or ``short of 36.90``."""
+    parts = []
+    for name, lim in limits(m).items():
+        v = _f(lim["value"], "+.2f" if name.startswith("recolour") else ".2f")
+        verdict = {None: "ceiling unknown", False: f"cannot ({lim['ceiling']} {v})",
+                   True: f"short of {lim['ceiling']} {v}"}[lim["reachable"]]
+        parts.append(f"{name.split('>=')[0].split(' within')[0]}: {verdict}")
+    return "; ".join(parts)
+
+
 def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
     """The scene's rows: the engine's defaults (timed cold and warm, pictures), then one row per
     --variants entry (timed warm, once)."""
@@ -307,6 +352,7 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
             "why": scene.why, "feature_cache_s": cache_s, "engine_defaults": engine_defaults()}
     rows = [{**base, "variant": "engine defaults", **res["mean"], "timing_cold": cold, "timing_warm": warm,
              "per_view": res["views"], "targets": targets(res["mean"], warm["total_s"], scene.synthetic is not None)}]
+    rows[0]["limits"] = limits(rows[0])
     if args.pick:
         rows[0]["pick"] = bench_pick(args, scene, b, res["mean"]["propagation_psnr"])
         if args.pick_criteria:
@@ -330,6 +376,7 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
         v_res["mean"] = median_over_seeds(args, b, fit, v_cfg, v_rule, v_edited, v_res["mean"])
         rows.append({**base, "variant": text, "rule": v_rule.to_dict(), **v_res["mean"], "timing_warm": v_t,
                      "targets": targets(v_res["mean"], v_t["total_s"], scene.synthetic is not None)})
+        rows[-1]["limits"] = limits(rows[-1])
     del b
     torch.cuda.empty_cache()
     return rows
@@ -466,6 +513,7 @@ def worst_case(rows: List[dict]) -> dict:
             "truth_psnr": nanmin([r.get("truth_psnr", math.nan) for r in d]),
             "edit_s": max((r["timing_warm"]["total_s"] for r in d), default=math.nan),
             "passed": sum(all(r["targets"].values()) for r in d), "rows": len(d),
+            "cannot": sum(any(lim["reachable"] is False for lim in limits(r).values()) for r in d),
             "pick_difference_db": nanmin([r["pick"].get("difference_db", math.nan) for r in d if "pick" in r]),
             "pick_passed": sum(r["pick"]["pass"] for r in d if "pick" in r), "pick_rows": sum("pick" in r for r in d)}
 
@@ -479,7 +527,7 @@ def _label(row: dict) -> str:
 def print_tables(rows: List[dict], device: str) -> None:
     t = Table(title=f"edit engine on the evaluation set ({device})")
     for c in ("scene", "seed", "variant", "mask", "propagation", "miss", "leak", "recolour - unedited", "truth",
-              "edit ms (cold)", "targets"):
+              "edit ms (cold)", "targets", "what limits a missed target"):
         t.add_column(c)
     for r in rows:
         cold = r.get("timing_cold", {}).get("total_s", math.nan)
@@ -488,11 +536,12 @@ def print_tables(rows: List[dict], device: str) -> None:
                   _f(r["propagation_psnr"]), _f(r["miss_psnr"]), _f(r["leak_psnr"]),
                   _f(r["recolour_psnr"] - r["unedited_psnr"], "+.2f"), _f(r.get("truth_psnr", math.nan)),
                   f"{1e3 * r['timing_warm']['total_s']:.0f} ({_f(1e3 * cold, '.0f')})",
-                  "PASS" if not failed else "FAIL: " + ", ".join(failed))
+                  "PASS" if not failed else "FAIL: " + ", ".join(failed), limits_text(r))
     w = worst_case(rows)
     t.add_row("worst case", "", "engine defaults", "", _f(w["propagation_psnr"]), _f(w["miss_psnr"]),
               _f(w["leak_psnr"]), _f(w["recolour_gap"], "+.2f"), _f(w["truth_psnr"]), f"{1e3 * w['edit_s']:.0f}",
-              f"{w['passed']}/{w['rows']} rows pass")
+              f"{w['passed']}/{w['rows']} rows pass",
+              f"{w['cannot']} of the failing rows cannot pass on their run" if w["rows"] > w["passed"] else "")
     console.print(t)
     d = Table(title="diagnostics: the edited view's own fit, and where the segmentation lands")
     for c in ("scene", "seed", "variant", "start", "changed", "edit view fit (changed px)", "edit view alpha in mask",
@@ -614,6 +663,7 @@ def merged(paths: List[Path]) -> dict:
             raise InputError(f"--merge: {p} is not a bench/edit.py result")
         for row in r["scenes"]:  # judged again: the targets may have been refined since the call
             row["targets"] = targets(row, row["timing_warm"]["total_s"], row["synthetic"])
+            row["limits"] = limits(row)
             row["variant"] = label_against_today(row)  # a default may have changed since the call
             if "engine_defaults" in row:  # the label is today's now: a merge of this merge keeps it
                 row["engine_defaults"] = engine_defaults()

@@ -307,6 +307,36 @@ def _check_pick(rows, pipeline, rule, picture_png):
     assert ruled["propagation_psnr"] != p["propagation_psnr"]  # another fit
 
 
+def test_a_missed_target_is_judged_against_its_ceiling_on_the_same_run(bench_edit):
+    """Each missed target names the same figure of an edit no fit beats on that run: reachable where the
+    ceiling passes the target, "cannot" where it misses it too; the worst-case row counts the rows that
+    cannot pass."""
+    row = {"variant": "engine defaults", "synthetic": True, "propagation_psnr": 40.0, "miss_psnr": 29.0,
+           "leak_psnr": 41.0, "recolour_psnr": 20.0, "unedited_psnr": 32.5, "truth_psnr": 32.9,
+           "per_gaussian_rule_propagation_psnr": 50.0, "per_gaussian_rule_miss_psnr": 31.0,
+           "per_gaussian_rule_leak_psnr": 52.0, "perfect_edit_recolour_psnr": 33.0,
+           "timing_warm": {"total_s": 0.1}}
+    row["targets"] = bench_edit.targets(row, 0.1, True)
+    assert bench_edit.limits(row) == {
+        "miss>=30": {"ceiling": "the rule per Gaussian", "value": 31.0, "reachable": True},
+        "truth>=35": {"ceiling": "the reconstruction", "value": 32.5, "reachable": False}}
+    assert bench_edit.limits_text(row) == "miss: short of the rule per Gaussian 31.00; " \
+                                          "truth: cannot (the reconstruction 32.50)"
+    # a real capture's recolour: against a perfect edit's gap (-0.6 here: the rule's own limit)
+    real = {**row, "synthetic": False, "recolour_psnr": 31.5, "perfect_edit_recolour_psnr": 31.9, "miss_psnr": 35.0}
+    real["targets"] = bench_edit.targets(real, 0.1, False)
+    lim = bench_edit.limits(real)["recolour within 0.5 dB of unedited"]
+    assert lim["reachable"] is False and abs(lim["value"] - (31.9 - 32.5)) < 1e-9
+    # a row measured before the ceilings were recorded: unknown, neither reachable nor not
+    old = {k: v for k, v in row.items() if not k.startswith("per_gaussian")}
+    assert bench_edit.limits(old)["miss>=30"]["reachable"] is None
+    passing = {**row, "miss_psnr": 35.0, "truth_psnr": 40.0}
+    passing["targets"] = bench_edit.targets(passing, 0.1, True)
+    assert bench_edit.limits(passing) == {} and bench_edit.limits_text(passing) == ""
+    w = bench_edit.worst_case([row, real, passing, old])
+    assert (w["rows"], w["passed"], w["cannot"]) == (4, 1, 3)
+
+
 def test_pick_tolerance_is_the_tools_default():
     import dataclasses
 
