@@ -52,8 +52,9 @@ def main(out: Path) -> None:
     E.EditEngine._set_target = timed("set_target", E.EditEngine._set_target)
     E.EditEngine._fit_graphed = timed("fit_graphed", E.EditEngine._fit_graphed)
     res: dict = {}
-    for label, kw in [("segment/csr32", {"batch_composite": "segment/csr32"}), ("fused", {"batch_composite": "fused"}),
-                      ("fused pb8", {"batch_composite": "fused", "pixel_batches": 8}),
+    for label, kw in [("segment/csr32", {"batch_composite": "segment/csr32"}),
+                      ("fused, autograd heads", {"batch_composite": "fused", "fused_heads": False}),
+                      ("fused", {"batch_composite": "fused"}),
                       ("fused pb16", {"batch_composite": "fused", "pixel_batches": 16}),
                       ("fused steps50", {"batch_composite": "fused", "steps": 50})]:
         cfg = lambda: E.EditConfig(**kw)  # noqa: E731

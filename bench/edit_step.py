@@ -41,9 +41,10 @@ from rich.table import Table
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from edit import _commit, million_scene  # noqa: E402  (bench/edit.py)
 
+from virgi_ns.bench.settings import split_settings, typed_like  # noqa: E402
 from virgi_ns.edit.engine import EditConfig, EditEngine  # noqa: E402
 from virgi_ns.edit.pixels import COMPOSITES, parse_composite  # noqa: E402
-from virgi_ns.errors import atomic_path, cli_entry  # noqa: E402
+from virgi_ns.errors import InputError, atomic_path, cli_entry  # noqa: E402
 
 console = Console(width=220)
 
@@ -52,7 +53,8 @@ console = Console(width=220)
 class Args:
     out: Path = Path("bench_out/edit_step")
     variants: List[str] = field(default_factory=lambda: list(COMPOSITES))
-    """EditConfig.batch_composite values to measure ('csr' is always measured first: the reference)."""
+    """EditConfig.batch_composite values to measure ('csr' is always measured first: the reference), each
+    optionally with other EditConfig settings after a comma (``fused,fused_heads=false``)."""
     gaussians: int = 1_000_000
     width: int = 1280
     height: int = 720
@@ -116,9 +118,17 @@ class Bench:
         self.ref: dict = {}
         self.t0 = time.perf_counter()
 
-    def cfg(self, kind: str) -> EditConfig:
-        return EditConfig(batch_composite=kind) if self.args.steps is None else \
+    def cfg(self, variant: str) -> EditConfig:
+        """``KIND[,FIELD=VALUE...]``: the composite kind and any other EditConfig settings."""
+        kind, _, rest = variant.partition(",")
+        cfg = EditConfig(batch_composite=kind) if self.args.steps is None else \
             EditConfig(batch_composite=kind, steps=self.args.steps)
+        for name, text in split_settings(rest, "--variants") if rest else []:
+            if not hasattr(cfg, name):
+                raise InputError(f"--variants: EditConfig has no field {name!r}")
+            setattr(cfg, name, typed_like(getattr(cfg, name), text, name, "--variants"))
+        cfg.check()
+        return cfg
 
     @torch.no_grad()
     def check(self, kind: str, eng: EditEngine) -> dict:

@@ -743,6 +743,68 @@ std::vector<torch::Tensor> edit_l1_step(torch::Tensor colors, torch::Tensor pair
   return {loss, grad_colors};
 }
 
+// The edit heads' forward (kernels.h, launch_heads_forward): pre [U, S] = x W1^T + b1, x [U, Dx]
+// with h_diff at columns hd_offset.., w2 [S], b2 [1], wd [3, H], bd [3], cd and cs [U, 3]. Returns
+// {colors [U, 3], alpha [U], cdp [U, 3]}.
+std::vector<torch::Tensor> edit_heads_forward(torch::Tensor pre, torch::Tensor x, torch::Tensor w2,
+                                              torch::Tensor b2, torch::Tensor wd, torch::Tensor bd,
+                                              torch::Tensor cd, torch::Tensor cs, double k,
+                                              int64_t hd_offset) {
+  check_f32(pre, "pre");
+  check_f32(x, "x");
+  check_f32(w2, "w2");
+  check_f32(b2, "b2");
+  check_f32(wd, "wd");
+  check_f32(bd, "bd");
+  check_input(cd, "cd", 3);
+  check_input(cs, "cs", 3);
+  TORCH_CHECK(pre.dim() == 2 && x.dim() == 2 && wd.dim() == 2 && wd.size(0) == 3,
+              "pre and x must be [U, S] and [U, Dx], wd [3, H]");
+  const int64_t U = pre.size(0), S = pre.size(1), Dx = x.size(1), H = wd.size(1);
+  TORCH_CHECK(x.size(0) == U && cd.size(0) == U && cs.size(0) == U, "pre, x, cd and cs need one row per Gaussian");
+  TORCH_CHECK(w2.numel() == S && b2.numel() == 1 && bd.numel() == 3, "w2 must be [S], b2 [1], bd [3]");
+  TORCH_CHECK(hd_offset >= 0 && hd_offset + H <= Dx, "h_diff (columns hd_offset + H) must lie inside x");
+  const OnDevice on(pre);
+  auto colors = torch::empty({U, 3}, pre.options());
+  auto alpha = torch::empty({U}, pre.options());
+  auto cdp = torch::empty({U, 3}, pre.options());
+  VIRGI_CUDA_CHECK(launch_heads_forward(
+      pre.data_ptr<float>(), x.data_ptr<float>(), U, static_cast<int>(S), static_cast<int>(Dx),
+      static_cast<int>(hd_offset), static_cast<int>(H), w2.data_ptr<float>(), b2.data_ptr<float>(),
+      wd.data_ptr<float>(), bd.data_ptr<float>(), cd.data_ptr<float>(), cs.data_ptr<float>(),
+      static_cast<float>(k), colors.data_ptr<float>(), alpha.data_ptr<float>(), cdp.data_ptr<float>(),
+      on.stream));
+  return {colors, alpha, cdp};
+}
+
+// The edit heads' backward (kernels.h, launch_heads_backward) from grad_colors [U, 4] and the
+// forward's colors, alpha, cdp, with cd, pre and w2. Returns {grad_rows [U, S + 4], sums [2 S + 4]}.
+std::vector<torch::Tensor> edit_heads_backward(torch::Tensor grad_colors, torch::Tensor colors,
+                                               torch::Tensor alpha, torch::Tensor cdp,
+                                               torch::Tensor cd, torch::Tensor pre, torch::Tensor w2) {
+  check_input(grad_colors, "grad_colors", 4);
+  check_input(colors, "colors", 3);
+  check_input(cdp, "cdp", 3);
+  check_input(cd, "cd", 3);
+  check_f32(alpha, "alpha");
+  check_f32(pre, "pre");
+  check_f32(w2, "w2");
+  TORCH_CHECK(pre.dim() == 2, "pre must be [U, S]");
+  const int64_t U = pre.size(0), S = pre.size(1);
+  TORCH_CHECK(S <= kMaxHeadsWidth, "the segmentation head is at most ", kMaxHeadsWidth, " wide, got ", S);
+  TORCH_CHECK(grad_colors.size(0) == U && colors.size(0) == U && cdp.size(0) == U && cd.size(0) == U &&
+                  alpha.numel() == U && w2.numel() == S,
+              "every input needs one row per Gaussian, and w2 one entry per hidden unit");
+  const OnDevice on(pre);
+  auto grad_rows = torch::empty({U, S + 4}, pre.options());
+  auto sums = torch::zeros({2 * S + 4}, pre.options());
+  VIRGI_CUDA_CHECK(launch_heads_backward(
+      grad_colors.data_ptr<float>(), colors.data_ptr<float>(), alpha.data_ptr<float>(),
+      cdp.data_ptr<float>(), cd.data_ptr<float>(), pre.data_ptr<float>(), w2.data_ptr<float>(), U,
+      static_cast<int>(S), grad_rows.data_ptr<float>(), sums.data_ptr<float>(), on.stream));
+  return {grad_rows, sums};
+}
+
 }  // namespace virgi
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -760,4 +822,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "Gradient of deferred_composite_forward to colours");
   m.def("edit_l1_step", &virgi::edit_l1_step,
         "One step of an edit's weighted L1 pixel loss and its gradient to the colours");
+  m.def("edit_heads_forward", &virgi::edit_heads_forward, "The edit heads' colours from pre = x W1^T + b1");
+  m.def("edit_heads_backward", &virgi::edit_heads_backward,
+        "The edit heads' gradients from the loss's gradient to the colours");
 }

@@ -148,4 +148,21 @@ cudaError_t launch_edit_l1(int64_t max_rows, const float* colors, const int* pai
                            const float* background, const float* target, const float* loss_weight,
                            float* loss, float* grad_colors, cudaStream_t stream);
 
+// The heads an edit trains (edit_heads.cu), per Gaussian u of U. Forward: from pre = x W1^T + b1
+// [U, S], alpha[u] = sigmoid(relu(pre[u]) . w2 + b2), cdp[u] = wd h + bd with h = x[u, hd_offset :
+// hd_offset + H] (x [U, Dx], wd [3, H]), colors[u] = sigmoid(alpha cdp + (1 - alpha) cd + k cs).
+// Backward: from the loss's gradient to the colours (grad_colors [U, 4], the last column padding),
+// grad_rows [U, S + 4] = the gradients to pre and to cdp, then 0; sums [2 S + 4] (pre-zeroed) += the
+// gradients of b1 [S], w2 [S], b2 [1], bd [3]. S <= kMaxHeadsWidth.
+constexpr int kMaxHeadsWidth = 256;
+cudaError_t launch_heads_forward(const float* pre, const float* x, int64_t U, int S, int Dx,
+                                 int hd_offset, int H, const float* w2, const float* b2,
+                                 const float* wd, const float* bd, const float* cd, const float* cs,
+                                 float k, float* colors, float* alpha, float* cdp,
+                                 cudaStream_t stream);
+cudaError_t launch_heads_backward(const float* grad_colors, const float* colors, const float* alpha,
+                                  const float* cdp, const float* cd, const float* pre,
+                                  const float* w2, int64_t U, int S, float* grad_rows, float* sums,
+                                  cudaStream_t stream);
+
 }  // namespace virgi

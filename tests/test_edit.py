@@ -763,3 +763,46 @@ def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe):
     torch.testing.assert_close(e_g.seg.logits_of(x), e_e.seg.logits_of(x), atol=1e-4, rtol=1e-4)
     assert abs(t_g.final_loss - t_e.final_loss) < 1e-5
     assert not torch.equal(e_g.head_weight, torch.as_tensor(sc.field.diffuse_head.weight).cuda())  # it trained
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+def test_written_out_heads_give_the_autograd_edit(world):
+    """``fused_heads`` (virgi_ns.edit.heads): from the same state, a step with the heads' backward
+    written out gives every parameter autograd's gradient (on a target every pixel is far from: where
+    a pixel's L1 error is 0 up to rounding, its sign is rounding's); a whole fit then renders
+    autograd's edit. (The parameters themselves drift apart further: Adam divides gradients near its
+    epsilon by their own size, so rounding of the order of 1e-9 there moves a weight by up to lr / 10.)"""
+    import copy
+
+    from virgi_ns.edit.scene import FrozenScene
+    from virgi_ns.raster import cuda
+
+    if not cuda.available()[0]:
+        pytest.skip("needs our CUDA extension")
+    S = world["S"]
+    sc = S.scene
+    gpu = FrozenScene(sc.means.cuda(), sc.quats.cuda(), sc.scales.cuda(), sc.opacities.cuda(),
+                      copy.deepcopy(sc.field).cuda(), sc.background.cuda(), backend="auto")
+    cam = S.cameras.index(EDIT_VIEW)
+    edited = world["edited"].cuda()
+    grads, fits = {}, {}
+    for written in (True, False):
+        cfg = EditConfig(steps=30, batch_composite="fused", fused_heads=written, whole_image=True)
+        eng = EditEngine(gpu, cam, 0.1 + 0.8 * edited, EditStack(gpu.fingerprint()), cfg)
+        assert (eng._heads is not None) == written
+        with torch.enable_grad():
+            eng.step(0)
+        grads[written] = [p.grad.clone() for p in (eng.weight, eng.bias, *eng.seg.parameters())]
+        cfg = EditConfig(steps=30, batch_composite="fused", fused_heads=written)
+        eng = EditEngine(gpu, cam, edited, EditStack(gpu.fingerprint()), cfg)
+        edit, timing = eng.fit()
+        fits[written] = (eng.preview()["rgb"], timing.final_loss, edit)
+    for i, (got, want) in enumerate(zip(grads[True], grads[False])):
+        assert got.shape == want.shape
+        diff, scale = float((got - want).abs().max()), float(want.abs().max())
+        assert diff <= 1e-5 * scale + 1e-9, (i, diff, scale)
+    (rgb_w, loss_w, e_w), (rgb_a, loss_a, _) = fits[True], fits[False]
+    assert abs(loss_w - loss_a) <= 1e-3 * loss_a, (loss_w, loss_a)
+    diff = float((rgb_w - rgb_a).abs().max())
+    assert diff <= 2e-3, diff  # half an 8-bit level
+    assert not torch.equal(e_w.head_weight, torch.as_tensor(sc.field.diffuse_head.weight).cuda())  # it trained

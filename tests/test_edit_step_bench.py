@@ -11,7 +11,8 @@ from script_module import script_module
 def test_edit_step_bench_cpu_smoke(tmp_path):
     with script_module("bench/edit_step.py", "bench_edit_step") as mod:
         args = mod.Args(out=tmp_path / "es", cpu_smoke=True, variants=["segment", "no_such_kind", "embedding_bag",
-                                                                        "index_add", "csr4", "fused"])
+                                                                        "index_add", "csr4", "fused",
+                                                                        "fused,fused_heads=false", "fused,no_field=1"])
         res = mod.main(args)
     saved = json.loads((tmp_path / "es" / "results.json").read_text())
     assert saved["device"] == "cpu" and saved["image"] == "40x24"
@@ -29,6 +30,9 @@ def test_edit_step_bench_cpu_smoke(tmp_path):
     assert fused["passed"] and fused["fwd_rel_diff"] <= 1e-5 and fused["bwd_rel_diff"] <= 1e-5
     assert fused["fwd_bwd_s"] > 0 and fused["steps"] == 6 and fused["preview_max_diff_vs_csr"] < 1e-3
     assert rows["csr"]["preview_max_diff_vs_csr"] == 0.0
+    # a kind with other EditConfig settings; an unknown setting is that row's error
+    assert rows["fused,fused_heads=false"]["passed"] and rows["fused,fused_heads=false"]["steps"] == 6
+    assert "no_field" in rows["fused,no_field=1"]["error"]
     best = saved["fastest"]
     assert best["edit"] in rows and best["edit"] != "no_such_kind" and best["fwd"] in rows and best["bwd"] in rows
     assert res["fastest"] == best

@@ -60,6 +60,7 @@ from torch import Tensor
 
 from virgi_ns.colour.field import view_directions
 from virgi_ns.edit.colour_change import fit_colour_change
+from virgi_ns.edit.heads import FusedHeads, HeadsInputs
 from virgi_ns.edit.optim import EditAdam
 from virgi_ns.edit.pixels import PixelBatch, parse_composite, pixel_batches, resolve_composite
 from virgi_ns.edit.scene import FrozenScene
@@ -189,6 +190,10 @@ class EditConfig:
     scene is not part of an edit): keeps the segmentation off what the edited view never showed
     unless it resembles what the edit changed."""
 
+    fused_heads: bool = True
+    """On a GPU with the ``fused`` kind and the joint recipe, the heads' forward and backward as written
+    out in :mod:`virgi_ns.edit.heads` (two cuBLAS products and two kernels) instead of through autograd:
+    the same step up to float rounding, in a fraction of the kernels."""
     cuda_graphs: bool = True
     """On a GPU, record each pixel set's step once as a CUDA graph and replay it (the same kernels,
     without a Python and launch round trip per kernel); a first fit of a few steps runs eagerly, and
@@ -449,6 +454,7 @@ class EditEngine:
         self.alpha_fixed: Optional[Tensor] = None
         self.opt: Optional[EditAdam] = None
         self._graphs: Optional[list] = None  # the recorded steps (_fit_graphed)
+        self._heads: Optional[FusedHeads] = None  # the written-out heads (_set_heads), else autograd
         self.colour_map: Optional[Tensor] = None
         self.map_explained: Optional[float] = None  # changed_target="map": share of changed pixels it explains
         self.recipe = self.cfg.recipe
@@ -540,12 +546,25 @@ class EditEngine:
                 p.requires_grad_(True)
         self._changed = flat
         self._target = edited
+        self._set_heads()
         trainable = [self.weight, self.bias] + ([] if staged else list(self.seg.parameters()))
         if self.opt is not None and [id(p) for p in self.opt.params] == [id(p) for p in trainable]:
             self.opt.restart()  # the same tensors, which recorded steps read and write
         else:
             self.opt = EditAdam(trainable, lr=cfg.lr)
             self._graphs = None
+
+    def _set_heads(self) -> None:
+        """The written-out heads (EditConfig.fused_heads) where they run: the joint recipe's step on the
+        fused kind's pixel sets on a GPU; otherwise None (autograd). A change drops the recorded steps."""
+        sets = self.batches[0].sets if self.batches else None
+        use = (self.cfg.fused_heads and self.alpha_fixed is None and sets is not None
+               and FusedHeads.runs_on(self.seg, self.h_diff.device))
+        if use == (self._heads is not None):
+            return
+        self._heads = FusedHeads(self.seg, self.weight, self.bias,
+                                 HeadsInputs(self.seg_input, self.feats.shape[1], self.c_d, self.c_s, self.k)) if use else None
+        self._graphs = None
 
     def _set_layer_mapped(self, colour_map: Tensor, weight: Tensor, bias: Tensor) -> None:
         """The copied layer set to ``weight``, ``bias`` followed by the logit colour map ``[M | t]``
@@ -640,6 +659,10 @@ class EditEngine:
     def step(self, i: int) -> Tensor:
         """Step ``i`` of a fit: one Adam step on pixel set ``i % len(self.batches)`` (the ``fused`` kind
         takes the set its device counter names, which :meth:`fit` keeps equal to it)."""
+        if self._heads is not None:  # the fused kind's sets and the written-out heads
+            loss = self._heads.step(self.batches[0].sets)
+            self.opt.step()
+            return loss
         self.opt.zero_grad()
         C, _ = self.colours()
         loss = self.batches[i % len(self.batches)].loss(C)

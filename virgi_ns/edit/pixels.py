@@ -227,15 +227,20 @@ class FusedSets:
             self._kernel = colours.is_cuda and cuda.available()[0]
         return self._kernel
 
+    def loss_and_padded_grad(self, colours: Tensor) -> tuple[Tensor, Tensor]:
+        """(loss [1], its gradient [U, 4], the last column padding) of the counter's set, by the CUDA
+        kernel (GPU only; :meth:`loss_and_grad` is the reference); advances the counter."""
+        from virgi_ns.raster.cuda import edit_l1_step
+
+        return edit_l1_step(colours, self.pair, self.weight, self.pixel_offsets, self.rows, self.starts, self.counter,
+                            self.background, self.target, self.loss_weight, self.max_rows)
+
     def loss_and_grad(self, colours: Tensor) -> tuple[Tensor, Tensor]:
         """(loss, its gradient [U, 3]) of the counter's set; advances the counter. The CUDA kernel on a
         GPU (no host sync), else the same sums in torch (the reference, which reads the counter)."""
         colours = colours.detach().float().contiguous()
         if self._use_kernel(colours):
-            from virgi_ns.raster.cuda import edit_l1_step
-
-            loss, grad = edit_l1_step(colours, self.pair, self.weight, self.pixel_offsets, self.rows, self.starts,
-                                      self.counter, self.background, self.target, self.loss_weight, self.max_rows)
+            loss, grad = self.loss_and_padded_grad(colours)
             return loss[0], grad[:, :3]
         s = int(self.counter) % len(self)
         self.counter += 1

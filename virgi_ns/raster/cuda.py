@@ -43,7 +43,7 @@ from virgi_ns.raster.contract import composite as _composite
 from virgi_ns.raster.contract import composite_plain as _plain_composite
 
 CSRC = Path(__file__).resolve().parents[2] / "csrc"
-SOURCES = ("extension.cpp", "raster_kernels.cu", "composite_kernels.cu", "edit_kernels.cu")
+SOURCES = ("extension.cpp", "raster_kernels.cu", "composite_kernels.cu", "edit_kernels.cu", "edit_heads.cu")
 EXTENSION_NAME = "virgi_ns_raster"
 
 TILE_BACKWARD_MIN_PIXELS = 1 << 20  # measured on an H200: per-entry atomics win below ~1 Mpix
@@ -413,7 +413,24 @@ def edit_l1_step(colors: Tensor, pair: Tensor, weight: Tensor, pixel_offsets: Te
     return loss, grad
 
 
-__all__ = ["available", "build", "composite", "cuda_home", "edit_l1_step", "rasterize", "CudaContributions",
+def edit_heads_forward(pre: Tensor, x: Tensor, w2: Tensor, b2: Tensor, wd: Tensor, bd: Tensor, cd: Tensor,
+                       cs: Tensor, k: float, hd_offset: int) -> tuple[Tensor, Tensor, Tensor]:
+    """The edit heads' forward from ``pre = x W1^T + b1`` (:mod:`virgi_ns.edit.heads` says what each
+    argument holds): (colours [U, 3], alpha [U], the copied layer's output [U, 3])."""
+    colors, alpha, cdp = _load().edit_heads_forward(pre, x, w2, b2, wd, bd, cd, cs, float(k), int(hd_offset))
+    return colors, alpha, cdp
+
+
+def edit_heads_backward(grad_colors: Tensor, colors: Tensor, alpha: Tensor, cdp: Tensor, cd: Tensor, pre: Tensor,
+                        w2: Tensor) -> tuple[Tensor, Tensor]:
+    """The edit heads' backward from the loss's gradient to the colours ([U, 4], the last column
+    padding): (the gradients to ``pre`` and to the layer's output, then a 0 [U, S + 4], the summed
+    gradients of b1, w2, b2 and bd [2 S + 4])."""
+    rows, sums = _load().edit_heads_backward(grad_colors, colors, alpha, cdp, cd, pre, w2)
+    return rows, sums
+
+
+__all__ = ["available", "build", "composite", "cuda_home", "edit_heads_backward", "edit_heads_forward", "edit_l1_step", "rasterize", "CudaContributions",
            "DeferredCudaContributions"]
 
 if __name__ == "__main__":  # pragma: no cover - manual build check: python -m virgi_ns.raster.cuda

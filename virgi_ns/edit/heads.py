@@ -1,0 +1,114 @@
+"""An edit step's two heads with their backward written out, for the GPU's fused step.
+
+The joint recipe trains the segmentation head and the copied last diffuse layer on the pixel loss
+(:mod:`virgi_ns.edit.engine`). Through autograd a step's heads are dozens of small kernels, as
+long as the pixel loss itself at 1M Gaussians. :class:`FusedHeads` does the same step as two
+cuBLAS products and two kernels of ours (``csrc/edit_heads.cu``)::
+
+    pre    = x W1^T + b1                           x = [f, h_diff] (constant during an edit)
+    alpha  = sigmoid(relu(pre) . w2 + b2)
+    c_dp   = Wd h_diff + bd
+    C      = sigmoid(alpha c_dp + (1 - alpha) c_d + k c_s)
+    loss, dL/dC                                     the fused pixel loss (FusedSets)
+    rows   = [dL/dpre, dL/dc_dp, 0]  [U, S + 4]    and the sums of dL/db1, dL/dw2, dL/db2, dL/dbd
+    rows^T x                                        dL/dW1 and, in its h_diff columns, dL/dWd
+
+then the same Adam step on the same tensors as the autograd step. :func:`reference_step` is that
+backward in torch, the specification the kernels are tested against (and autograd against it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from virgi_ns.edit.stack import SegmentationHead
+
+
+@dataclass
+class HeadsInputs:
+    """What a step's heads read besides their parameters: the head input ``x = [f, h_diff]`` [U, Dx]
+    (h_diff from column ``hd_offset``), the stack's diffuse logits ``cd`` and the specular logits
+    ``cs`` [U, 3] of the view's Gaussians, and the specular strength ``k``."""
+
+    x: Tensor
+    hd_offset: int
+    cd: Tensor
+    cs: Tensor
+    k: float
+
+
+def reference_forward(seg: SegmentationHead, weight: Tensor, bias: Tensor, inp: HeadsInputs) -> dict[str, Tensor]:
+    """The heads' forward in torch: ``pre``, ``alpha`` [U], ``cdp`` and the colours ``C`` [U, 3]."""
+    pre = torch.addmm(seg.l1.bias, inp.x, seg.l1.weight.t())
+    alpha = torch.sigmoid(torch.relu(pre) @ seg.l2.weight[0] + seg.l2.bias[0])
+    H = weight.shape[1]
+    cdp = inp.x[:, inp.hd_offset : inp.hd_offset + H] @ weight.t() + bias
+    a = alpha[:, None]
+    return {"pre": pre, "alpha": alpha, "cdp": cdp, "C": torch.sigmoid(a * cdp + (1 - a) * inp.cd + inp.k * inp.cs)}
+
+
+def reference_backward(fwd: dict[str, Tensor], grad_c: Tensor, seg: SegmentationHead, inp: HeadsInputs,
+                       H: int) -> dict[str, Tensor]:
+    """The gradients of the loss to every parameter from ``grad_c`` = dL/dC [U, 3], by hand: the
+    kernels' specification. Keys: ``l1.weight``, ``l1.bias``, ``l2.weight``, ``l2.bias``, ``weight``,
+    ``bias`` (the copied layer)."""
+    C, alpha, cdp, pre = fwd["C"], fwd["alpha"], fwd["cdp"], fwd["pre"]
+    dz = grad_c * C * (1 - C)
+    d_alpha = (dz * (cdp - inp.cd)).sum(1)
+    d_logit = d_alpha * alpha * (1 - alpha)
+    d_pre = torch.where(pre > 0, d_logit[:, None] * seg.l2.weight[0], torch.zeros_like(pre))
+    d_cdp = alpha[:, None] * dz
+    hd = inp.x[:, inp.hd_offset : inp.hd_offset + H]
+    return {"l1.weight": d_pre.t() @ inp.x, "l1.bias": d_pre.sum(0),
+            "l2.weight": (d_logit @ torch.relu(pre))[None], "l2.bias": d_logit.sum()[None],
+            "weight": d_cdp.t() @ hd, "bias": d_cdp.sum(0)}
+
+
+class FusedHeads:
+    """One step of the joint recipe's heads on the GPU (``seg``, and the copied layer ``weight``,
+    ``bias``, all trained in place), around the fused pixel loss of :class:`FusedSets`; sets each
+    parameter's ``.grad`` for the caller's Adam step. No host sync: the step records in a CUDA graph."""
+
+    def __init__(self, seg: SegmentationHead, weight: Tensor, bias: Tensor, inp: HeadsInputs) -> None:
+        self.seg, self.weight, self.bias, self.inp = seg, weight, bias, inp
+        self.x = inp.x.float().contiguous()
+        self.cd = inp.cd.float().contiguous()
+        self.cs = inp.cs.float().contiguous()
+
+    @staticmethod
+    def runs_on(seg: SegmentationHead, colours_device: torch.device) -> bool:
+        """Whether the kernels run here: a CUDA device, our extension built, a head no wider than they take."""
+        if colours_device.type != "cuda" or seg.width > 256:
+            return False
+        from virgi_ns.raster import cuda
+
+        return cuda.available()[0]
+
+    def step(self, sets) -> Tensor:
+        """The loss of the set ``sets`` (:class:`FusedSets`) names (advancing its counter), and every
+        parameter's gradient in its ``.grad``."""
+        from virgi_ns.raster import cuda
+
+        l1, l2 = self.seg.l1, self.seg.l2
+        S, H = l1.weight.shape[0], self.weight.shape[1]
+        with torch.no_grad():
+            pre = torch.addmm(l1.bias, self.x, l1.weight.t())
+            C, alpha, cdp = cuda.edit_heads_forward(pre, self.x, l2.weight, l2.bias, self.weight, self.bias, self.cd,
+                                                    self.cs, self.inp.k, self.inp.hd_offset)
+            loss, grad_c = sets.loss_and_padded_grad(C)
+            rows, sums = cuda.edit_heads_backward(grad_c, C, alpha, cdp, self.cd, pre, l2.weight)
+            products = torch.mm(rows.t(), self.x)  # [S + 4, Dx]: W1's gradient, then the layer's rows
+            off = self.inp.hd_offset
+            l1.weight.grad = products[:S]
+            l1.bias.grad = sums[:S]
+            l2.weight.grad = sums[S : 2 * S].view(1, S)
+            l2.bias.grad = sums[2 * S : 2 * S + 1]
+            self.bias.grad = sums[2 * S + 1 :]
+            self.weight.grad = products[S : S + 3, off : off + H].contiguous()
+        return loss[0]
+
+
+__all__ = ["FusedHeads", "HeadsInputs", "reference_backward", "reference_forward"]
