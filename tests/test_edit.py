@@ -806,3 +806,28 @@ def test_written_out_heads_give_the_autograd_edit(world):
     diff = float((rgb_w - rgb_a).abs().max())
     assert diff <= 2e-3, diff  # half an 8-bit level
     assert not torch.equal(e_w.head_weight, torch.as_tensor(sc.field.diffuse_head.weight).cuda())  # it trained
+
+
+def test_a_fresh_segmentation_head_is_drawn_from_the_seed_and_copied_per_edit(world):
+    """The engine's fresh head equals one drawn anew with the config's seed, whatever ran before, and
+    training one engine's head leaves the next engine's start untouched."""
+    from virgi_ns.edit.stack import SegmentationHead
+
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    cfg = EditConfig(steps=5, seed=3)
+    first = EditEngine(S.scene, cam, world["edited"], cfg=cfg)
+    torch.manual_seed(123)  # the global RNG's state must not matter
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(3)
+        want = SegmentationHead(first.feats.shape[1], first.h_diff.shape[1], cfg.seg_width, cfg.seg_init_bias)
+    start = {k: v.clone() for k, v in first.seg.state_dict().items()}
+    for k, v in want.state_dict().items():
+        assert torch.equal(start[k], v), k
+    first.fit()
+    assert not torch.equal(first.seg.l2.weight, start["l2.weight"])  # trained
+    second = EditEngine(S.scene, cam, world["edited"], cfg=cfg)
+    for k, v in second.seg.state_dict().items():
+        assert torch.equal(v, start[k]), k
+    other = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=5, seed=4))
+    assert not torch.equal(other.seg.l1.weight, second.seg.l1.weight)

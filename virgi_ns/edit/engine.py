@@ -331,6 +331,16 @@ def _pixel_subset(n: int, k: int, seed: int) -> Tensor:
     return torch.randperm(n, generator=g)[:k]
 
 
+@functools.lru_cache(maxsize=8)
+def _fresh_segmentation(feature_dim: int, hidden_dim: int, width: int, init_bias: float, seed: int) -> SegmentationHead:
+    """A fresh segmentation head drawn on the CPU with ``seed`` (the same on every device), kept for
+    the next edit of the same shape: building and initialising the module took about a millisecond
+    of every edit's set-up. Callers copy it."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        return SegmentationHead(feature_dim, hidden_dim, width, init_bias)
+
+
 def logit_colour_map(source: Float[Tensor, "N 3"], target: Float[Tensor, "N 3"], seed: int = 0,
                      max_pixels: int = 1 << 16, eps: float = 0.02, ridge: float = 0.05,
                      ridge_floor: float = 0.01) -> Float[Tensor, "3 4"]:
@@ -443,10 +453,8 @@ class EditEngine:
         self.background = sc.background.to(dev, torch.float32).reshape(3)
         # the view's render through the stack [H,W,3]: what unchanged pixels keep
         self.current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), contrib, self.background)[0]
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(self.cfg.seed)
-            self.seg = SegmentationHead(self.feats.shape[1], self.h_diff.shape[1], self.cfg.seg_width,
-                                        self.cfg.seg_init_bias).to(dev)
+        self.seg = copy.deepcopy(_fresh_segmentation(self.feats.shape[1], self.h_diff.shape[1], self.cfg.seg_width,
+                                                     self.cfg.seg_init_bias, self.cfg.seed)).to(dev)
         self.seg_input = self.seg.inputs(self.feats, self.h_diff)
         head = fld.diffuse_head
         self.weight = head.weight.detach().float().clone().requires_grad_(True)
