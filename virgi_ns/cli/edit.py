@@ -355,6 +355,7 @@ def apply(args: Apply, console: "Console", pipeline=None) -> str:
     import torch
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+    from virgi_ns.edit import warmup
     from virgi_ns.edit.engine import EditConfig, EditEngine
     from virgi_ns.edit.scene import FrozenScene
     from virgi_ns.edit.stack import EditSource
@@ -365,6 +366,7 @@ def apply(args: Apply, console: "Console", pipeline=None) -> str:
     if not Path(args.load_config).is_file():
         raise InputError(f"no such config: {args.load_config}")
     image, notes = load_edited_image(args.image)
+    _warm_up_while_loading(pipeline)
     run, stack, cams, where = open_view(args, console, pipeline)
     model = run.model
     W, H = int(cams.widths[0]), int(cams.heights[0])
@@ -385,6 +387,7 @@ def apply(args: Apply, console: "Console", pipeline=None) -> str:
     cfg.map_fallback = args.map_fallback
     cfg.recipe = args.recipe
     cfg.map_init = args.map_init
+    warmup.wait()
     with torch.no_grad():
         engine = EditEngine(scene, cams, torch.from_numpy(image), stack, cfg, source,
                             original=None if original is None else torch.from_numpy(original))
@@ -398,6 +401,18 @@ def apply(args: Apply, console: "Console", pipeline=None) -> str:
             f"{engine.mode}, {engine.changed_fraction:.0%} of the view)")
 
 
+def _warm_up_while_loading(pipeline) -> None:
+    """In a process that loads its run (no ``pipeline`` given), the GPU's first edit runs on a
+    background thread meanwhile (:mod:`virgi_ns.edit.warmup`); the caller waits for it before its edit."""
+    if pipeline is None:
+        import torch
+
+        from virgi_ns.edit import warmup
+
+        if torch.cuda.is_available():
+            warmup.start("cuda")
+
+
 def _check_steps(steps: Optional[int]) -> None:
     if steps is not None and steps < 1:
         raise InputError(f"--steps must be >= 1, got {steps}")
@@ -408,6 +423,7 @@ def pick(args: Pick, console: "Console", pipeline=None) -> str:
     summary line. Every argument is checked before the run is loaded, the pixel before any fit."""
     import torch
 
+    from virgi_ns.edit import warmup
     from virgi_ns.edit.pick import PickSession, check_tolerance, commit, parse_colour, pick_config
     from virgi_ns.edit.scene import FrozenScene
     from virgi_ns.edit.stack import EditSource
@@ -417,11 +433,13 @@ def pick(args: Pick, console: "Console", pipeline=None) -> str:
     _check_steps(args.steps)
     if not Path(args.load_config).is_file():
         raise InputError(f"no such config: {args.load_config}")
+    _warm_up_while_loading(pipeline)
     run, stack, cams, where = open_view(args, console, pipeline)
     model = run.model
     W, H = int(cams.widths[0]), int(cams.heights[0])
     x, y = args.pixel
     source = EditSource("", cams.Ks[0].cpu(), cams.viewmats[0].cpu(), W, H, f"{where}, pixel {x} {y}")
+    warmup.wait()
     with torch.no_grad(), console.status("fitting the pick"):
         session = PickSession(FrozenScene.from_model(model), cams, x, y, stack, pick_config(model.device), source,
                               criterion=args.selection, reference=args.reference)

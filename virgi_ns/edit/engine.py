@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import copy
 import functools
+import threading
 import time
 import warnings
 from dataclasses import dataclass
@@ -331,12 +332,17 @@ def _pixel_subset(n: int, k: int, seed: int) -> Tensor:
     return torch.randperm(n, generator=g)[:k]
 
 
+GLOBAL_RNG_LOCK = threading.Lock()
+"""Held while the global CPU random state is seeded or forked here, so that another thread (the
+warm-up, :mod:`virgi_ns.edit.warmup`) cannot draw from it between a seed and its use."""
+
+
 @functools.lru_cache(maxsize=8)
 def _fresh_segmentation(feature_dim: int, hidden_dim: int, width: int, init_bias: float, seed: int) -> SegmentationHead:
     """A fresh segmentation head drawn on the CPU with ``seed`` (the same on every device), kept for
     the next edit of the same shape: building and initialising the module took about a millisecond
     of every edit's set-up. Callers copy it."""
-    with torch.random.fork_rng(devices=[]):
+    with GLOBAL_RNG_LOCK, torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         return SegmentationHead(feature_dim, hidden_dim, width, init_bias)
 
