@@ -15,6 +15,7 @@ raised.
 
 from __future__ import annotations
 
+import atexit
 import math
 import threading
 import time
@@ -68,8 +69,12 @@ def warm_up(device: "torch.device | str", gaussians: int = GAUSSIANS, width: int
     device = torch.device(device)
     t0 = time.perf_counter()
     scene, cams, g = _scene(device, gaussians, width, height)
-    edited = torch.rand(height, width, 3, generator=g, device=device)
-    EditEngine(scene, cams, edited, cfg=EditConfig(steps=3, cuda_graphs=False)).fit()
+    # a photo and its edit as a user's: a part of the view recoloured (a channel swap), large enough
+    # for every step of the engine's set-up (the change's slope, the colour-map start)
+    original = torch.rand(height, width, 3, generator=g, device=device)
+    edited = original.clone()
+    edited[:, : int(0.4 * width)] = original[:, : int(0.4 * width)].roll(1, dims=-1)
+    EditEngine(scene, cams, edited, cfg=EditConfig(steps=3, cuda_graphs=False), original=original).fit()
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     return time.perf_counter() - t0
@@ -93,6 +98,7 @@ def start(device: "torch.device | str") -> bool:
         return False
     _thread = threading.Thread(target=_run, args=(device,), name="virgi-edit-warm-up", daemon=True)
     _thread.start()
+    atexit.register(wait)  # a process that stops early (bad input) ends after it, not during its GPU work
     return True
 
 
