@@ -290,6 +290,7 @@ def _check_pick(rows, pipeline, rule, picture_png):
     assert p["rule_propagation_psnr"] == rows[0]["propagation_psnr"]
     assert p["difference_db"] == pytest.approx(p["propagation_psnr"] - rows[0]["propagation_psnr"])
     assert p["pass"] == (p["difference_db"] >= -1.0)
+    assert p["contiguous"] is True  # the product's selection: connected to the click
     assert len(p["per_view_propagation"]) == len(rows[0]["per_view"])
     # the pick variants: the same click with their settings recorded; recolour=rule gives the
     # selection the rule's colours on the render and keeps the render elsewhere
@@ -335,6 +336,15 @@ def test_a_missed_target_is_judged_against_its_ceiling_on_the_same_run(bench_edi
     assert bench_edit.limits(passing) == {} and bench_edit.limits_text(passing) == ""
     w = bench_edit.worst_case([row, real, passing, old])
     assert (w["rows"], w["passed"], w["cannot"]) == (4, 1, 3)
+
+
+def test_pick_variants_name_known_options_only():
+    from virgi_ns.bench.pick import parse_pick_variant
+
+    assert parse_pick_variant("contiguous=false,recipe=joint") == {"contiguous": "false", "recipe": "joint"}
+    for bad in ("contiguous=no", "connected=false", "recipe=paper"):
+        with pytest.raises(InputError, match="is not one of"):
+            parse_pick_variant(bad)
 
 
 def test_pick_tolerance_is_the_tools_default():

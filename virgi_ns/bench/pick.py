@@ -129,11 +129,12 @@ def pick_passes(p: dict) -> bool:
 
 
 PICK_OPTIONS = {"criterion": None, "reference": ("median", "click"), "recipe": ("joint", "staged"),
-                "recolour": ("pick", "rule")}
+                "recolour": ("pick", "rule"), "contiguous": ("true", "false")}
 """What a pick variant (``bench/edit.py --pick-variants``) may set, each apart: the selection criterion,
-the recolour's reference pixel, the edit recipe, and ``recolour=rule`` (a diagnostic: the rule itself
+the recolour's reference pixel, the edit recipe, ``recolour=rule`` (a diagnostic: the rule itself
 recolours the pick's selection of the render, so the pick differs from the rule edit only in its
-selection and its recipe)."""
+selection and its recipe), and ``contiguous=false`` (the selection takes every pixel of the view that
+passes its colour tests, connected to the click or not)."""
 
 
 def parse_pick_variant(text: str) -> dict:
@@ -153,12 +154,12 @@ def parse_pick_variant(text: str) -> dict:
 
 
 def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, criterion: Optional[str] = None,
-                 reference: Optional[str] = None, recipe: Optional[str] = None, recolour: str = "pick"
-                 ) -> tuple[dict, list, Tensor]:
+                 reference: Optional[str] = None, recipe: Optional[str] = None, recolour: str = "pick",
+                 contiguous: str = "true") -> tuple[dict, list, Tensor]:
     """One click on ``b``'s edit view by the module docstring's rule, measured as the rule edit is
     (``rule_propagation``: its propagation PSNR on the same run), its selection grown by ``criterion``
     (default: the product's, :data:`~virgi_ns.edit.pick.DEFAULT_CRITERION`); ``reference``, ``recipe``
-    and ``recolour``: :data:`PICK_OPTIONS` (defaults: the product's). Returns (figures, the held-out
+    ``recolour`` and ``contiguous``: :data:`PICK_OPTIONS` (defaults: the product's). Returns (figures, the held-out
     pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection | rule mask)."""
     from virgi_ns.edit.pick import (DEFAULT_CRITERION, DEFAULT_REFERENCE, MIN_COVER, PICK_RECIPE, PickSession,
                                     colour_hex, commit, pick_config, select)
@@ -174,16 +175,17 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, c
     t0 = time.perf_counter()
     cfg = pick_config(b.scene.device, recipe or PICK_RECIPE)
     reference = reference or DEFAULT_REFERENCE
+    connected = contiguous == "true"
     session = PickSession(b.scene, b.edit_camera, x, y, stack, cfg, criterion=criterion or DEFAULT_CRITERION,
                           reference=reference)
     if recolour == "rule":  # the pick's selection, recoloured by the rule on the render: the session's first fit
-        session.mask = select(session.maps, x, y, TOLERANCE, session.criterion)
+        session.mask = select(session.maps, x, y, TOLERANCE, session.criterion, connected)
         session.edited = torch.where(session.mask[..., None], recolor(render, rule)[0], render)
         session.settings = {"colour": colour_hex(colour), "selected": float(session.mask.float().mean())}
         session.engine.retarget(session.edited, session.mask)
         edit = session.refine(cfg.steps)
     else:
-        edit = session.update(colour, TOLERANCE, MODE)
+        edit = session.update(colour, TOLERANCE, MODE, contiguous=connected)
     _sync(b.scene.device)
     fit_s = time.perf_counter() - t0
     commit(stack, session, edit)
@@ -193,6 +195,7 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, c
     m = res["mean"]
     out = {"pixel": [x, y], "depth": depth, "colour": session.settings["colour"], "mode": MODE,
            "criterion": session.criterion, "reference": reference, "recipe": cfg.recipe, "recolour": recolour,
+           "contiguous": connected,
            "tolerance": TOLERANCE, "selected": session.settings["selected"],
            "iou": int((sel & mask).sum()) / union if union else float("nan"),
            "propagation_psnr": m["propagation_psnr"], "miss_psnr": m["miss_psnr"], "leak_psnr": m["leak_psnr"],
