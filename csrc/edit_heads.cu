@@ -10,8 +10,8 @@
 // The backward kernel takes the loss's gradient to the colours and writes, per Gaussian, the
 // gradient to pre and to c_dp (one row [S + 4], the last entry 0 so that rows stay 16-byte
 // aligned, for one cuBLAS product with x giving W1's and Wd's gradients), and sums the gradients
-// of b1, w2, b2 and bd over the Gaussians. One warp per
-// Gaussian: the lanes read a row's entries side by side.
+// of b1, w2, b2 and bd over the Gaussians. One warp per Gaussian: the lanes read a row's entries
+// side by side.
 
 #include <cuda_runtime.h>
 

@@ -737,19 +737,24 @@ def test_colour_map_start_fits_a_channel_swap_sooner(world):
     assert loss[True] < 0.8 * loss[False], loss
 
 
+def _on_gpu(scene):
+    """The world's scene on the GPU, with its own copy of the colour field."""
+    import copy
+
+    from virgi_ns.edit.scene import FrozenScene
+
+    return FrozenScene(scene.means.cuda(), scene.quats.cuda(), scene.scales.cuda(), scene.opacities.cuda(),
+                       copy.deepcopy(scene.field).cuda(), scene.background.cuda(), backend="auto")
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
 @pytest.mark.parametrize("recipe", ["joint", "staged"])
 def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe):
     """``cuda_graphs``: the recorded steps replay the eager steps' kernels in the eager order, so the
     edit (layer, segmentation, final loss) is the eager one's."""
-    import copy
-
-    from virgi_ns.edit.scene import FrozenScene
-
     S = world["S"]
     sc = S.scene
-    gpu = FrozenScene(sc.means.cuda(), sc.quats.cuda(), sc.scales.cuda(), sc.opacities.cuda(),
-                      copy.deepcopy(sc.field).cuda(), sc.background.cuda(), backend="auto")
+    gpu = _on_gpu(sc)
     cam = S.cameras.index(EDIT_VIEW)
     edited = world["edited"].cuda()
     fits = {}
@@ -772,17 +777,13 @@ def test_written_out_heads_give_the_autograd_edit(world):
     a pixel's L1 error is 0 up to rounding, its sign is rounding's); a whole fit then renders
     autograd's edit. (The parameters themselves drift apart further: Adam divides gradients near its
     epsilon by their own size, so rounding of the order of 1e-9 there moves a weight by up to lr / 10.)"""
-    import copy
-
-    from virgi_ns.edit.scene import FrozenScene
     from virgi_ns.raster import cuda
 
     if not cuda.available()[0]:
         pytest.skip("needs our CUDA extension")
     S = world["S"]
     sc = S.scene
-    gpu = FrozenScene(sc.means.cuda(), sc.quats.cuda(), sc.scales.cuda(), sc.opacities.cuda(),
-                      copy.deepcopy(sc.field).cuda(), sc.background.cuda(), backend="auto")
+    gpu = _on_gpu(sc)
     cam = S.cameras.index(EDIT_VIEW)
     edited = world["edited"].cuda()
     grads, fits = {}, {}

@@ -158,9 +158,10 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, c
                  contiguous: str = "true") -> tuple[dict, list, Tensor]:
     """One click on ``b``'s edit view by the module docstring's rule, measured as the rule edit is
     (``rule_propagation``: its propagation PSNR on the same run), its selection grown by ``criterion``
-    (default: the product's, :data:`~virgi_ns.edit.pick.DEFAULT_CRITERION`); ``reference``, ``recipe``
-    ``recolour`` and ``contiguous``: :data:`PICK_OPTIONS` (defaults: the product's). Returns (figures, the held-out
-    pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection | rule mask)."""
+    (default: the product's, :data:`~virgi_ns.edit.pick.DEFAULT_CRITERION`); ``reference``, ``recipe``,
+    ``recolour`` and ``contiguous``: :data:`PICK_OPTIONS` (defaults: the product's). Returns (figures,
+    the held-out pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection |
+    rule mask)."""
     from virgi_ns.edit.pick import (DEFAULT_CRITERION, DEFAULT_REFERENCE, MIN_COVER, PICK_RECIPE, PickSession,
                                     colour_hex, commit, pick_config, select)
     from virgi_ns.edit.stack import EditStack

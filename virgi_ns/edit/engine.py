@@ -576,8 +576,8 @@ class EditEngine:
                and FusedHeads.runs_on(self.seg, self.h_diff.device))
         if use == (self._heads is not None):
             return
-        self._heads = FusedHeads(self.seg, self.weight, self.bias,
-                                 HeadsInputs(self.seg_input, self.feats.shape[1], self.c_d, self.c_s, self.k)) if use else None
+        inputs = HeadsInputs(self.seg_input, self.feats.shape[1], self.c_d, self.c_s, self.k)
+        self._heads = FusedHeads(self.seg, self.weight, self.bias, inputs) if use else None
         self._graphs = None
 
     def _set_layer_mapped(self, colour_map: Tensor, weight: Tensor, bias: Tensor) -> None:

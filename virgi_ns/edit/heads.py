@@ -27,6 +27,10 @@ from torch import Tensor
 from virgi_ns.edit.stack import SegmentationHead
 
 
+MAX_WIDTH = 256
+"""The widest segmentation head the kernels take (``kMaxHeadsWidth`` in ``csrc/kernels.h``)."""
+
+
 @dataclass
 class HeadsInputs:
     """What a step's heads read besides their parameters: the head input ``x = [f, h_diff]`` [U, Dx]
@@ -81,7 +85,7 @@ class FusedHeads:
     @staticmethod
     def runs_on(seg: SegmentationHead, colours_device: torch.device) -> bool:
         """Whether the kernels run here: a CUDA device, our extension built, a head no wider than they take."""
-        if colours_device.type != "cuda" or seg.width > 256:
+        if colours_device.type != "cuda" or seg.width > MAX_WIDTH:
             return False
         from virgi_ns.raster import cuda
 

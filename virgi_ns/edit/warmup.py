@@ -62,7 +62,8 @@ def _scene(device: torch.device, n: int, width: int, height: int):
     return FrozenScene(means, quats, scales, 0.3 + 0.7 * rand(n), field, torch.zeros(3, device=device)), cams, g
 
 
-def warm_up(device: "torch.device | str", gaussians: int = GAUSSIANS, width: int = WIDTH, height: int = HEIGHT) -> float:
+def warm_up(device: "torch.device | str", gaussians: int = GAUSSIANS, width: int = WIDTH,
+            height: int = HEIGHT) -> float:
     """One small edit on ``device`` (a few eager steps, no CUDA graphs); returns its seconds."""
     from virgi_ns.edit.engine import EditConfig, EditEngine
 
