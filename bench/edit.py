@@ -269,14 +269,19 @@ def targets(m: dict, edit_s: float, synthetic: bool) -> Dict[str, bool]:
 
 
 CEILINGS = {
-    "propagation>=35": ("the rule per Gaussian", lambda m: m.get("per_gaussian_rule_propagation_psnr", math.nan)),
-    "miss>=30": ("the rule per Gaussian", lambda m: m.get("per_gaussian_rule_miss_psnr", math.nan)),
-    "leak>=30": ("the rule per Gaussian", lambda m: m.get("per_gaussian_rule_leak_psnr", math.nan)),
-    "recolour within 0.5 dB of unedited": ("a perfect edit", lambda m: m.get("perfect_edit_recolour_psnr", math.nan)
+    "propagation>=35": ("propagation", TARGETS["propagation"], "the rule per Gaussian",
+                        lambda m: m.get("per_gaussian_rule_propagation_psnr", math.nan)),
+    "miss>=30": ("miss", TARGETS["miss"], "the rule per Gaussian",
+                 lambda m: m.get("per_gaussian_rule_miss_psnr", math.nan)),
+    "leak>=30": ("leak", TARGETS["leak"], "the rule per Gaussian",
+                 lambda m: m.get("per_gaussian_rule_leak_psnr", math.nan)),
+    "recolour within 0.5 dB of unedited": ("recolour", TARGETS["recolour_gap"], "a perfect edit",
+                                           lambda m: m.get("perfect_edit_recolour_psnr", math.nan)
                                            - m["unedited_psnr"]),
-    "truth>=35": ("the reconstruction", lambda m: m["unedited_psnr"]),
+    "truth>=35": ("truth", TARGETS["truth"], "the reconstruction", lambda m: m["unedited_psnr"]),
 }
-"""For each target, the same figure of an edit no fit can beat on this run, from the row's own measures: the
+"""For each target of :func:`targets` (its short name, its threshold, what the ceiling is, the ceiling's
+figure): the same figure of an edit no fit can beat on this run, from the row's own measures: the
 rule applied to every Gaussian's colour (a scene edit that puts each Gaussian's colour where the rule on a
 pixel of it alone would), the rule on the render scored as the recolour (``perfect_edit_recolour_psnr``), and
 the unedited render against its photo (on a synthetic scene, what any render of the model reaches against a
@@ -292,9 +297,8 @@ def limits(m: dict) -> Dict[str, dict]:
     for name, ok in m["targets"].items():
         if ok or name not in CEILINGS:
             continue
-        what, figure = CEILINGS[name]
+        _, threshold, what, figure = CEILINGS[name]
         value = figure(m)
-        threshold = TARGETS["recolour_gap"] if name.startswith("recolour") else float(name.split(">=")[1])
         out[name] = {"ceiling": what, "value": value,
                      "reachable": None if math.isnan(value) else bool(value >= threshold)}
     return out
@@ -304,10 +308,11 @@ def limits_text(m: dict) -> str:
     """The table's words for :func:`limits`: ``cannot (the reconstruction 32.67)`` or ``short of 36.90``."""
     parts = []
     for name, lim in limits(m).items():
-        v = _f(lim["value"], "+.2f" if name.startswith("recolour") else ".2f")
+        short = CEILINGS[name][0]
+        v = _f(lim["value"], "+.2f" if short == "recolour" else ".2f")
         verdict = {None: "ceiling unknown", False: f"cannot ({lim['ceiling']} {v})",
                    True: f"short of {lim['ceiling']} {v}"}[lim["reachable"]]
-        parts.append(f"{name.split('>=')[0].split(' within')[0]}: {verdict}")
+        parts.append(f"{short}: {verdict}")
     return "; ".join(parts)
 
 

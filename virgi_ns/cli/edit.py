@@ -405,12 +405,9 @@ def _warm_up_while_loading(pipeline) -> None:
     """In a process that loads its run (no ``pipeline`` given), the GPU's first edit runs on a
     background thread meanwhile (:mod:`virgi_ns.edit.warmup`); the caller waits for it before its edit."""
     if pipeline is None:
-        import torch
-
         from virgi_ns.edit import warmup
 
-        if torch.cuda.is_available():
-            warmup.start("cuda")
+        warmup.start("cuda")  # nothing where no GPU is available
 
 
 def _check_steps(steps: Optional[int]) -> None:
