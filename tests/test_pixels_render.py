@@ -174,6 +174,11 @@ def test_pixel_batches_of_every_kind_agree(n_batches):
             (ga,) = torch.autograd.grad((ra * w).sum(), C)
             (gb,) = torch.autograd.grad((rb * w).sum(), C)
             torch.testing.assert_close(gb, ga, rtol=1e-5, atol=1e-6)
+    # the fused kind sizes its sets on the host; a caller's count of the changed pixels cuts the same sets
+    counted = pixel_batches(contrib, target, bg, n_batches, 7, changed, 0.5, "fused", n_changed=int(changed.sum()))
+    for a, b in zip(ref, counted):
+        assert torch.equal(a.pixels if a.pixels is not None else torch.arange(P), b.pixels)
+        assert torch.equal(a.target, b.target) and torch.equal(a.weight, b.weight)
     with pytest.raises(ValueError, match="batch_composite"):
         pixel_batches(contrib, target, bg, n_batches, 7, composite="dense")
 

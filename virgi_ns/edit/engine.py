@@ -338,13 +338,15 @@ warm-up, :mod:`virgi_ns.edit.warmup`) cannot draw from it between a seed and its
 
 
 @functools.lru_cache(maxsize=8)
-def _fresh_segmentation(feature_dim: int, hidden_dim: int, width: int, init_bias: float, seed: int) -> SegmentationHead:
-    """A fresh segmentation head drawn on the CPU with ``seed`` (the same on every device), kept for
-    the next edit of the same shape: building and initialising the module took about a millisecond
-    of every edit's set-up. Callers copy it."""
+def _fresh_segmentation(feature_dim: int, hidden_dim: int, width: int, init_bias: float, seed: int,
+                        device: torch.device) -> SegmentationHead:
+    """A fresh segmentation head drawn on the CPU with ``seed`` (the same on every device), moved to
+    ``device`` and kept there for the next edit of the same shape: building it took about a
+    millisecond of every edit's set-up, and moving it waits for the GPU's queue. Callers copy it."""
     with GLOBAL_RNG_LOCK, torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        return SegmentationHead(feature_dim, hidden_dim, width, init_bias)
+        head = SegmentationHead(feature_dim, hidden_dim, width, init_bias)
+    return head.to(device)
 
 
 def logit_colour_map(source: Float[Tensor, "N 3"], target: Float[Tensor, "N 3"], seed: int = 0,
@@ -460,7 +462,7 @@ class EditEngine:
         # the view's render through the stack [H,W,3]: what unchanged pixels keep
         self.current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), contrib, self.background)[0]
         self.seg = copy.deepcopy(_fresh_segmentation(self.feats.shape[1], self.h_diff.shape[1], self.cfg.seg_width,
-                                                     self.cfg.seg_init_bias, self.cfg.seed)).to(dev)
+                                                     self.cfg.seg_init_bias, self.cfg.seed, torch.device(dev)))
         self.seg_input = self.seg.inputs(self.feats, self.h_diff)
         head = fld.diffuse_head
         self.weight = head.weight.detach().float().clone().requires_grad_(True)
@@ -473,22 +475,27 @@ class EditEngine:
         self.map_explained: Optional[float] = None  # changed_target="map": share of changed pixels it explains
         self.recipe = self.cfg.recipe
 
-    def _changed_pixels(self, edited: Tensor, original: Optional[Tensor]) -> tuple[Optional[Tensor], str]:
-        """(changed [H,W,1] or None for a whole-image fit, what they were found against)."""
+    def _changed_pixels(self, edited: Tensor, original: Optional[Tensor]
+                        ) -> tuple[Optional[Tensor], str, Optional[int]]:
+        """(changed [H,W,1] or None for a whole-image fit, what they were found against, how many
+        pixels are changed, or None). The counts are read from the GPU once."""
         cfg, current = self.cfg, self.current
 
         def off(ref: Tensor) -> Tensor:
             return (edited - ref).abs().amax(-1, keepdim=True) > cfg.unchanged_tol
 
         off_render = off(current)
+        P = off_render.numel()
         if original is not None:
             off_orig = off(original)
-            if float(off_orig.float().mean()) <= float(off_render.float().mean()):
-                return off_orig, "original"
-            return off_render, "current render"  # e.g. a render edited for a training view
-        if 1.0 - float(off_render.float().mean()) >= cfg.render_match_min:
-            return off_render, "current render"
-        return None, "current render"
+            n_orig, n_render = torch.stack([off_orig.sum(), off_render.sum()]).tolist()
+            if n_orig <= n_render:
+                return off_orig, "original", n_orig
+            return off_render, "current render", n_render  # e.g. a render edited for a training view
+        n_render = int(off_render.sum())
+        if 1.0 - n_render / P >= cfg.render_match_min:
+            return off_render, "current render", n_render
+        return None, "current render", None
 
     @torch.no_grad()
     def _set_target(self, edited: Tensor, original: Optional[Tensor], given: Optional[Tensor], warm: bool,
@@ -497,13 +504,16 @@ class EditEngine:
         heads' start: fresh, or (``warm``) from the current fit (:meth:`retarget`)."""
         cfg, current = self.cfg, self.current
         changed, ref = (given[..., None], "selection") if given is not None else (None, "")
-        if changed is None and not cfg.whole_image:
-            changed, ref = self._changed_pixels(edited, original)
+        n_changed = None  # how many pixels changed: counted once (reading it waits for the GPU)
+        if changed is not None:
+            n_changed = int(changed.sum())
+        elif not cfg.whole_image:
+            changed, ref, n_changed = self._changed_pixels(edited, original)
         self.mode = "whole image"
         self.changed_fraction = 1.0
         self.map_explained = None
         if changed is not None:  # untouched pixels: the current render is their target
-            if not bool(changed.any()):
+            if n_changed == 0:
                 raise InputError("the selection is empty: nothing to edit" if ref == "selection" else
                                  f"the edited image does not differ from the {ref}: nothing to edit")
             self.mode = {"original": "changed pixels (original given" + {
@@ -516,7 +526,7 @@ class EditEngine:
             if ref == "original":
                 edited, self.map_explained = changed_pixels_target(cfg, current, edited, original, changed[..., 0])
             edited = torch.where(changed, edited, current)
-            self.changed_fraction = float(changed.float().mean())
+            self.changed_fraction = n_changed / changed.numel()
         flat = None if changed is None else changed.reshape(-1)
         kind = resolve_composite(cfg.batch_composite, edited.device)
         same = warm and self.batches and self.batches[0].composite == kind and (
@@ -527,7 +537,7 @@ class EditEngine:
                 b.target.copy_(edited.reshape(-1, 3) if b.pixels is None else edited.reshape(-1, 3)[b.pixels])
         else:
             self.batches = pixel_batches(self.contrib, edited.reshape(-1, 3), self.background, cfg.pixel_batches,
-                                         cfg.seed, flat, cfg.changed_share, kind)
+                                         cfg.seed, flat, cfg.changed_share, kind, n_changed)
             for b in self.batches:
                 if b.pixels is None:  # the whole image: its own copy, which a warm retarget writes into
                     b.target = b.target.clone()

@@ -184,6 +184,14 @@ class _FusedLoss(torch.autograd.Function):
         return grad * g, None
 
 
+def _to_device(host: Tensor, dev: torch.device) -> Tensor:
+    """A small CPU tensor on ``dev`` without waiting for the GPU's queue (a copy from pageable memory
+    waits for it): through pinned memory, asynchronously."""
+    if torch.device(dev).type != "cuda":
+        return host.to(dev)
+    return host.pin_memory().to(dev, non_blocking=True)
+
+
 class FusedSets:
     """The pixel sets of the ``fused`` kind: every set's rows in one array ordered by set (``rows``:
     the view's pixels; ``background``, ``target``, ``loss_weight`` alike, each set's slice being its
@@ -204,7 +212,7 @@ class FusedSets:
         self.weight = contrib.weight.detach().to(dev, torch.float32).contiguous()
         self.rows, self.background, self.target, self.loss_weight = rows, background, target, loss_weight
         self.starts_host = starts
-        self.starts = torch.tensor(starts, dtype=torch.long, device=dev)
+        self.starts = _to_device(torch.tensor(starts, dtype=torch.long), dev)
         self.counter = torch.zeros(1, dtype=torch.long, device=dev)
         self.max_rows = max(b - a for a, b in zip(starts[:-1], starts[1:]))
         self.U = U
@@ -311,12 +319,13 @@ class PixelBatch:
         return err.mean() if self.weight is None else (err.mean(-1) * self.weight).sum()
 
 
-def _group_weights(changed: Optional[Tensor], share: float) -> Optional[Tensor]:
+def _group_weights(changed: Optional[Tensor], share: float, n_changed: Optional[int] = None) -> Optional[Tensor]:
     """Per-pixel loss weights [p] summing to 1: the ``changed`` pixels carry ``share`` of the loss and
-    the others the rest, whatever their numbers (all of it when one group is empty)."""
+    the others the rest, whatever their numbers (all of it when one group is empty). ``n_changed``:
+    how many are changed, when the caller knows it (counting them waits for the GPU)."""
     if changed is None:
         return None
-    n_c = int(changed.sum())
+    n_c = int(changed.sum()) if n_changed is None else n_changed
     n_u = changed.numel() - n_c
     if n_c == 0 or n_u == 0:
         return torch.full(changed.shape, 1.0 / max(changed.numel(), 1), device=changed.device)
@@ -324,12 +333,14 @@ def _group_weights(changed: Optional[Tensor], share: float) -> Optional[Tensor]:
 
 
 def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches: int, seed: int,
-                   changed: Optional[Tensor] = None, share: float = 0.5, composite: str = "csr") -> list[PixelBatch]:
+                   changed: Optional[Tensor] = None, share: float = 0.5, composite: str = "csr",
+                   n_changed: Optional[int] = None) -> list[PixelBatch]:
     """Split the view's pixels into ``n_batches`` random, equally sized sets, each with its own
     rows of ``A`` (pixels ascending within a set) and its own ``A^T``. With ``changed`` [P] (the
     pixels an edit changed) the changed and the other pixels are each spread evenly over the sets,
     and within every set the changed ones carry ``share`` of the loss (:func:`_group_weights`).
-    ``composite``: how each batch applies ``A`` (:data:`COMPOSITES`, :func:`parse_composite`)."""
+    ``composite``: how each batch applies ``A`` (:data:`COMPOSITES`, :func:`parse_composite`);
+    ``n_changed``: how many pixels ``changed`` marks, when the caller has counted them."""
 
     composite = resolve_composite(composite, target.device)
     parse_composite(composite)
@@ -342,13 +353,15 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
         w = contrib.weight.detach().to(dev, dt)
         op = CompositeOp(composite, pix, pair, w, P, U)
         return [PixelBatch(op, T[:, None] * bg[None, :], target, _group_weights(changed, share))]
-    batch_of = _assign_sets(P, n_batches, seed, changed, dev)
+    if changed is not None and n_changed is None:
+        n_changed = int(changed.sum())
+    batch_of = _assign_sets(P, n_batches, seed, changed, dev, n_changed)
     # the sets' pixels one after another, ascending within a set
     order = torch.argsort(batch_of, stable=True)
+    if composite == "fused":
+        return _fused_batches(contrib, order, T, bg, target, changed, share, U, n_batches, n_changed)
     counts = torch.bincount(batch_of, minlength=n_batches)
     starts = torch.cumsum(counts, 0) - counts
-    if composite == "fused":
-        return _fused_batches(contrib, order, counts.tolist(), T, bg, target, changed, share, U)
     # local row of each pixel: its rank among its batch's pixels, in ascending pixel order
     local = torch.empty(P, dtype=torch.long, device=dev)
     local[order] = torch.arange(P, device=dev) - starts[batch_of[order]]
@@ -372,10 +385,17 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
     return out
 
 
-def _assign_sets(P: int, n_batches: int, seed: int, changed: Optional[Tensor], dev: torch.device) -> Tensor:
+def _split_sizes(n: int, n_sets: int) -> list[int]:
+    """How many of ``n`` items each set gets when item ``j`` goes to set ``j % n_sets``."""
+    return [n // n_sets + (s < n % n_sets) for s in range(n_sets)]
+
+
+def _assign_sets(P: int, n_batches: int, seed: int, changed: Optional[Tensor], dev: torch.device,
+                 n_changed: Optional[int] = None) -> Tensor:
     """[P] the set of each pixel: a random split into equal sets (stratified by ``changed``: each set
     gets its part of the changed pixels and of the others), drawn on the view's device (a CPU
-    permutation of a megapixel view costs tens of milliseconds)."""
+    permutation of a megapixel view costs tens of milliseconds); ``n_changed``: ``changed``'s count,
+    when known (the groups are then found without waiting for the GPU)."""
     if n_batches == 1:
         return torch.zeros(P, dtype=torch.long, device=dev)
     gen = torch.Generator(device=dev).manual_seed(seed)
@@ -384,21 +404,34 @@ def _assign_sets(P: int, n_batches: int, seed: int, changed: Optional[Tensor], d
         batch_of[torch.randperm(P, generator=gen, device=dev)] = torch.arange(P, device=dev) % n_batches
     else:
         ch = changed.to(dev)
-        for idx in (ch.nonzero().flatten(), (~ch).nonzero().flatten()):
+        n_c = int(ch.sum()) if n_changed is None else n_changed
+        # the changed pixels, then the others, each ascending
+        grouped = torch.argsort((~ch).to(torch.uint8), stable=True)
+        for idx in (grouped[:n_c], grouped[n_c:]):
             perm = torch.randperm(len(idx), generator=gen, device=dev)
             batch_of[idx[perm]] = torch.arange(len(idx), device=dev) % n_batches
     return batch_of
 
 
-def _fused_batches(contrib: Contributions, order: Tensor, counts: list[int], T: Tensor, bg: Tensor, target: Tensor,
-                   changed: Optional[Tensor], share: float, U: int) -> list[PixelBatch]:
-    """The ``fused`` kind's batches: slices of one :class:`FusedSets` (no per-set matrices)."""
+def _fused_batches(contrib: Contributions, order: Tensor, T: Tensor, bg: Tensor, target: Tensor,
+                   changed: Optional[Tensor], share: float, U: int, n_sets: int,
+                   n_changed: Optional[int]) -> list[PixelBatch]:
+    """The ``fused`` kind's batches: slices of one :class:`FusedSets` (no per-set matrices). Each set's
+    size, and its share of the changed pixels, follow from the split of :func:`_assign_sets` on the
+    host, so nothing here waits for the GPU."""
+    P = order.numel()
+    if changed is None:
+        counts, changed_counts = _split_sizes(P, n_sets), None
+    else:
+        changed_counts = _split_sizes(n_changed, n_sets)
+        counts = [c + o for c, o in zip(changed_counts, _split_sizes(P - n_changed, n_sets))]
     starts = [0, *itertools.accumulate(counts)]
     background = (T[order, None] * bg[None, :]).contiguous()
     rows_target = target[order].contiguous()
-    loss_weight = torch.empty(order.numel(), dtype=torch.float32, device=order.device)
-    for a, b in zip(starts[:-1], starts[1:]):
-        loss_weight[a:b] = (1.0 / max(b - a, 1)) if changed is None else _group_weights(changed[order[a:b]], share)
+    loss_weight = torch.empty(P, dtype=torch.float32, device=order.device)
+    for s, (a, b) in enumerate(zip(starts[:-1], starts[1:])):
+        loss_weight[a:b] = (1.0 / max(b - a, 1)) if changed is None else _group_weights(
+            changed[order[a:b]], share, changed_counts[s])
     sets = FusedSets(contrib, order, starts, background, rows_target, loss_weight, U)
     return [PixelBatch(sets, background[a:b], rows_target[a:b],
                        None if changed is None else loss_weight[a:b], order[a:b], i)
