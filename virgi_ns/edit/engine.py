@@ -373,6 +373,22 @@ def logit_colour_map(source: Float[Tensor, "N 3"], target: Float[Tensor, "N 3"],
     return torch.cat([Mt.T, t[:, None]], 1).float()  # [3, 4]
 
 
+def _record(step: Callable[[], Tensor], stream: torch.cuda.Stream, pool: Optional[tuple] = None
+            ) -> tuple[torch.cuda.CUDAGraph, Tensor]:
+    """``step`` recorded as a CUDA graph on ``stream`` (sharing ``pool``); returns the graph and the
+    loss tensor it writes. ``torch.cuda.graph`` would also wait for the GPU and empty the allocator's
+    caches first, which cost every fresh edit milliseconds and sent the next edit's allocations back
+    to the driver; the eager step run before on ``stream`` has already warmed its libraries up."""
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.stream(stream):
+        graph.capture_begin(pool=pool)
+        try:
+            loss = step()
+        finally:
+            graph.capture_end()
+    return graph, loss
+
+
 class EditEngine:
     """Fits one edit of ``scene`` from ``edited`` [H,W,3] (float, [0,1]) seen by ``camera`` (one
     view). The stack's current edits and specular strength are the starting point; see the
@@ -739,10 +755,9 @@ class EditEngine:
             losses: list[Tensor] = []
             try:
                 for b in range(ng):
-                    g = torch.cuda.CUDAGraph()
-                    with torch.cuda.graph(g, pool=graphs[0].pool() if graphs else None):
-                        losses.append(self.step(b))
+                    g, loss_b = _record(functools.partial(self.step, b), side, graphs[0].pool() if graphs else None)
                     graphs.append(g)
+                    losses.append(loss_b)
             except RuntimeError as e:  # a kernel that cannot be recorded (a library's host sync)
                 warnings.warn(f"edit steps run without CUDA graphs: {str(e).splitlines()[0]}")
                 self.cfg.cuda_graphs = False
