@@ -39,9 +39,8 @@ from rich.console import Console
 from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from edit import _commit, million_scene  # noqa: E402  (bench/edit.py)
+from edit import _commit, million_scene, parse_variant  # noqa: E402  (bench/edit.py)
 
-from virgi_ns.bench.settings import split_settings, typed_like  # noqa: E402
 from virgi_ns.edit.engine import EditConfig, EditEngine  # noqa: E402
 from virgi_ns.edit.pixels import COMPOSITES, parse_composite  # noqa: E402
 from virgi_ns.errors import InputError, atomic_path, cli_entry  # noqa: E402
@@ -119,16 +118,15 @@ class Bench:
         self.t0 = time.perf_counter()
 
     def cfg(self, variant: str) -> EditConfig:
-        """``KIND[,FIELD=VALUE...]``: the composite kind and any other EditConfig settings."""
+        """``KIND[,FIELD=VALUE...]``: the composite kind and any other EditConfig settings (parsed as
+        bench/edit.py's --variants are; its ``rule`` and ``source`` keys mean nothing here)."""
         kind, _, rest = variant.partition(",")
-        cfg = EditConfig(batch_composite=kind) if self.args.steps is None else \
-            EditConfig(batch_composite=kind, steps=self.args.steps)
-        for name, text in split_settings(rest, "--variants") if rest else []:
-            if not hasattr(cfg, name):
-                raise InputError(f"--variants: EditConfig has no field {name!r}")
-            setattr(cfg, name, typed_like(getattr(cfg, name), text, name, "--variants"))
-        cfg.check()
-        return cfg
+        settings = parse_variant(rest) if rest else {}
+        for key in ("rule", "source"):
+            if key in settings:
+                raise InputError(f"--variants: EditConfig has no field {key!r}")
+        steps = {} if self.args.steps is None else {"steps": self.args.steps}
+        return EditConfig(**{"batch_composite": kind, **steps, **settings})
 
     @torch.no_grad()
     def check(self, kind: str, eng: EditEngine) -> dict:

@@ -13,8 +13,9 @@ cuBLAS products and two kernels of ours (``csrc/edit_heads.cu``)::
     rows   = [dL/dpre, dL/dc_dp, 0]  [U, S + 4]    and the sums of dL/db1, dL/dw2, dL/db2, dL/dbd
     rows^T x                                        dL/dW1 and, in its h_diff columns, dL/dWd
 
-then the same Adam step on the same tensors as the autograd step. :func:`reference_step` is that
-backward in torch, the specification the kernels are tested against (and autograd against it).
+then the same Adam step on the same tensors as the autograd step. :func:`reference_forward` and
+:func:`reference_backward` are that step in torch, the specification the kernels are tested against
+(and autograd against it).
 """
 
 from __future__ import annotations
