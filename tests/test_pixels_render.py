@@ -3,6 +3,7 @@ float64 oracle, through :func:`pixel_batches`, and in a whole edit against the o
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -14,7 +15,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import edit_scene as es  # noqa: E402
 
 from virgi_ns.edit.engine import EditConfig, EditEngine  # noqa: E402
-from virgi_ns.edit.pixels import COMPOSITES, CompositeOp, parse_composite, pixel_batches  # noqa: E402
+from virgi_ns.edit.pixels import COMPOSITES, CompositeOp, near_changed, parse_composite, pixel_batches  # noqa: E402
 from virgi_ns.edit.recolor import RecolorRule, recolor  # noqa: E402
 from virgi_ns.edit.scene import render_view  # noqa: E402
 
@@ -181,6 +182,55 @@ def test_pixel_batches_of_every_kind_agree(n_batches):
         assert torch.equal(a.target, b.target) and torch.equal(a.weight, b.weight)
     with pytest.raises(ValueError, match="batch_composite"):
         pixel_batches(contrib, target, bg, n_batches, 7, composite="dense")
+
+
+@pytest.mark.parametrize("n_batches", [1, 3])
+@pytest.mark.parametrize("kind", ["csr", "fused"])
+def test_pixels_near_the_change_carry_their_share_of_the_unchanged_loss(n_batches, kind):
+    """With ``near`` pixels, every set's weights give the changed pixels ``share``, the near unchanged ones
+    ``near_share`` of the rest and the far ones the remainder, each group evenly (counted here per set
+    from the set's own pixels); a set without near (or without far) pixels gives the unchanged part to
+    the other group."""
+    P, U = 300, 150
+    rows, cols, vals = random_entries(P, U, seed=4)
+    contrib = SimpleNamespace(num_pixels=P, pair_gaussian=torch.arange(U), pixel=rows, pair=cols, weight=vals,
+                              transmittance=torch.rand(P))
+    g = torch.Generator().manual_seed(3)
+    target, bg = torch.rand(P, 3, generator=g), torch.tensor([0.2, 0.3, 0.4])
+    changed = torch.rand(P, generator=g) < 0.2
+    cases = {"some near": (torch.rand(P, generator=g) < 0.3), "none near": torch.zeros(P, dtype=torch.bool),
+             "all near": torch.ones(P, dtype=torch.bool)}
+    for what, near in cases.items():
+        batches = pixel_batches(contrib, target, bg, n_batches, 7, changed, 0.4, kind, near=near, near_share=0.7)
+        for b in batches:
+            pix = b.pixels if b.pixels is not None else torch.arange(P)
+            c, n = changed[pix].tolist(), (near[pix] & ~changed[pix]).tolist()
+            n_c, n_n = sum(c), sum(n)
+            n_f = len(pix) - n_c - n_n
+            s_near = 0.6 * (0.7 if n_n and n_f else (1.0 if n_n else 0.0))
+            want = [0.4 / n_c if ci else (s_near / n_n if ni else (0.6 - s_near) / n_f) for ci, ni in zip(c, n)]
+            torch.testing.assert_close(b.weight, torch.tensor(want), rtol=1e-6, atol=0, msg=what)
+            assert abs(float(b.weight.sum()) - 1.0) < 1e-5
+    # near_share 0 is the two groups' weights
+    plain = pixel_batches(contrib, target, bg, n_batches, 7, changed, 0.4, kind)
+    off = pixel_batches(contrib, target, bg, n_batches, 7, changed, 0.4, kind, near=cases["some near"], near_share=0.0)
+    for a, b in zip(plain, off):
+        assert torch.equal(a.weight, b.weight)
+
+
+def test_near_changed_is_the_square_neighbourhood_of_the_change():
+    """:func:`near_changed` against a loop over every pixel: unchanged pixels with a changed one within
+    ceil(radius x shorter side) pixels in both directions."""
+    g = torch.Generator().manual_seed(5)
+    changed = torch.rand(23, 37, generator=g) < 0.03
+    for radius in (0.0, 0.05, 0.1):
+        r = math.ceil(radius * 23)
+        want = torch.zeros_like(changed)
+        for y in range(23):
+            for x in range(37):
+                window = changed[max(0, y - r): y + r + 1, max(0, x - r): x + r + 1]
+                want[y, x] = bool(window.any()) and not bool(changed[y, x])
+        assert torch.equal(near_changed(changed, radius), want), radius
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,9 @@ target is the scene's current render there. Otherwise the edit would also
 that repair would leak into every view. An edited *render* needs no original: most of its pixels
 equal the current render, which identifies the changed ones. The changed pixels carry half the
 loss however few they are (``changed_share``), so a small edit is not outvoted by the many
-pixels that ask for no change. When the changed pixels cover at least a fifth of the view
+pixels that ask for no change; optionally (``near_share``) the unchanged pixels next to the change
+carry a part of the rest of their own, so a part of another colour inside a recoloured object is not
+outvoted by the background. When the changed pixels cover at least a fifth of the view
 (``map_init_min_share``), the copied layer starts from the affine colour map ``[M | t]`` that best
 takes the current render's logits to the changed pixels' (least squares,
 :func:`logit_colour_map`), so ``c_d'`` starts at ``M c_d + t``: a large recolour of many different
@@ -63,7 +65,7 @@ from virgi_ns.colour.field import view_directions
 from virgi_ns.edit.colour_change import fit_colour_change
 from virgi_ns.edit.heads import FusedHeads, HeadsInputs
 from virgi_ns.edit.optim import EditAdam
-from virgi_ns.edit.pixels import PixelBatch, parse_composite, pixel_batches, resolve_composite
+from virgi_ns.edit.pixels import PixelBatch, near_changed, parse_composite, pixel_batches, resolve_composite
 from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, SegmentationHead, new_edit_info
 from virgi_ns.errors import InputError
@@ -109,6 +111,15 @@ class EditConfig:
     """With an ``original`` image: the share of the loss carried by the changed pixels (the rest by
     the unchanged ones), whatever their numbers; a small edit would otherwise be outvoted by the
     many pixels asking for no change."""
+    near_share: float = 0.0
+    """With the changed pixels known: the part of the unchanged pixels' share of the loss carried by
+    the unchanged pixels within ``near_radius`` of a changed one (a part of another colour inside the
+    recoloured object, the object's rim), the far ones carrying the rest; 0 (the default): every
+    unchanged pixel weighs the same, so a small part inside the object is a sliver of a loss that is
+    mostly background."""
+    near_radius: float = 0.015
+    """``near_share``: how far from a changed pixel an unchanged one counts as near, as a fraction of
+    the view's shorter side (rounded up to whole pixels)."""
     changed_target: Literal["change", "transfer", "map", "affine", "edited"] = "affine"
     """What the changed pixels are fitted to when the unedited image is a photo (``original``):
     ``affine`` (the default): the edited pixel moved by the model's reconstruction error there, as
@@ -229,6 +240,9 @@ class EditConfig:
             raise ValueError(f"EditConfig.map_init_min_share must be in [0, 1], got {self.map_init_min_share}")
         if not 0.0 < self.changed_share < 1.0:
             raise ValueError(f"EditConfig.changed_share must be in (0, 1), got {self.changed_share}")
+        if not 0.0 <= self.near_share < 1.0 or self.near_radius < 0.0:
+            raise ValueError(f"EditConfig: near_share must be in [0, 1) and near_radius >= 0 "
+                             f"(got {self.near_share}, {self.near_radius})")
 
 
 @dataclass
@@ -552,8 +566,10 @@ class EditEngine:
             for b in self.batches:
                 b.target.copy_(edited.reshape(-1, 3) if b.pixels is None else edited.reshape(-1, 3)[b.pixels])
         else:
+            near = (near_changed(changed[..., 0], cfg.near_radius).reshape(-1)
+                    if changed is not None and cfg.near_share > 0.0 else None)
             self.batches = pixel_batches(self.contrib, edited.reshape(-1, 3), self.background, cfg.pixel_batches,
-                                         cfg.seed, flat, cfg.changed_share, kind, n_changed)
+                                         cfg.seed, flat, cfg.changed_share, kind, n_changed, near, cfg.near_share)
             for b in self.batches:
                 if b.pixels is None:  # the whole image: its own copy, which a warm retarget writes into
                     b.target = b.target.clone()

@@ -16,6 +16,7 @@ step's pixels and gives the loss and its gradient at once (:class:`FusedSets`).
 from __future__ import annotations
 
 import itertools
+import math
 import warnings
 from dataclasses import dataclass
 from typing import NamedTuple, Optional
@@ -319,28 +320,56 @@ class PixelBatch:
         return err.mean() if self.weight is None else (err.mean(-1) * self.weight).sum()
 
 
-def _group_weights(changed: Optional[Tensor], share: float, n_changed: Optional[int] = None) -> Optional[Tensor]:
+def _group_weights(changed: Optional[Tensor], share: float, n_changed: Optional[int] = None,
+                   near: Optional[Tensor] = None, near_share: float = 0.0) -> Optional[Tensor]:
     """Per-pixel loss weights [p] summing to 1: the ``changed`` pixels carry ``share`` of the loss and
     the others the rest, whatever their numbers (all of it when one group is empty). ``n_changed``:
-    how many are changed, when the caller knows it (counting them waits for the GPU)."""
+    how many are changed, when the caller knows it (counting them waits for the GPU). ``near`` [p]
+    (unchanged pixels next to the change, :func:`near_changed`): they carry ``near_share`` of the
+    unchanged pixels' part and the far ones the rest (all of it when one of the two is empty); their
+    counts stay on the device."""
     if changed is None:
         return None
     n_c = int(changed.sum()) if n_changed is None else n_changed
     n_u = changed.numel() - n_c
     if n_c == 0 or n_u == 0:
         return torch.full(changed.shape, 1.0 / max(changed.numel(), 1), device=changed.device)
-    return torch.where(changed, share / n_c, (1.0 - share) / n_u).float()
+    if near is None or near_share <= 0.0:
+        return torch.where(changed, share / n_c, (1.0 - share) / n_u).float()
+    near = near & ~changed
+    n_near = near.sum().float()
+    n_far = n_u - n_near
+    s_near = torch.where(n_far == 0, 1.0, torch.where(n_near == 0, 0.0, near_share)) * (1.0 - share)
+    unchanged = torch.where(near, s_near / n_near.clamp_min(1.0), ((1.0 - share) - s_near) / n_far.clamp_min(1.0))
+    return torch.where(changed, share / n_c, unchanged).float()
+
+
+def near_changed(changed: Tensor, radius: float) -> Tensor:
+    """[H, W] bool: the pixels within ``radius`` (a fraction of the view's shorter side, rounded up to
+    whole pixels; a square neighbourhood) of a ``changed`` [H, W] pixel that are not changed
+    themselves: a part of another colour inside a recoloured object, and the object's rim."""
+    H, W = changed.shape
+    r = math.ceil(radius * min(H, W))
+    if r <= 0:
+        return torch.zeros_like(changed)
+    grown = changed.float()[None, None]
+    grown = torch.nn.functional.max_pool2d(grown, (1, 2 * r + 1), 1, (0, r))  # rows, then columns
+    grown = torch.nn.functional.max_pool2d(grown, (2 * r + 1, 1), 1, (r, 0))
+    return (grown[0, 0] > 0) & ~changed
 
 
 def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches: int, seed: int,
                    changed: Optional[Tensor] = None, share: float = 0.5, composite: str = "csr",
-                   n_changed: Optional[int] = None) -> list[PixelBatch]:
+                   n_changed: Optional[int] = None, near: Optional[Tensor] = None,
+                   near_share: float = 0.0) -> list[PixelBatch]:
     """Split the view's pixels into ``n_batches`` random, equally sized sets, each with its own
     rows of ``A`` (pixels ascending within a set) and its own ``A^T``. With ``changed`` [P] (the
     pixels an edit changed) the changed and the other pixels are each spread evenly over the sets,
     and within every set the changed ones carry ``share`` of the loss (:func:`_group_weights`).
     ``composite``: how each batch applies ``A`` (:data:`COMPOSITES`, :func:`parse_composite`);
-    ``n_changed``: how many pixels ``changed`` marks, when the caller has counted them."""
+    ``n_changed``: how many pixels ``changed`` marks, when the caller has counted them; ``near`` [P]
+    and ``near_share``: the unchanged pixels next to the change and their part of the unchanged
+    pixels' share (:func:`_group_weights`)."""
 
     composite = resolve_composite(composite, target.device)
     parse_composite(composite)
@@ -352,14 +381,15 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
         pix, pair = contrib.pixel.to(dev).long(), contrib.pair.to(dev).long()
         w = contrib.weight.detach().to(dev, dt)
         op = CompositeOp(composite, pix, pair, w, P, U)
-        return [PixelBatch(op, T[:, None] * bg[None, :], target, _group_weights(changed, share))]
+        return [PixelBatch(op, T[:, None] * bg[None, :], target,
+                           _group_weights(changed, share, n_changed, near, near_share))]
     if changed is not None and n_changed is None:
         n_changed = int(changed.sum())
     batch_of = _assign_sets(P, n_batches, seed, changed, dev, n_changed)
     # the sets' pixels one after another, ascending within a set
     order = torch.argsort(batch_of, stable=True)
     if composite == "fused":
-        return _fused_batches(contrib, order, T, bg, target, changed, share, U, n_batches, n_changed)
+        return _fused_batches(contrib, order, T, bg, target, changed, share, U, n_batches, n_changed, near, near_share)
     counts = torch.bincount(batch_of, minlength=n_batches)
     starts = torch.cumsum(counts, 0) - counts
     # local row of each pixel: its rank among its batch's pixels, in ascending pixel order
@@ -381,7 +411,9 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
         op = CompositeOp(composite, rows, cols, vals, p_b, U)
         pixels = order[int(starts[b]) : int(starts[b]) + p_b]
         out.append(PixelBatch(op, T[pixels, None] * bg[None, :], target[pixels],
-                              None if changed is None else _group_weights(changed[pixels], share), pixels, b))
+                              None if changed is None else _group_weights(
+                                  changed[pixels], share, None, None if near is None else near[pixels], near_share),
+                              pixels, b))
     return out
 
 
@@ -415,7 +447,8 @@ def _assign_sets(P: int, n_batches: int, seed: int, changed: Optional[Tensor], d
 
 def _fused_batches(contrib: Contributions, order: Tensor, T: Tensor, bg: Tensor, target: Tensor,
                    changed: Optional[Tensor], share: float, U: int, n_sets: int,
-                   n_changed: Optional[int]) -> list[PixelBatch]:
+                   n_changed: Optional[int], near: Optional[Tensor] = None, near_share: float = 0.0
+                   ) -> list[PixelBatch]:
     """The ``fused`` kind's batches: slices of one :class:`FusedSets` (no per-set matrices). Each set's
     size, and its share of the changed pixels, follow from the split of :func:`_assign_sets` on the
     host, so nothing here waits for the GPU."""
@@ -431,12 +464,12 @@ def _fused_batches(contrib: Contributions, order: Tensor, T: Tensor, bg: Tensor,
     loss_weight = torch.empty(P, dtype=torch.float32, device=order.device)
     for s, (a, b) in enumerate(zip(starts[:-1], starts[1:])):
         loss_weight[a:b] = (1.0 / max(b - a, 1)) if changed is None else _group_weights(
-            changed[order[a:b]], share, changed_counts[s])
+            changed[order[a:b]], share, changed_counts[s], None if near is None else near[order[a:b]], near_share)
     sets = FusedSets(contrib, order, starts, background, rows_target, loss_weight, U)
     return [PixelBatch(sets, background[a:b], rows_target[a:b],
                        None if changed is None else loss_weight[a:b], order[a:b], i)
             for i, (a, b) in enumerate(zip(starts[:-1], starts[1:]))]
 
 
-__all__ = ["AUTO_GPU", "COMPOSITES", "CompositeOp", "FusedSets", "PixelBatch", "parse_composite", "pixel_batches",
-           "resolve_composite"]
+__all__ = ["AUTO_GPU", "COMPOSITES", "CompositeOp", "FusedSets", "PixelBatch", "near_changed", "parse_composite",
+           "pixel_batches", "resolve_composite"]
