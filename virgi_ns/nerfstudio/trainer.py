@@ -134,6 +134,13 @@ class VirgiTrainer(Trainer):
             CONSOLE.log(_describe(config, world_size))
         super().__init__(config, local_rank, world_size)
 
+    def train(self) -> None:
+        """nerfstudio's training, with the run's folder made first: every process saves the dataparser
+        transform there, and nerfstudio makes the folder by a check and then a create that fails in
+        the process that loses the race."""
+        Path(self.base_dir).mkdir(parents=True, exist_ok=True)
+        super().train()
+
     def setup_optimizers(self):
         return distributed.make_optimizers(self.config.optimizers.copy(), self.pipeline.get_param_groups())
 
