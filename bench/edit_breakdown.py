@@ -53,10 +53,8 @@ def main(out: Path) -> None:
     E.EditEngine._fit_graphed = timed("fit_graphed", E.EditEngine._fit_graphed)
     res: dict = {}
     for label, kw in [("segment/csr32", {"batch_composite": "segment/csr32"}),
-                      ("fused, autograd heads", {"batch_composite": "fused", "fused_heads": False}),
-                      ("fused", {"batch_composite": "fused"}),
-                      ("fused pb16", {"batch_composite": "fused", "pixel_batches": 16}),
-                      ("fused steps50", {"batch_composite": "fused", "steps": 50})]:
+                      ("fused_atomics", {"batch_composite": "fused_atomics"}),
+                      ("fused", {"batch_composite": "fused"})]:
         cfg = lambda: E.EditConfig(**kw)  # noqa: E731
         with torch.enable_grad():
             for _ in range(2):

@@ -2,6 +2,7 @@
 // requested grid tiles, work units) on the CPU, uploads it in one copy, runs the kernels of
 // raster_kernels.cu / composite_kernels.cu and wraps their outputs as tensors.
 
+#include <ATen/cuda/CUDAContext.h>
 #include <c10/cuda/CUDAGuard.h>
 #include <c10/cuda/CUDAStream.h>
 #include <torch/extension.h>
@@ -743,6 +744,92 @@ std::vector<torch::Tensor> edit_l1_step(torch::Tensor colors, torch::Tensor pair
   return {loss, grad_colors};
 }
 
+// The gathered edit step's entries (kernels.h, launch_edit_by_gaussian): every set's entries
+// sorted by Gaussian, built once per edit. Returns {t_start [num_sets + 1] int64, t_gauss [nnz]
+// int32, t_row [nnz] int32, t_w [nnz] float32 (the entry's weight x its row's loss_weight / 3)}.
+std::vector<torch::Tensor> edit_by_gaussian(torch::Tensor pair, torch::Tensor weight,
+                                            torch::Tensor pixel_offsets, torch::Tensor rows,
+                                            torch::Tensor starts, torch::Tensor loss_weight,
+                                            int64_t U) {
+  check_i32(pair, "pair");
+  check_f32(weight, "weight");
+  check_f32(loss_weight, "loss_weight");
+  check_i64(pixel_offsets, "pixel_offsets");
+  check_i64(rows, "rows");
+  check_i64(starts, "starts");
+  const int64_t R = rows.numel(), nnz = pair.numel(), S = starts.numel() - 1;
+  TORCH_CHECK(S >= 1 && loss_weight.numel() == R && weight.numel() == nnz,
+              "starts needs num_sets + 1 entries, loss_weight one per row, weight one per entry");
+  constexpr int64_t kMax = std::numeric_limits<int>::max();
+  TORCH_CHECK(S * U < kMax && nnz < kMax && R < kMax, "too many entries, rows or bins for int32 indices");
+  const OnDevice on(pair);
+  const auto i32 = pair.options();
+  auto bins = torch::zeros({S * U}, i32);
+  VIRGI_CUDA_CHECK(launch_edit_by_gaussian(false, pair.data_ptr<int>(), weight.data_ptr<float>(),
+                                           pixel_offsets.data_ptr<int64_t>(), rows.data_ptr<int64_t>(),
+                                           R, starts.data_ptr<int64_t>(), S,
+                                           loss_weight.data_ptr<float>(), U, bins.data_ptr<int>(),
+                                           nullptr, nullptr, nullptr, on.stream));
+  auto bin_start = torch::zeros({S * U + 1}, pixel_offsets.options());
+  bin_start.slice(0, 1).copy_(bins.cumsum(0));
+  bins.copy_(bin_start.slice(0, 0, S * U));  // each bin's first free slot
+  auto t_gauss = torch::empty({nnz}, i32);
+  auto t_row = torch::empty({nnz}, i32);
+  auto t_w = torch::empty({nnz}, weight.options());
+  VIRGI_CUDA_CHECK(launch_edit_by_gaussian(true, pair.data_ptr<int>(), weight.data_ptr<float>(),
+                                           pixel_offsets.data_ptr<int64_t>(), rows.data_ptr<int64_t>(),
+                                           R, starts.data_ptr<int64_t>(), S,
+                                           loss_weight.data_ptr<float>(), U, bins.data_ptr<int>(),
+                                           t_gauss.data_ptr<int>(), t_row.data_ptr<int>(),
+                                           t_w.data_ptr<float>(), on.stream));
+  auto t_start = bin_start.index_select(0, torch::arange(S + 1, pixel_offsets.options()) * U);
+  return {t_start, t_gauss, t_row, t_w};
+}
+
+// edit_l1_step with the gradient gathered over t_start, t_gauss, t_row, t_w (edit_by_gaussian's).
+std::vector<torch::Tensor> edit_l1_step_gathered(
+    torch::Tensor colors, torch::Tensor pair, torch::Tensor weight, torch::Tensor pixel_offsets,
+    torch::Tensor rows, torch::Tensor starts, torch::Tensor counter, torch::Tensor background,
+    torch::Tensor target, torch::Tensor loss_weight, int64_t max_rows, torch::Tensor t_start,
+    torch::Tensor t_gauss, torch::Tensor t_row, torch::Tensor t_w) {
+  check_input(colors, "colors", 3);
+  check_i32(pair, "pair");
+  check_f32(weight, "weight");
+  check_f32(background, "background");
+  check_f32(target, "target");
+  check_f32(loss_weight, "loss_weight");
+  check_i64(pixel_offsets, "pixel_offsets");
+  check_i64(rows, "rows");
+  check_i64(starts, "starts");
+  check_i64(counter, "counter");
+  check_i64(t_start, "t_start");
+  check_i32(t_gauss, "t_gauss");
+  check_i32(t_row, "t_row");
+  check_f32(t_w, "t_w");
+  const int64_t R = rows.numel();
+  TORCH_CHECK(background.numel() == 3 * R && target.numel() == 3 * R && loss_weight.numel() == R,
+              "background and target must be [R, 3] and loss_weight [R] for R rows");
+  TORCH_CHECK(starts.numel() >= 2 && counter.numel() == 1 && t_start.numel() == starts.numel(),
+              "starts and t_start need num_sets + 1 entries, counter one");
+  TORCH_CHECK(pair.numel() == weight.numel() && t_gauss.numel() == t_row.numel() &&
+                  t_row.numel() == t_w.numel(),
+              "pair and weight, and t_gauss, t_row and t_w, must have one entry each");
+  const OnDevice on(colors);
+  auto loss = torch::zeros({1}, colors.options());
+  auto grad_colors = torch::zeros({colors.size(0), 4}, colors.options());
+  auto signs = torch::empty({R, 4}, colors.options().dtype(torch::kInt8));
+  const int num_blocks = 8 * at::cuda::getCurrentDeviceProperties()->multiProcessorCount;
+  VIRGI_CUDA_CHECK(launch_edit_l1_gathered(
+      max_rows, colors.data_ptr<float>(), pair.data_ptr<int>(), weight.data_ptr<float>(),
+      pixel_offsets.data_ptr<int64_t>(), rows.data_ptr<int64_t>(), starts.data_ptr<int64_t>(),
+      counter.data_ptr<int64_t>(), starts.numel() - 1, background.data_ptr<float>(),
+      target.data_ptr<float>(), loss_weight.data_ptr<float>(), t_start.data_ptr<int64_t>(),
+      t_gauss.data_ptr<int>(), t_row.data_ptr<int>(), t_w.data_ptr<float>(), num_blocks,
+      loss.data_ptr<float>(), grad_colors.data_ptr<float>(),
+      reinterpret_cast<char4*>(signs.data_ptr<int8_t>()), on.stream));
+  return {loss, grad_colors};
+}
+
 // The edit heads' forward (kernels.h, launch_heads_forward): pre [U, S] = x W1^T + b1, x [U, Dx]
 // with h_diff at columns hd_offset.., w2 [S], b2 [1], wd [3, H], bd [3], cd and cs [U, 3]. Returns
 // {colors [U, 3], alpha [U], cdp [U, 3]}.
@@ -822,6 +909,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "Gradient of deferred_composite_forward to colours");
   m.def("edit_l1_step", &virgi::edit_l1_step,
         "One step of an edit's weighted L1 pixel loss and its gradient to the colours");
+  m.def("edit_by_gaussian", &virgi::edit_by_gaussian,
+        "An edit's pixel sets' entries sorted by Gaussian, for edit_l1_step_gathered");
+  m.def("edit_l1_step_gathered", &virgi::edit_l1_step_gathered,
+        "edit_l1_step with the gradient gathered over the entries sorted by Gaussian");
   m.def("edit_heads_forward", &virgi::edit_heads_forward, "The edit heads' colours from pre = x W1^T + b1");
   m.def("edit_heads_backward", &virgi::edit_heads_backward,
         "The edit heads' gradients from the loss's gradient to the colours");

@@ -148,6 +148,27 @@ cudaError_t launch_edit_l1(int64_t max_rows, const float* colors, const int* pai
                            const float* background, const float* target, const float* loss_weight,
                            float* loss, float* grad_colors, cudaStream_t stream);
 
+// The same step with the gradient gathered instead of scattered: the loss kernel writes each row's
+// signs (signs [rows], char4), then the set's entries sorted by Gaussian (t_start [num_sets + 1];
+// t_gauss, t_row, t_w: each entry's Gaussian, row, and weight x loss_weight[row] / 3, from
+// launch_edit_by_gaussian) are summed into grad_colors (pre-zeroed) by num_blocks blocks.
+cudaError_t launch_edit_l1_gathered(int64_t max_rows, const float* colors, const int* pair,
+                                    const float* weight, const int64_t* offsets, const int64_t* rows,
+                                    const int64_t* starts, int64_t* counter, int64_t num_sets,
+                                    const float* background, const float* target,
+                                    const float* loss_weight, const int64_t* t_start,
+                                    const int* t_gauss, const int* t_row, const float* t_w,
+                                    int num_blocks, float* loss, float* grad_colors, char4* signs,
+                                    cudaStream_t stream);
+// Once per edit, for the gathered step: each entry of every set's rows by bin set * U + Gaussian.
+// fill = false: bins [num_sets * U] (pre-zeroed) += the bins' counts; fill = true: bins holds each
+// bin's first free slot (advanced here) and t_gauss, t_row, t_w are written at the slots.
+cudaError_t launch_edit_by_gaussian(bool fill, const int* pair, const float* weight,
+                                    const int64_t* offsets, const int64_t* rows, int64_t num_rows,
+                                    const int64_t* starts, int64_t num_sets,
+                                    const float* loss_weight, int64_t U, int* bins, int* t_gauss,
+                                    int* t_row, float* t_w, cudaStream_t stream);
+
 // The heads an edit trains (edit_heads.cu), per Gaussian u of U. Forward: from pre = x W1^T + b1
 // [U, S], alpha[u] = sigmoid(relu(pre[u]) . w2 + b2), cdp[u] = wd h + bd with h = x[u, hd_offset :
 // hd_offset + H] (x [U, Dx], wd [3, H]), colors[u] = sigmoid(alpha cdp + (1 - alpha) cd + k cs).

@@ -20,7 +20,8 @@ from virgi_ns.edit.recolor import RecolorRule, recolor  # noqa: E402
 from virgi_ns.edit.scene import render_view  # noqa: E402
 
 KINDS = list(COMPOSITES) + ["embedding_bag/index_add", "segment/csr32"]
-MATRIX_KINDS = [k for k in KINDS if k != "fused"]  # the kinds that apply a CompositeOp
+FUSED_KINDS = ["fused", "fused_atomics"]
+MATRIX_KINDS = [k for k in KINDS if k not in FUSED_KINDS]  # the kinds that apply a CompositeOp
 
 
 def random_entries(p: int = 200, U: int = 150, used: int = 120, max_per_row: int = 30, seed: int = 0):
@@ -80,10 +81,12 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_fused_sets_match_a_dense_oracle(device):
-    """The ``fused`` kind's loss of each pixel set and its gradient to the colours equal a float64 dense
+@pytest.mark.parametrize("kind", FUSED_KINDS)
+def test_fused_sets_match_a_dense_oracle(device, kind):
+    """The fused kinds' loss of each pixel set and its gradient to the colours equal a float64 dense
     computation (the composite, the weighted L1 mean, its subgradient); the device counter takes the
-    sets in turn and wraps. On a GPU this checks the CUDA kernel, on the CPU the torch reference."""
+    sets in turn and wraps. On a GPU this checks the CUDA kernels (the gradient gathered per Gaussian,
+    or scattered by atomics), on the CPU the torch reference."""
     P, U = 300, 150
     rows, cols, vals = random_entries(P, U, seed=4)
     dev = torch.device(device)
@@ -95,9 +98,10 @@ def test_fused_sets_match_a_dense_oracle(device):
     C = torch.rand(U, 3, generator=g).to(dev)
     A = dense(rows, cols, vals, P, U)
     for weighted in (False, True):
-        batches = pixel_batches(contrib, target, bg, 3, 7, changed if weighted else None, 0.6, composite="fused")
+        batches = pixel_batches(contrib, target, bg, 3, 7, changed if weighted else None, 0.6, composite=kind)
         sets = batches[0].sets
         assert sets is not None and all(b.sets is sets for b in batches) and len(sets) == 3
+        assert sets.kind == kind and (sets.by_gaussian is not None) == (kind == "fused" and device == "cuda")
         sets.restart()
         for step in range(4):  # the fourth wraps to the first set
             b = batches[step % 3]
@@ -116,6 +120,44 @@ def test_fused_sets_match_a_dense_oracle(device):
             assert rel_err(grad.cpu(), ref_grad) < 2e-6
         assert int(sets.counter) == 4
     assert bool((grad.cpu()[cols.bincount(minlength=U) == 0] == 0).all())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+def test_the_gathered_gradient_over_long_and_short_runs_of_one_gaussian():
+    """The gathered gradient (GPU) where one Gaussian is in every pixel (a run of thousands of entries
+    over many warps' chunks), a few in many and most in few, over sets whose entries start anywhere
+    in a chunk: the kernels' loss and gradient equal a float64 dense computation, and the scattered
+    kernel's."""
+    P, U = 5000, 400
+    g = torch.Generator().manual_seed(11)
+    per_row = [torch.cat([torch.tensor([0]), torch.randperm(U - 1, generator=g)[: int(k)] + 1])
+               for k in torch.randint(0, 12, (P,), generator=g)]
+    cols = torch.cat(per_row)
+    rows = torch.repeat_interleave(torch.arange(P), torch.tensor([len(c) for c in per_row]))
+    vals = torch.rand(rows.numel(), generator=g) * 0.5
+    dev = torch.device("cuda")
+    contrib = SimpleNamespace(num_pixels=P, pair_gaussian=torch.arange(U), pixel=rows.to(dev), pair=cols.to(dev),
+                              weight=vals.to(dev), transmittance=torch.rand(P, generator=g).to(dev))
+    target, bg = torch.rand(P, 3, generator=g).to(dev), torch.tensor([0.3, 0.1, 0.7], device=dev)
+    changed = (torch.rand(P, generator=g) < 0.3).to(dev)
+    C = torch.rand(U, 3, generator=g).to(dev)
+    A = dense(rows, cols, vals, P, U)
+    grads = {}
+    for kind in FUSED_KINDS:
+        batches = pixel_batches(contrib, target, bg, 5, 3, changed, 0.5, composite=kind)
+        batches[0].sets.restart()
+        grads[kind] = []
+        for b in batches:
+            loss, grad = b.sets.loss_and_grad(C)
+            pix = b.pixels.cpu()
+            img = A[pix] @ C.double().cpu() + contrib.transmittance[pix, None].double().cpu() * bg.double().cpu()
+            err = img - target[pix].double().cpu()
+            w = b.weight.double().cpu()
+            assert float(loss) == pytest.approx(float((err.abs().mean(-1) * w).sum()), rel=2e-6)
+            assert rel_err(grad.cpu(), A[pix].T @ (w[:, None] / 3.0 * torch.sign(err))) < 2e-6
+            grads[kind].append(grad)
+    for a, b in zip(grads["fused"], grads["fused_atomics"]):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
 
 
 def test_fused_sets_render_the_same_pixels_as_the_matrix_kinds():
@@ -140,7 +182,7 @@ def test_fused_sets_render_the_same_pixels_as_the_matrix_kinds():
 def test_composite_names_are_checked():
     assert parse_composite("segment") == ("segment", "segment")
     assert parse_composite("embedding_bag/index_add") == ("embedding_bag", "index_add")
-    for bad in ("cusparse", "segment/", "a/b/c", "", "fused/csr", "segment/fused"):
+    for bad in ("cusparse", "segment/", "a/b/c", "", "fused/csr", "segment/fused", "fused_atomics/fused"):
         with pytest.raises(ValueError, match="batch_composite"):
             EditConfig(batch_composite=bad)
     cfg = EditConfig()

@@ -35,12 +35,16 @@ COMPOSITES = {
     "segment": "gather x[cols] * vals, then torch.segment_reduce over each row's entries (A^T: by Gaussian)",
     "index_add": "gather x[cols] * vals, then index_add_ by row (atomics; A^T: the same entries, by Gaussian)",
     "embedding_bag": "torch.embedding_bag, mode sum with per-sample weights: gather, weight and sum in one kernel",
-    "fused": "the whole step's loss in one CUDA kernel (composite, weighted L1, its gradient to the colours by "
-             "atomics), the step's pixel set chosen on the device; no per-set matrices (:class:`FusedSets`)",
+    "fused": "the whole step's loss in one CUDA kernel (composite, weighted L1, each pixel's signs), its gradient "
+             "to the colours in a second, over the sets' entries sorted by Gaussian once per edit; the step's pixel "
+             "set chosen on the device; no per-set matrices (:class:`FusedSets`)",
+    "fused_atomics": "as fused, the gradient scattered by the loss kernel itself with one atomic per entry (the "
+                     "previous fused kind: nothing sorted, more atomics per step)",
 }
 """The kinds of :attr:`EditConfig.batch_composite` (a name, or ``"FWD/BWD"`` for one kind per pass)."""
 
 _CSR_KINDS = ("csr", "csr32", "csr4", "csr_cm")
+_FUSED_KINDS = ("fused", "fused_atomics")
 
 
 AUTO_GPU = "fused"
@@ -68,9 +72,9 @@ def parse_composite(name: str) -> tuple[str, str]:
     if name == "auto":
         return parse_composite(AUTO_GPU)
     parts = str(name).split("/")
-    if "fused" in parts and len(parts) != 1:
-        raise ValueError(f"EditConfig.batch_composite 'fused' does both passes in one kernel: it cannot be paired, "
-                         f"got {name!r}")
+    if any(p in _FUSED_KINDS for p in parts) and len(parts) != 1:
+        raise ValueError(f"EditConfig.batch_composite {' and '.join(map(repr, _FUSED_KINDS))} do both passes in "
+                         f"their own kernels: they cannot be paired, got {name!r}")
     if len(parts) == 1:
         parts = parts * 2
     if len(parts) != 2 or any(p not in COMPOSITES for p in parts):
@@ -194,17 +198,21 @@ def _to_device(host: Tensor, dev: torch.device) -> Tensor:
 
 
 class FusedSets:
-    """The pixel sets of the ``fused`` kind: every set's rows in one array ordered by set (``rows``:
+    """The pixel sets of the fused kinds: every set's rows in one array ordered by set (``rows``:
     the view's pixels; ``background``, ``target``, ``loss_weight`` alike, each set's slice being its
     :class:`PixelBatch`'s), read with the view's own entries (``pixel_offsets``, ``pair``,
     ``weight``), so nothing is built per set. Which set a step uses is a counter on the device, set
     ``counter % len(starts) - 1`` and advanced by each :meth:`loss`: one recorded CUDA graph of a step
-    replays every set in turn. :meth:`restart` sets it to the first set."""
+    replays every set in turn. :meth:`restart` sets it to the first set.
 
-    kind = "fused"
+    ``gathered`` (the ``fused`` kind): on a GPU the gradient is summed per Gaussian over every set's
+    entries sorted by Gaussian (:attr:`by_gaussian`, built here, once), instead of scattered by one
+    atomic per entry (``fused_atomics``). Both give the same loss and gradient up to the order of
+    float sums."""
 
     def __init__(self, contrib: Contributions, rows: Tensor, starts: list[int], background: Tensor, target: Tensor,
-                 loss_weight: Tensor, U: int) -> None:
+                 loss_weight: Tensor, U: int, gathered: bool = True) -> None:
+        self.kind = "fused" if gathered else "fused_atomics"
         dev = target.device
         offsets = getattr(contrib, "pixel_offsets", None)
         self.pixel_offsets = (offsets if offsets is not None else
@@ -218,6 +226,12 @@ class FusedSets:
         self.max_rows = max(b - a for a, b in zip(starts[:-1], starts[1:]))
         self.U = U
         self._kernel: Optional[bool] = None
+        self.by_gaussian: Optional[list[Tensor]] = None  # (t_start, t_gauss, t_row, t_w): the gathered kernel's
+        if gathered and self._use_kernel(target):
+            from virgi_ns.raster.cuda import edit_by_gaussian
+
+            self.by_gaussian = edit_by_gaussian(self.pair, self.weight, self.pixel_offsets, self.rows, self.starts,
+                                                self.loss_weight, U)
 
     def __len__(self) -> int:
         return len(self.starts_host) - 1
@@ -229,11 +243,12 @@ class FusedSets:
         """The loss of the counter's set (a scalar, differentiable in ``colours`` [U, 3]); advances the counter."""
         return _FusedLoss.apply(colours, self)
 
-    def _use_kernel(self, colours: Tensor) -> bool:
+    def _use_kernel(self, on: Tensor) -> bool:
+        """Whether the steps run our CUDA kernels (``on``: a tensor on the sets' device)."""
         if self._kernel is None:
             from virgi_ns.raster import cuda
 
-            self._kernel = colours.is_cuda and cuda.available()[0]
+            self._kernel = on.is_cuda and cuda.available()[0]
         return self._kernel
 
     def loss_and_padded_grad(self, colours: Tensor) -> tuple[Tensor, Tensor]:
@@ -242,7 +257,7 @@ class FusedSets:
         from virgi_ns.raster.cuda import edit_l1_step
 
         return edit_l1_step(colours, self.pair, self.weight, self.pixel_offsets, self.rows, self.starts, self.counter,
-                            self.background, self.target, self.loss_weight, self.max_rows)
+                            self.background, self.target, self.loss_weight, self.max_rows, self.by_gaussian)
 
     def loss_and_grad(self, colours: Tensor) -> tuple[Tensor, Tensor]:
         """(loss, its gradient [U, 3]) of the counter's set; advances the counter. The CUDA kernel on a
@@ -377,7 +392,7 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
     P = contrib.num_pixels
     U = int(contrib.pair_gaussian.shape[0])
     T = contrib.transmittance.detach().to(dev, dt)
-    if n_batches == 1 and composite != "fused":  # the whole image: entries are already grouped by pixel
+    if n_batches == 1 and composite not in _FUSED_KINDS:  # the whole image: entries are already grouped by pixel
         pix, pair = contrib.pixel.to(dev).long(), contrib.pair.to(dev).long()
         w = contrib.weight.detach().to(dev, dt)
         op = CompositeOp(composite, pix, pair, w, P, U)
@@ -388,8 +403,9 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
     batch_of = _assign_sets(P, n_batches, seed, changed, dev, n_changed)
     # the sets' pixels one after another, ascending within a set
     order = torch.argsort(batch_of, stable=True)
-    if composite == "fused":
-        return _fused_batches(contrib, order, T, bg, target, changed, share, U, n_batches, n_changed, near, near_share)
+    if composite in _FUSED_KINDS:
+        return _fused_batches(contrib, order, T, bg, target, changed, share, U, n_batches, n_changed, near, near_share,
+                              gathered=composite == "fused")
     counts = torch.bincount(batch_of, minlength=n_batches)
     starts = torch.cumsum(counts, 0) - counts
     # local row of each pixel: its rank among its batch's pixels, in ascending pixel order
@@ -447,9 +463,9 @@ def _assign_sets(P: int, n_batches: int, seed: int, changed: Optional[Tensor], d
 
 def _fused_batches(contrib: Contributions, order: Tensor, T: Tensor, bg: Tensor, target: Tensor,
                    changed: Optional[Tensor], share: float, U: int, n_sets: int,
-                   n_changed: Optional[int], near: Optional[Tensor] = None, near_share: float = 0.0
-                   ) -> list[PixelBatch]:
-    """The ``fused`` kind's batches: slices of one :class:`FusedSets` (no per-set matrices). Each set's
+                   n_changed: Optional[int], near: Optional[Tensor] = None, near_share: float = 0.0,
+                   gathered: bool = True) -> list[PixelBatch]:
+    """The fused kinds' batches: slices of one :class:`FusedSets` (no per-set matrices). Each set's
     size, and its share of the changed pixels, follow from the split of :func:`_assign_sets` on the
     host, so nothing here waits for the GPU."""
     P = order.numel()
@@ -465,7 +481,7 @@ def _fused_batches(contrib: Contributions, order: Tensor, T: Tensor, bg: Tensor,
     for s, (a, b) in enumerate(zip(starts[:-1], starts[1:])):
         loss_weight[a:b] = (1.0 / max(b - a, 1)) if changed is None else _group_weights(
             changed[order[a:b]], share, changed_counts[s], None if near is None else near[order[a:b]], near_share)
-    sets = FusedSets(contrib, order, starts, background, rows_target, loss_weight, U)
+    sets = FusedSets(contrib, order, starts, background, rows_target, loss_weight, U, gathered)
     return [PixelBatch(sets, background[a:b], rows_target[a:b],
                        None if changed is None else loss_weight[a:b], order[a:b], i)
             for i, (a, b) in enumerate(zip(starts[:-1], starts[1:]))]

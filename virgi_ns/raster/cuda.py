@@ -34,6 +34,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -402,14 +403,27 @@ def composite(colors: Tensor, contrib: Contributions, background: Tensor | float
     return _composite(colors, contrib, background)
 
 
+def edit_by_gaussian(pair: Tensor, weight: Tensor, pixel_offsets: Tensor, rows: Tensor, starts: Tensor,
+                     loss_weight: Tensor, U: int) -> list[Tensor]:
+    """Every pixel set's entries sorted by Gaussian, for :func:`edit_l1_step`'s gathered gradient (the
+    arguments as :class:`virgi_ns.edit.pixels.FusedSets` holds them): [t_start [sets + 1], each entry's
+    Gaussian, row (int32), and weight x its row's loss weight / 3]. No host sync."""
+    return list(_load().edit_by_gaussian(pair, weight, pixel_offsets, rows, starts, loss_weight, int(U)))
+
+
 def edit_l1_step(colors: Tensor, pair: Tensor, weight: Tensor, pixel_offsets: Tensor, rows: Tensor, starts: Tensor,
                  counter: Tensor, background: Tensor, target: Tensor, loss_weight: Tensor,
-                 max_rows: int) -> tuple[Tensor, Tensor]:
+                 max_rows: int, by_gaussian: Optional[list[Tensor]] = None) -> tuple[Tensor, Tensor]:
     """One step of an edit's weighted L1 pixel loss on the pixel set ``counter % (len(starts) - 1)``
     (:class:`virgi_ns.edit.pixels.FusedSets` says what each argument holds): (loss [1], its gradient
-    to ``colors`` [U, 4], the last column padding); advances ``counter``. No host sync."""
-    loss, grad = _load().edit_l1_step(colors, pair, weight, pixel_offsets, rows, starts, counter, background, target,
-                                      loss_weight, int(max_rows))
+    to ``colors`` [U, 4], the last column padding); advances ``counter``. No host sync. The gradient
+    is scattered by one atomic per entry, or, with ``by_gaussian`` (:func:`edit_by_gaussian`'s),
+    gathered per Gaussian."""
+    args = (colors, pair, weight, pixel_offsets, rows, starts, counter, background, target, loss_weight, int(max_rows))
+    if by_gaussian is None:
+        loss, grad = _load().edit_l1_step(*args)
+    else:
+        loss, grad = _load().edit_l1_step_gathered(*args, *by_gaussian)
     return loss, grad
 
 
@@ -430,8 +444,8 @@ def edit_heads_backward(grad_colors: Tensor, colors: Tensor, alpha: Tensor, cdp:
     return rows, sums
 
 
-__all__ = ["available", "build", "composite", "cuda_home", "edit_heads_backward", "edit_heads_forward", "edit_l1_step", "rasterize", "CudaContributions",
-           "DeferredCudaContributions"]
+__all__ = ["available", "build", "composite", "cuda_home", "edit_by_gaussian", "edit_heads_backward",
+           "edit_heads_forward", "edit_l1_step", "rasterize", "CudaContributions", "DeferredCudaContributions"]
 
 if __name__ == "__main__":  # pragma: no cover - manual build check: python -m virgi_ns.raster.cuda
     build(verbose=True)
