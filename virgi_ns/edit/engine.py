@@ -92,8 +92,10 @@ class EditConfig:
     batch_composite: str = "auto"
     """How a step applies its pixel set's sparse matrix ``A`` (pixels x Gaussians) to the colours, and
     ``A^T`` to the gradient (:mod:`virgi_ns.edit.pixels`): ``fused`` (one CUDA kernel for the
-    composite, the L1 loss and its gradient, reading the view's own entries: no matrix per set, and
-    one recorded graph for every set; the torch reference on a CPU), ``csr`` (cuSPARSE, int64
+    composite and the L1 loss, reading the view's own entries, and one that gathers the gradient per
+    Gaussian over the entries sorted by Gaussian once per edit: no matrix per set, and one recorded
+    graph for every set; the torch reference on a CPU), ``fused_atomics`` (the same loss kernel
+    scattering the gradient by one atomic per entry), ``csr`` (cuSPARSE, int64
     indices), ``csr32`` (int32 indices), ``csr4`` (int32, colours padded to 4 columns), ``csr_cm``
     (int32, colours column-major), ``segment`` (gather, weight, ``torch.segment_reduce`` per pixel /
     per Gaussian), ``index_add`` (gather, weight, ``index_add_``: atomics), ``embedding_bag`` (one
