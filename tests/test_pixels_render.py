@@ -160,6 +160,32 @@ def test_the_gathered_gradient_over_long_and_short_runs_of_one_gaussian():
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
 
 
+def test_the_gathered_kind_scatters_where_its_sorted_entries_cannot_be_built(monkeypatch):
+    """Where the entries sorted by Gaussian cannot be built (out of GPU memory), the fused kind warns once
+    and its steps scatter the gradient (no sorted entries); where they can, it keeps them."""
+    from virgi_ns.edit.pixels import FusedSets
+    from virgi_ns.raster import cuda
+
+    P, U = 120, 60
+    rows, cols, vals = random_entries(P, U, seed=8)
+    contrib = SimpleNamespace(num_pixels=P, pair_gaussian=torch.arange(U), pixel=rows, pair=cols, weight=vals,
+                              transmittance=torch.rand(P))
+    target, bg = torch.rand(P, 3), torch.tensor([0.1, 0.5, 0.9])
+    monkeypatch.setattr(FusedSets, "_use_kernel", lambda self, on: True)  # as on a GPU with our kernels
+    built = []
+    monkeypatch.setattr(cuda, "edit_by_gaussian", lambda *a: built.append(a) or ["sorted"])
+    assert pixel_batches(contrib, target, bg, 3, 1, composite="fused")[0].sets.by_gaussian == ["sorted"]
+    assert len(built) == 1 and built[0][-1] == U
+
+    def out_of_memory(*a):
+        raise torch.cuda.OutOfMemoryError("CUDA out of memory")
+
+    monkeypatch.setattr(cuda, "edit_by_gaussian", out_of_memory)
+    with pytest.warns(UserWarning, match="scatter their gradient.*free GPU memory"):
+        sets = pixel_batches(contrib, target, bg, 3, 1, composite="fused")[0].sets
+    assert sets.kind == "fused" and sets.by_gaussian is None
+
+
 def test_fused_sets_render_the_same_pixels_as_the_matrix_kinds():
     """A ``fused`` batch renders its pixels as a csr batch does, and its sets are csr's sets."""
     P, U = 200, 120

@@ -228,10 +228,27 @@ class FusedSets:
         self._kernel: Optional[bool] = None
         self.by_gaussian: Optional[list[Tensor]] = None  # (t_start, t_gauss, t_row, t_w): the gathered kernel's
         if gathered and self._use_kernel(target):
-            from virgi_ns.raster.cuda import edit_by_gaussian
+            self.by_gaussian = self._sorted_by_gaussian()
 
-            self.by_gaussian = edit_by_gaussian(self.pair, self.weight, self.pixel_offsets, self.rows, self.starts,
-                                                self.loss_weight, U)
+    def _sorted_by_gaussian(self) -> Optional[list[Tensor]]:
+        """The gathered kernel's entries (:func:`virgi_ns.raster.cuda.edit_by_gaussian`), or None, with a
+        warning, where they cannot be built: more entries or bins than int32 indices reach, or too
+        little free GPU memory for their 12 bytes an entry. The steps then scatter the gradient
+        instead (the same loss and gradient)."""
+        from virgi_ns.raster.cuda import edit_by_gaussian
+
+        limit = 2**31 - 1
+        why = None
+        if self.pair.numel() >= limit or len(self) * self.U >= limit:
+            why = f"{self.pair.numel():,} entries over {len(self)} x {self.U:,} bins exceed int32 indices"
+        else:
+            try:
+                return edit_by_gaussian(self.pair, self.weight, self.pixel_offsets, self.rows, self.starts,
+                                        self.loss_weight, self.U)
+            except torch.cuda.OutOfMemoryError:
+                why = f"too little free GPU memory for {self.pair.numel():,} entries sorted by Gaussian"
+        warnings.warn(f"edit steps scatter their gradient (the fused_atomics kernel): {why}")
+        return None
 
     def __len__(self) -> int:
         return len(self.starts_host) - 1
