@@ -708,14 +708,12 @@ torch::Tensor deferred_composite_backward(torch::Tensor grad_images, int64_t num
   return grad_colors;
 }
 
-// One step of an edit's weighted L1 pixel loss for the pixel set counter % num_sets, and its
-// gradient to the colours; advances the counter. Returns {loss [1], grad_colors [U, 4]} (the
-// fourth column is padding).
-std::vector<torch::Tensor> edit_l1_step(torch::Tensor colors, torch::Tensor pair, torch::Tensor weight,
-                                        torch::Tensor pixel_offsets, torch::Tensor rows,
-                                        torch::Tensor starts, torch::Tensor counter,
-                                        torch::Tensor background, torch::Tensor target,
-                                        torch::Tensor loss_weight, int64_t max_rows) {
+// The checks both edit-step bindings make of the arguments they share.
+void check_edit_step(const torch::Tensor& colors, const torch::Tensor& pair,
+                     const torch::Tensor& weight, const torch::Tensor& pixel_offsets,
+                     const torch::Tensor& rows, const torch::Tensor& starts,
+                     const torch::Tensor& counter, const torch::Tensor& background,
+                     const torch::Tensor& target, const torch::Tensor& loss_weight) {
   check_input(colors, "colors", 3);
   check_i32(pair, "pair");
   check_f32(weight, "weight");
@@ -731,6 +729,18 @@ std::vector<torch::Tensor> edit_l1_step(torch::Tensor colors, torch::Tensor pair
               "background and target must be [R, 3] and loss_weight [R] for R rows");
   TORCH_CHECK(starts.numel() >= 2 && counter.numel() == 1, "starts needs num_sets + 1 entries, counter one");
   TORCH_CHECK(pair.numel() == weight.numel(), "pair and weight must have one entry each");
+}
+
+// One step of an edit's weighted L1 pixel loss for the pixel set counter % num_sets, and its
+// gradient to the colours; advances the counter. Returns {loss [1], grad_colors [U, 4]} (the
+// fourth column is padding).
+std::vector<torch::Tensor> edit_l1_step(torch::Tensor colors, torch::Tensor pair, torch::Tensor weight,
+                                        torch::Tensor pixel_offsets, torch::Tensor rows,
+                                        torch::Tensor starts, torch::Tensor counter,
+                                        torch::Tensor background, torch::Tensor target,
+                                        torch::Tensor loss_weight, int64_t max_rows) {
+  check_edit_step(colors, pair, weight, pixel_offsets, rows, starts, counter, background, target,
+                  loss_weight);
   const OnDevice on(colors);
   auto loss = torch::zeros({1}, colors.options());
   auto grad_colors = torch::zeros({colors.size(0), 4}, colors.options());
@@ -792,28 +802,16 @@ std::vector<torch::Tensor> edit_l1_step_gathered(
     torch::Tensor rows, torch::Tensor starts, torch::Tensor counter, torch::Tensor background,
     torch::Tensor target, torch::Tensor loss_weight, int64_t max_rows, torch::Tensor t_start,
     torch::Tensor t_gauss, torch::Tensor t_row, torch::Tensor t_w) {
-  check_input(colors, "colors", 3);
-  check_i32(pair, "pair");
-  check_f32(weight, "weight");
-  check_f32(background, "background");
-  check_f32(target, "target");
-  check_f32(loss_weight, "loss_weight");
-  check_i64(pixel_offsets, "pixel_offsets");
-  check_i64(rows, "rows");
-  check_i64(starts, "starts");
-  check_i64(counter, "counter");
+  check_edit_step(colors, pair, weight, pixel_offsets, rows, starts, counter, background, target,
+                  loss_weight);
   check_i64(t_start, "t_start");
   check_i32(t_gauss, "t_gauss");
   check_i32(t_row, "t_row");
   check_f32(t_w, "t_w");
+  TORCH_CHECK(t_start.numel() == starts.numel(), "t_start needs num_sets + 1 entries, as starts");
+  TORCH_CHECK(t_gauss.numel() == t_row.numel() && t_row.numel() == t_w.numel(),
+              "t_gauss, t_row and t_w must have one entry each");
   const int64_t R = rows.numel();
-  TORCH_CHECK(background.numel() == 3 * R && target.numel() == 3 * R && loss_weight.numel() == R,
-              "background and target must be [R, 3] and loss_weight [R] for R rows");
-  TORCH_CHECK(starts.numel() >= 2 && counter.numel() == 1 && t_start.numel() == starts.numel(),
-              "starts and t_start need num_sets + 1 entries, counter one");
-  TORCH_CHECK(pair.numel() == weight.numel() && t_gauss.numel() == t_row.numel() &&
-                  t_row.numel() == t_w.numel(),
-              "pair and weight, and t_gauss, t_row and t_w, must have one entry each");
   const OnDevice on(colors);
   auto loss = torch::zeros({1}, colors.options());
   auto grad_colors = torch::zeros({colors.size(0), 4}, colors.options());
