@@ -9,8 +9,10 @@ How a batch applies ``A`` (and ``A^T`` in the backward pass) is ``EditConfig.bat
 of :data:`COMPOSITES` (or ``"FWD/BWD"``: one kind for each pass; ``"csr"`` on both, cuSPARSE with a
 precomputed transpose, is the reference). Every kind is built once per batch
 and then runs without a host sync and with shapes fixed, so a step can be recorded as a CUDA graph.
-The ``fused`` kind builds no matrix per batch: one kernel reads the view's own entries for the
-step's pixels and gives the loss and its gradient at once (:class:`FusedSets`).
+The fused kinds build no matrix per batch: one kernel reads the view's own entries for the step's
+pixels and gives the loss, and the gradient is gathered per Gaussian over the entries sorted by
+Gaussian once per edit (``fused``) or scattered by the same kernel (``fused_atomics``)
+(:class:`FusedSets`).
 """
 
 from __future__ import annotations
