@@ -48,7 +48,7 @@ def loss_shares(name: str, near_shares: List[float], size: tuple, progress=None)
     """Per object label of scene ``name`` and per ``near_share``: its ``keep`` and ``turn`` shares of the
     edit's loss on the evaluation set's edit view (module docstring); with the view and its pixel counts."""
     from virgi_ns.bench.evalset import SYNTHETIC_SIZE, edit_view
-    from virgi_ns.bench.synthetic import BACKDROP, FLOOR, SCENES, gaussians_of, scene_cameras, shaded_colours
+    from virgi_ns.bench.synthetic import BACKDROP, FLOOR, SCENES, gaussians_of, render_scene, scene_cameras
     from virgi_ns.bench.synthetic import surface_points
     from virgi_ns.edit.engine import EditConfig
     from virgi_ns.edit.pixels import _group_weights, near_changed
@@ -62,26 +62,18 @@ def loss_shares(name: str, near_shares: List[float], size: tuple, progress=None)
     pts = surface_points(spec, spacing)
     g = gaussians_of(pts, spacing)
     cams = scene_cameras(spec, views, width, height)
-    light = torch.tensor(spec.light, dtype=torch.float32)
     names = sorted(set(pts.labels) - {FLOOR, BACKDROP})
     label_of = {lab: i for i, lab in enumerate(names)}
     one_hot = torch.zeros(len(pts.labels), len(names))
     for k, lab in enumerate(pts.labels):
         if lab in label_of:
             one_hot[k, label_of[lab]] = 1.0
+    photos = render_scene(spec, pts, g, cams, backend="reference", progress=progress).images
     train = [i for i in range(views) if i % 8 != 0]  # nerfstudio's interval split: every 8th held out
-    photos, contribs = [], []
-    for n, i in enumerate(train):
-        cam = cams.index(i)
-        c = rasterize(g.means, g.quats, torch.exp(g.scales), torch.sigmoid(g.opacities), cam,
-                      Request.whole_images(cam), backend="reference")
-        colours = shaded_colours(pts, pts.albedo.float(), light, cam.camera_centers(), c.pair_view, c.pair_gaussian)
-        photos.append(composite(colours, c, 0.0)[0].clamp(0, 1))
-        contribs.append(c)
-        if progress is not None:
-            progress(n + 1, len(train))
-    k = edit_view(photos, spec.rule)
-    photo, c = photos[k], contribs[k]
+    view = train[edit_view([photos[i] for i in train], spec.rule)]
+    photo, cam = photos[view], cams.index(view)
+    c = rasterize(g.means, g.quats, torch.exp(g.scales), torch.sigmoid(g.opacities), cam, Request.whole_images(cam),
+                  backend="reference")
     cfg = EditConfig()
     changed = (recolor(photo, spec.rule)[0] - photo).abs().amax(-1) > cfg.unchanged_tol  # as the engine finds them
     share = composite(one_hot[c.pair_gaussian.long()], c, 0.0)[0].reshape(-1, len(names))  # [P, labels]
@@ -94,7 +86,7 @@ def loss_shares(name: str, near_shares: List[float], size: tuple, progress=None)
         turn = ((weight * flat)[:, None] * share).sum(0)
         rows[str(ns)] = {lab: {"keep": float(keep[j]), "turn": float(turn[j])} for j, lab in enumerate(names)}
     dominated = share >= 0.5
-    return {"edit_view": train[k], "target": spec.target, "pixels": int(flat.numel()), "changed": int(flat.sum()),
+    return {"edit_view": view, "target": spec.target, "pixels": int(flat.numel()), "changed": int(flat.sum()),
             "near_unchanged": int((near & ~flat).sum()),
             "dominated_pixels": {lab: int(dominated[:, j].sum()) for j, lab in enumerate(names)},
             "dominated_changed": {lab: int((dominated[:, j] & flat).sum()) for j, lab in enumerate(names)},
@@ -108,7 +100,7 @@ def main(args: Args) -> dict:
     res = {}
     with Progress(console=console, transient=True) as bar:
         for name in args.scenes:
-            task = bar.add_task(f"{name}: rendering the training photos", total=None)
+            task = bar.add_task(f"{name}: rendering the photos", total=None)
             res[name] = loss_shares(name, args.near_shares, args.size,
                                     lambda d, n, t=task: bar.update(t, completed=d, total=n))
             bar.remove_task(task)
