@@ -101,7 +101,7 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     scene = EvalScene("tiny", "tiny", BROAD.rule(), "every saturated pixel")
     args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1,
                            pictures=1, pick=True, dump_targets=True,
-                           pick_variants=["recolour=rule,recipe=joint,reference=click"],
+                           pick_variants=["recolour=rule,recipe=joint,reference=click", "seed=1"],
                            variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05", "other:steps=5",
                                      "tiny:recipe=staged,seg_samples=512,seg_steps=20", "steps=15,source=render",
                                      "steps=15,source=render+original,changed_target=edited"])
@@ -176,6 +176,11 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     bench_edit.print_tables(rows, "cpu")
     _check_pick(rows, pipeline, scene.rule, args.out / "tiny_pick.png")
     assert "pick" not in rows[1]  # the pick is measured once, beside the engine defaults
+    # seed=1: the same click and selection, fitted from another start and other pixel sets
+    again = rows[0]["pick_variants"]["seed=1"]
+    assert (again["seed"], rows[0]["pick"]["seed"]) == (1, 0)
+    assert (again["pixel"], again["selected"]) == (rows[0]["pick"]["pixel"], rows[0]["pick"]["selected"])
+    assert again["propagation_psnr"] != rows[0]["pick"]["propagation_psnr"]
     # a refused pick is a failed row with its reason
     failed = {**rows[0], "pick": {"error": "no pixel to click", "rule_propagation_psnr": 30.0, "pass": False}}
     w = bench_edit.worst_case([rows[0], failed])
@@ -297,7 +302,7 @@ def _check_pick(rows, pipeline, rule, picture_png):
     from virgi_ns.edit.recolor import recolor
 
     pv = rows[0]["pick_variants"]
-    assert list(pv) == ["recolour=rule,recipe=joint,reference=click"]
+    assert list(pv) == ["recolour=rule,recipe=joint,reference=click", "seed=1"]
     ruled = pv["recolour=rule,recipe=joint,reference=click"]
     assert (ruled["recolour"], ruled["recipe"], ruled["reference"]) == ("rule", "joint", "click")
     assert ruled["pixel"] == p["pixel"] and ruled["selected"] == p["selected"]
@@ -342,7 +347,8 @@ def test_pick_variants_name_known_options_only():
     from virgi_ns.bench.pick import parse_pick_variant
 
     assert parse_pick_variant("contiguous=false,recipe=joint") == {"contiguous": "false", "recipe": "joint"}
-    for bad in ("contiguous=no", "connected=false", "recipe=paper"):
+    assert parse_pick_variant("seed=2") == {"seed": "2"}
+    for bad in ("contiguous=no", "connected=false", "recipe=paper", "seed=x"):
         with pytest.raises(InputError, match="is not one of"):
             parse_pick_variant(bad)
 

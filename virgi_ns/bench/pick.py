@@ -37,6 +37,7 @@ frame, and the GUI's refresh of the edit list.
 
 from __future__ import annotations
 
+import dataclasses
 import statistics
 import tempfile
 import time
@@ -129,12 +130,13 @@ def pick_passes(p: dict) -> bool:
 
 
 PICK_OPTIONS = {"criterion": None, "reference": ("median", "click"), "recipe": ("joint", "staged"),
-                "recolour": ("pick", "rule"), "contiguous": ("true", "false")}
+                "recolour": ("pick", "rule"), "contiguous": ("true", "false"), "seed": ("0", "1", "2", "3", "4")}
 """What a pick variant (``bench/edit.py --pick-variants``) may set, each apart: the selection criterion,
 the recolour's reference pixel, the edit recipe, ``recolour=rule`` (a diagnostic: the rule itself
 recolours the pick's selection of the render, so the pick differs from the rule edit only in its
-selection and its recipe), and ``contiguous=false`` (the selection takes every pixel of the view that
-passes its colour tests, connected to the click or not)."""
+selection and its recipe), ``contiguous=false`` (the selection takes every pixel of the view that
+passes its colour tests, connected to the click or not), and ``seed`` (the fit's ``EditConfig.seed``:
+the segmentation head's start and the pixel sets, to see how far a refit of the same pick moves)."""
 
 
 def parse_pick_variant(text: str) -> dict:
@@ -155,11 +157,11 @@ def parse_pick_variant(text: str) -> dict:
 
 def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, criterion: Optional[str] = None,
                  reference: Optional[str] = None, recipe: Optional[str] = None, recolour: str = "pick",
-                 contiguous: str = "true") -> tuple[dict, list, Tensor]:
+                 contiguous: str = "true", seed: str = "0") -> tuple[dict, list, Tensor]:
     """One click on ``b``'s edit view by the module docstring's rule, measured as the rule edit is
     (``rule_propagation``: its propagation PSNR on the same run), its selection grown by ``criterion``
     (default: the product's, :data:`~virgi_ns.edit.pick.DEFAULT_CRITERION`); ``reference``, ``recipe``,
-    ``recolour`` and ``contiguous``: :data:`PICK_OPTIONS` (defaults: the product's). Returns (figures,
+    ``recolour``, ``contiguous`` and ``seed``: :data:`PICK_OPTIONS` (defaults: the product's). Returns (figures,
     the held-out pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection |
     rule mask)."""
     from virgi_ns.edit.pick import (DEFAULT_CRITERION, DEFAULT_REFERENCE, MIN_COVER, PICK_RECIPE, PickSession,
@@ -174,7 +176,7 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, c
     stack.to(b.scene.device)
     _sync(b.scene.device)
     t0 = time.perf_counter()
-    cfg = pick_config(b.scene.device, recipe or PICK_RECIPE)
+    cfg = dataclasses.replace(pick_config(b.scene.device, recipe or PICK_RECIPE), seed=int(seed))
     reference = reference or DEFAULT_REFERENCE
     connected = contiguous == "true"
     session = PickSession(b.scene, b.edit_camera, x, y, stack, cfg, criterion=criterion or DEFAULT_CRITERION,
@@ -196,7 +198,7 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, c
     m = res["mean"]
     out = {"pixel": [x, y], "depth": depth, "colour": session.settings["colour"], "mode": MODE,
            "criterion": session.criterion, "reference": reference, "recipe": cfg.recipe, "recolour": recolour,
-           "contiguous": connected,
+           "contiguous": connected, "seed": int(seed),
            "tolerance": TOLERANCE, "selected": session.settings["selected"],
            "iou": int((sel & mask).sum()) / union if union else float("nan"),
            "propagation_psnr": m["propagation_psnr"], "miss_psnr": m["miss_psnr"], "leak_psnr": m["leak_psnr"],
