@@ -347,8 +347,8 @@ def test_pick_variants_name_known_options_only():
     from virgi_ns.bench.pick import parse_pick_variant
 
     assert parse_pick_variant("contiguous=false,recipe=joint") == {"contiguous": "false", "recipe": "joint"}
-    assert parse_pick_variant("seed=2") == {"seed": "2"}
-    for bad in ("contiguous=no", "connected=false", "recipe=paper", "seed=x"):
+    assert parse_pick_variant("seed=2,mode=shift") == {"seed": "2", "mode": "shift"}
+    for bad in ("contiguous=no", "connected=false", "recipe=paper", "seed=x", "mode=tint"):
         with pytest.raises(InputError, match="is not one of"):
             parse_pick_variant(bad)
 

@@ -48,7 +48,7 @@ def world():
         k = len(ys) // 2
         pixel = (int(xs[k]), int(ys[k]))  # a pixel well on the blue sphere
         sessions = {}
-        for mode in ("hue", "colour"):
+        for mode in ("hue", "shift", "colour"):
             s = PickSession(S.scene, cams.index(EDIT_VIEW), *pixel, EditStack(S.scene.fingerprint()),
                             pick_config("cpu"))
             sessions[mode] = (s, s.update(parse_colour(RED), 0.2, mode))
@@ -96,10 +96,11 @@ def test_the_selection_is_the_clicked_object_whole(world):
     assert bool((blue[by_features] > 0.5).all()) and float(by_features[inner].float().mean()) > 0.97
 
 
+@pytest.mark.parametrize("mode", ("hue", "shift"))
 @pytest.mark.parametrize("v", HELD_OUT)
-def test_hue_pick_recolours_the_object_in_held_out_views_and_leaves_the_others(world, v):
+def test_hue_pick_recolours_the_object_in_held_out_views_and_leaves_the_others(world, v, mode):
     cov, before = world["cover"][v], world["before"][v]
-    after = _after(world, "hue", v)
+    after = _after(world, mode, v)
     blue = cov[..., es.BLUE] > 0.9
     others = (cov[..., es.GREEN] + cov[..., es.YELLOW] > 0.99)
     assert int(blue.sum()) > 50 and int(others.sum()) > 50
@@ -137,10 +138,11 @@ def test_a_click_on_the_highlight_recolours_as_a_click_on_the_surface(world):
     assert float(rgb_to_hsv(on_highlight)[..., 1][mask].median()) < 0.97  # not the whole sphere at full saturation
 
 
+@pytest.mark.parametrize("mode", ("hue", "shift"))
 @pytest.mark.parametrize("v", (EDIT_VIEW,) + HELD_OUT)
-def test_hue_pick_keeps_the_highlight_and_the_brightness(world, v):
+def test_hue_pick_keeps_the_highlight_and_the_brightness(world, v, mode):
     cov, before = world["cover"][v], world["before"][v]
-    after = _after(world, "hue", v)
+    after = _after(world, mode, v)
     on_blue = cov[..., es.BLUE] > 0.9
     wb = torch.where(on_blue, before.min(-1).values, torch.zeros(()))
     wa = torch.where(on_blue, after.min(-1).values, torch.zeros(()))
@@ -213,6 +215,57 @@ def test_recolour_rules_against_colorsys():
     want[m] = 1 / (1 + np.exp(-(logit(shaded) + logit(want[m]) - logit(d[m]))))
     got = recolour(rgb, mask, colour, "colour", diffuse).double().numpy()
     np.testing.assert_allclose(got, want, atol=1e-4)
+
+
+def test_shift_turns_every_hue_by_the_click_s_angle_against_colorsys():
+    """``shift``: the clicked pixel takes the colour's hue and saturation, every other selected pixel
+    turns its hue by the same angle and keeps its saturation ratio and value; without a click the
+    reference hue is the selection's saturation-weighted circular mean."""
+    g = torch.Generator().manual_seed(1)
+    rgb = torch.rand(6, 7, 3, generator=g) * 0.8 + 0.1
+    mask = torch.rand(6, 7, generator=g) > 0.4
+    colour = (0.2, 0.4, 0.7)
+    th, ts, tv = colorsys.rgb_to_hsv(*colour)
+    hsv = _hsv(rgb)
+    m = mask.numpy()
+    cy, cx = (int(v[0]) for v in np.nonzero(m))
+    h_at, s_at = hsv[cy, cx, 0], hsv[cy, cx, 1]
+    want = rgb.double().numpy().copy()
+    for y, x in zip(*np.nonzero(m)):
+        h, s, v = hsv[y, x]
+        want[y, x] = colorsys.hsv_to_rgb(((h + 360.0 * th - h_at) % 360.0) / 360.0, min(1.0, s * ts / s_at), v)
+    got = recolour(rgb, mask, colour, "shift", at=(cx, cy))
+    np.testing.assert_allclose(got.double().numpy(), want, atol=2e-5)
+    assert np.allclose(colorsys.rgb_to_hsv(*got[cy, cx].tolist())[:2], (th, ts), atol=1e-4)
+    # the selection's hues stay apart by what they were apart
+    gh = _hsv(got)
+    turned = (gh[..., 0][m] - hsv[..., 0][m]) % 360.0
+    assert np.allclose(np.minimum(turned, 360.0 - turned), min((360.0 * th - h_at) % 360.0, (h_at - 360.0 * th) % 360.0),
+                       atol=0.05)
+    # without a click: reds on both sides of 0 degrees have a typical hue of 0, not 180
+    reds = torch.tensor([[[0.9, 0.1, 0.25], [0.9, 0.25, 0.1]]])  # hues about 349 and 11 degrees, same saturation
+    both = torch.ones(1, 2, dtype=torch.bool)
+    out = _hsv(recolour(reds, both, (0.1, 0.9, 0.1), "shift"))[0, :, 0]  # green: 120 degrees
+    before = _hsv(reds)[0, :, 0]
+    mean = np.degrees(np.arctan2(np.sin(np.radians(before)).sum(), np.cos(np.radians(before)).sum())) % 360.0
+    np.testing.assert_allclose(out, (before + 120.0 - mean) % 360.0, atol=1e-3)
+    assert out[0] < 120.0 < out[1]
+
+
+def test_shift_with_the_rule_s_colour_at_the_click_is_the_rule_s_recolour():
+    """What the evaluation set's pick asks (the rule's colour at the clicked pixel): on the rule's own
+    pixels, ``shift`` turns every hue by the rule's shift and keeps saturation and value, as the rule does."""
+    from virgi_ns.edit.recolor import RecolorRule, recolor, rule_mask
+
+    g = torch.Generator().manual_seed(2)
+    rgb = torch.rand(8, 9, 3, generator=g) * 0.85 + 0.1
+    rule = RecolorRule(0.0, 360.0, 135.0, 0.2, 0.1)
+    mask = rule_mask(rgb, rule)
+    cy, cx = (int(v[0]) for v in torch.nonzero(mask, as_tuple=True))
+    ruled = recolor(rgb, rule)[0]
+    got = recolour(rgb, mask, tuple(ruled[cy, cx].tolist()), "shift", at=(cx, cy))
+    torch.testing.assert_close(got, ruled, atol=2e-5, rtol=0)
+    assert float((recolour(rgb, mask, tuple(ruled[cy, cx].tolist()), "hue", at=(cx, cy)) - ruled).abs().max()) > 0.1
 
 
 def test_connected_to_follows_diagonals_and_stops_at_gaps():

@@ -130,13 +130,15 @@ def pick_passes(p: dict) -> bool:
 
 
 PICK_OPTIONS = {"criterion": None, "reference": ("median", "click"), "recipe": ("joint", "staged"),
-                "recolour": ("pick", "rule"), "contiguous": ("true", "false"), "seed": ("0", "1", "2", "3", "4")}
+                "recolour": ("pick", "rule"), "contiguous": ("true", "false"), "seed": ("0", "1", "2", "3", "4"),
+                "mode": ("hue", "shift", "colour")}
 """What a pick variant (``bench/edit.py --pick-variants``) may set, each apart: the selection criterion,
 the recolour's reference pixel, the edit recipe, ``recolour=rule`` (a diagnostic: the rule itself
 recolours the pick's selection of the render, so the pick differs from the rule edit only in its
 selection and its recipe), ``contiguous=false`` (the selection takes every pixel of the view that
-passes its colour tests, connected to the click or not), and ``seed`` (the fit's ``EditConfig.seed``:
-the segmentation head's start and the pixel sets, to see how far a refit of the same pick moves)."""
+passes its colour tests, connected to the click or not), ``seed`` (the fit's ``EditConfig.seed``:
+the segmentation head's start and the pixel sets, to see how far a refit of the same pick moves), and
+``mode`` (the recolour mode, :data:`virgi_ns.edit.pick.MODES`)."""
 
 
 def parse_pick_variant(text: str) -> dict:
@@ -157,11 +159,11 @@ def parse_pick_variant(text: str) -> dict:
 
 def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, criterion: Optional[str] = None,
                  reference: Optional[str] = None, recipe: Optional[str] = None, recolour: str = "pick",
-                 contiguous: str = "true", seed: str = "0") -> tuple[dict, list, Tensor]:
+                 contiguous: str = "true", seed: str = "0", mode: str = MODE) -> tuple[dict, list, Tensor]:
     """One click on ``b``'s edit view by the module docstring's rule, measured as the rule edit is
     (``rule_propagation``: its propagation PSNR on the same run), its selection grown by ``criterion``
     (default: the product's, :data:`~virgi_ns.edit.pick.DEFAULT_CRITERION`); ``reference``, ``recipe``,
-    ``recolour``, ``contiguous`` and ``seed``: :data:`PICK_OPTIONS` (defaults: the product's). Returns (figures,
+    ``recolour``, ``contiguous``, ``seed`` and ``mode``: :data:`PICK_OPTIONS` (defaults: the product's). Returns (figures,
     the held-out pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection |
     rule mask)."""
     from virgi_ns.edit.pick import (DEFAULT_CRITERION, DEFAULT_REFERENCE, MIN_COVER, PICK_RECIPE, PickSession,
@@ -188,7 +190,7 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, c
         session.engine.retarget(session.edited, session.mask)
         edit = session.refine(cfg.steps)
     else:
-        edit = session.update(colour, TOLERANCE, MODE, contiguous=connected)
+        edit = session.update(colour, TOLERANCE, mode, contiguous=connected)
     _sync(b.scene.device)
     fit_s = time.perf_counter() - t0
     commit(stack, session, edit)
@@ -196,7 +198,7 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, c
     sel = session.mask
     union = int((sel | mask).sum())
     m = res["mean"]
-    out = {"pixel": [x, y], "depth": depth, "colour": session.settings["colour"], "mode": MODE,
+    out = {"pixel": [x, y], "depth": depth, "colour": session.settings["colour"], "mode": mode,
            "criterion": session.criterion, "reference": reference, "recipe": cfg.recipe, "recolour": recolour,
            "contiguous": connected, "seed": int(seed),
            "tolerance": TOLERANCE, "selected": session.settings["selected"],

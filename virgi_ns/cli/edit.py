@@ -1,7 +1,7 @@
 """``virgi-edit``: recolour a trained VIRGi run from one edited image, and manage its edit stack.
 
     virgi-edit apply --load-config CFG --image EDITED.png (--camera-index I | --image-name NAME | --camera-json CAM.json)
-    virgi-edit pick --load-config CFG (--camera-index I | ...) --pixel X Y --colour '#RRGGBB' [--tolerance T] [--mode hue|colour]
+    virgi-edit pick --load-config CFG (--camera-index I | ...) --pixel X Y --colour '#RRGGBB' [--tolerance T] [--mode hue|shift|colour]
     virgi-edit list --load-config CFG
     virgi-edit undo --load-config CFG
     virgi-edit reset --load-config CFG
@@ -115,9 +115,11 @@ class Pick:
     """How the selection grows from the pixel: ``chroma_steps`` (the default) by the diffuse colour's hue
     and gradual chroma; ``colour_features`` by the angles of the diffuse colour and of the colour
     field's features (the previous default)."""
-    mode: Literal["hue", "colour"] = "hue"
+    mode: Literal["hue", "shift", "colour"] = "hue"
     """``hue``: new hue and saturation, each pixel keeps its value (shading and highlights stay);
-    ``colour``: the surface takes the colour itself, shaded as it was, its highlights on it."""
+    ``shift``: the same, but every pixel's hue turns by the angle that takes the reference pixel's to
+    the colour's, so an object of several hues keeps them apart; ``colour``: the surface takes the
+    colour itself, shaded as it was, its highlights on it."""
     reference: Literal["click", "median"] = "click"
     """Which selected pixel takes exactly the colour's saturation (hue) or value (colour), the others
     keeping their ratio to it: the clicked one (the default), or the selection's median one."""

@@ -18,7 +18,10 @@ The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain to
   (bench/RESULTS.md, "Pick");
 - :func:`recolour`: the edited image: ``hue`` gives the selection the colour's hue and saturation
   and keeps each pixel's value (shading and highlights stay: saturation is scaled so a reference
-  pixel gets the colour's, and a white highlight stays near white); ``colour`` makes the colour the
+  pixel gets the colour's, and a white highlight stays near white); ``shift`` does the same but turns
+  each pixel's hue by the angle that takes the reference pixel's hue to the colour's, so an object
+  of several hues (a gradient, a print, warm and cool shading) keeps them apart instead of taking one;
+  ``colour`` makes the colour the
   surface's own: the diffuse render becomes ``colour x value / reference value`` (its shading
   kept, its brightness that of the colour) and each pixel keeps the render's view-dependent part
   over its diffuse colour (a logit offset), so highlights sit on the new colour as they would on a
@@ -55,7 +58,7 @@ from virgi_ns.edit.stack import Edit, EditSource, EditStack
 from virgi_ns.errors import InputError, atomic_path
 from virgi_ns.raster import Cameras, composite
 
-MODES = ("hue", "colour")
+MODES = ("hue", "shift", "colour")
 MIN_COVER = 0.5
 """A pixel whose accumulation is below this shows mostly background: it is never selected, and a
 click there picks nothing."""
@@ -86,7 +89,7 @@ def check_tolerance(tolerance: float) -> float:
 
 def check_mode(mode: str) -> str:
     if mode not in MODES:
-        raise InputError(f"the recolour mode must be {' or '.join(MODES)}, got {mode!r}")
+        raise InputError(f"the recolour mode must be {', '.join(MODES[:-1])} or {MODES[-1]}, got {mode!r}")
     return mode
 
 
@@ -245,6 +248,15 @@ def _typical(values: Tensor, mask: Tensor) -> float:
     return float(torch.quantile(values[mask].float(), 0.5))
 
 
+def _typical_hue(hsv: Tensor, mask: Tensor) -> float:
+    """The selection's typical hue in degrees: the direction of its pixels' hues weighed by their
+    saturation (a circular mean: reds on both sides of 0 degrees average to red, and grey pixels,
+    whose hue means nothing, weigh nothing)."""
+    h, s = hsv[..., 0][mask].double(), hsv[..., 1][mask].double()
+    rad = torch.deg2rad(h)
+    return float(torch.rad2deg(torch.atan2((s * torch.sin(rad)).sum(), (s * torch.cos(rad)).sum())) % 360.0)
+
+
 def _logit(x: Tensor) -> Tensor:
     x = x.clamp(1.0 / 255.0, 254.0 / 255.0)
     return torch.log(x) - torch.log1p(-x)
@@ -261,8 +273,8 @@ saturation on its median tone, and its deep tones more than the colour has."""
 
 HIGHLIGHT_SATURATION_SHARE = 0.5
 """A pixel whose render keeps less than this share of its diffuse colour's saturation is mostly
-highlight: in ``hue`` mode a click there takes its reference saturation from the selection's median
-pixel instead (scaling the selection by a highlight's near-zero saturation would saturate it all)."""
+highlight: in ``hue`` and ``shift`` mode a click there takes its reference saturation (and hue) from the
+selection instead (scaling the selection by a highlight's near-zero saturation would saturate it all)."""
 
 
 def _on_highlight(hsv: Tensor, diffuse: Tensor, at: tuple[int, int]) -> bool:
@@ -279,18 +291,25 @@ def recolour(rgb: Tensor, mask: Tensor, colour: tuple[float, float, float], mode
     ``mode`` (see the module docstring); other pixels unchanged. ``diffuse`` [H,W,3]: the view's
     diffuse render, which ``colour`` shades and puts the render's view-dependent part back on
     (without it, ``colour`` shades ``rgb`` and adds nothing). ``at`` (x, y): the pixel whose saturation
-    (hue) or value (colour) becomes the colour's, the others scaled alike; default the selection's
-    typical (median) pixel, which also stands in for an ``at`` on a highlight in ``hue`` mode."""
+    (hue) or value (colour) becomes the colour's, the others scaled alike (``shift``: its hue too, the
+    others turned by the same angle); default the selection's typical pixel (the median saturation or
+    value, the saturation-weighted mean hue), which also stands in for an ``at`` on a highlight."""
     check_mode(mode)
     target = torch.tensor(colour, dtype=rgb.dtype, device=rgb.device)
     ref = (lambda v: _typical(v, mask)) if at is None else (lambda v: float(v[at[1], at[0]]))  # noqa: E731
-    if mode == "hue":
+    if mode in ("hue", "shift"):
         hsv = rgb_to_hsv(rgb.clamp(0.0, 1.0))
         t_hsv = rgb_to_hsv(target)
-        if at is not None and diffuse is not None and _on_highlight(hsv, diffuse, at):
+        typical = at is None or (diffuse is not None and _on_highlight(hsv, diffuse, at))
+        if typical:
             ref = lambda v: _typical(v, mask)  # noqa: E731  (a highlight's saturation is not the surface's)
         sat = (hsv[..., 1] * float(t_hsv[1]) / max(ref(hsv[..., 1]), 0.05)).clamp(0.0, 1.0)
-        new = hsv_to_rgb(torch.stack([torch.full_like(sat, float(t_hsv[0])), sat, hsv[..., 2]], -1))
+        if mode == "hue":
+            hue = torch.full_like(sat, float(t_hsv[0]))
+        else:
+            turn = float(t_hsv[0]) - (_typical_hue(hsv, mask) if typical else float(hsv[at[1], at[0], 0]))
+            hue = torch.remainder(hsv[..., 0] + turn, 360.0)
+        new = hsv_to_rgb(torch.stack([hue, sat, hsv[..., 2]], -1))
     else:
         base = (rgb if diffuse is None else diffuse).clamp(0.0, 1.0)
         value = base.amax(-1, keepdim=True)

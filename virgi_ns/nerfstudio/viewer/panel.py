@@ -113,10 +113,11 @@ class VirgiPanel(PanelActions, PickActions, ViewerElement[None], ViewerControl):
         self.contiguous = ViewerCheckbox("Contiguous", True, cb_hook=lambda e: self._on_pick_params(),
                                          hint="Select only what is connected to the clicked pixel; untick to take "
                                               "every pixel of the view that passes the same colour tests")
-        self.pick_recolour = ViewerDropdown("Recolour mode", "hue", ["hue", "colour"],
+        self.pick_recolour = ViewerDropdown("Recolour mode", "hue", ["hue", "shift", "colour"],
                                             cb_hook=lambda e: self._on_pick_params(),
-                                            hint="hue: keep shading and highlights; colour: the surface takes the "
-                                                 "colour, shaded, highlights on it")
+                                            hint="hue: keep shading and highlights; shift: the same, each pixel's "
+                                                 "hue turned alike, so several hues stay apart; colour: the surface "
+                                                 "takes the colour, shaded, highlights on it")
 
     # ----------------------------------------------------------------- nerfstudio hooks
     def _create_gui_handle(self, viser_server: "ViserServer") -> None:
