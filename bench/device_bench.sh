@@ -6,7 +6,7 @@
 # tables, JSON, pictures and logs are packed into $OUT. Environment knobs: STEPS, COLOUR_STEPS,
 # DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE, EDIT_SCENES (rows of the evaluation set), SEED,
 # EDIT_TIMEOUT, EDIT_COLOUR_STEPS, EDIT_ARGS (more bench/edit.py flags, e.g. --variants), TRAIN_ARGS (more bench/train.py
-# flags), TRAIN_TIMEOUT.
+# flags), TRAIN_TIMEOUT. With several GPUs the edit rows run side by side, one process per GPU (a log each).
 set -o pipefail
 export TORCH_EXTENSIONS_DIR=/tmp/torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
 export PYTHONPATH=/tmp/site:$PWD NERFSTUDIO_METHOD_CONFIGS="virgi=method_configs.virgi:virgi_method"
@@ -52,11 +52,31 @@ fi
 CFG=$RUNS/train/runs/beercan-virgi/virgi/run/config.yml
 if stage edit; then
   # the evaluation set (bench/edit.py): EDIT_SCENES picks rows (default all), SEED a run set, EDIT_ARGS more flags
+  # with several GPUs the rows run side by side, one process per GPU (the rows of one capture together,
+  # virgi_ns.bench.evalset.split_for_devices), and their results are merged into one table
   el "edit bench: ${EDIT_SCENES:-all scenes}, seed ${SEED:-42}"
-  rm -f $RUNS/edit/*.npz  # an earlier call's --dump-targets arrays must not travel with this one's
-  timeout ${EDIT_TIMEOUT:-560} python3 bench/edit.py --data $PWD/.data ${EDIT_SCENES:+--scenes $EDIT_SCENES} \
-    --train-out $RUNS/edit_runs --seed ${SEED:-42} --geometry-steps $STEPS --colour-steps ${EDIT_COLOUR_STEPS:-1000} \
-    --out $RUNS/edit ${EDIT_ARGS:-} > $OUT/edit.log 2>&1; el "edit rc=$?"
+  rm -rf $RUNS/edit $RUNS/edit_gpu*  # an earlier call's results (and --dump-targets arrays) must not travel with this one's
+  NG=$(nvidia-smi -L | wc -l)
+  edit_rows() {  # GPU, output folder, rows...
+    local gpu=$1 out=$2; shift 2
+    CUDA_VISIBLE_DEVICES=$gpu OMP_NUM_THREADS=$(( $(nproc) / NG )) timeout ${EDIT_TIMEOUT:-560} python3 bench/edit.py \
+      --data $PWD/.data --scenes "$@" --train-out $RUNS/edit_runs --seed ${SEED:-42} --geometry-steps $STEPS \
+      --colour-steps ${EDIT_COLOUR_STEPS:-1000} --out $out ${EDIT_ARGS:-}
+  }
+  if [ "$NG" -gt 1 ]; then
+    i=0
+    while read -r rows; do
+      edit_rows $i $RUNS/edit_gpu$i $rows > $OUT/edit_gpu$i.log 2>&1 &
+      i=$((i + 1))
+    done < <(python3 -c "import sys; from virgi_ns.bench.evalset import split_for_devices as s
+for p in s(sys.argv[2:], int(sys.argv[1])): print(' '.join(p))" $NG ${EDIT_SCENES:-})
+    wait; el "edit on $i GPUs"
+    python3 bench/edit.py --merge $RUNS/edit_gpu*/results.json --out $RUNS/edit > $OUT/edit.log 2>&1; el "merge rc=$?"
+    mkdir -p $RUNS/edit; cp $RUNS/edit_gpu*/*.png $RUNS/edit_gpu*/*.npz $RUNS/edit/ 2>/dev/null
+  else
+    edit_rows 0 $RUNS/edit ${EDIT_SCENES:-$(python3 -c "from virgi_ns.bench.evalset import EVAL_SET; print(' '.join(s.name for s in EVAL_SET))")} \
+      > $OUT/edit.log 2>&1; el "edit rc=$?"
+  fi
   tail -n 60 $OUT/edit.log
   (cd $RUNS/edit && tar czf $OUT/edit_results.tgz *.json *.png) 2>/dev/null
   # --dump-targets arrays, apart (they would take the results archive over the size that comes back)

@@ -508,3 +508,25 @@ def test_the_render_cache_reads_the_latency_hosts_gaussians(bench_edit):
     g = RenderCache().geometry(host)
     assert torch.equal(g.means, host.means) and torch.allclose(g.scales, torch.exp(host.scales))
     assert torch.allclose(g.opacities, torch.sigmoid(host.opacities).reshape(-1))
+
+
+def test_rows_split_over_gpus_keep_each_capture_together_and_balance_the_work():
+    from virgi_ns.bench.evalset import EVAL_SET, REAL_CAPTURE_COST, split_for_devices
+
+    order = [s.name for s in EVAL_SET]
+    capture = {s.name: s.capture for s in EVAL_SET}
+    cost = lambda rows: sum(REAL_CAPTURE_COST if not c.startswith("synthetic/") else 1  # noqa: E731
+                            for c in {capture[r] for r in rows})
+    for parts in (1, 2, 3, 4, 20):
+        lists = split_for_devices([], parts)
+        assert sorted(r for rows in lists for r in rows) == sorted(order)  # every row once
+        assert 1 <= len(lists) <= parts and all(lists)
+        for rows in lists:
+            assert rows == sorted(rows, key=order.index)
+        owner = {capture[r]: i for i, rows in enumerate(lists) for r in rows}
+        assert all(owner[capture[r]] == i for i, rows in enumerate(lists) for r in rows)  # one list per capture
+    loads = sorted(cost(rows) for rows in split_for_devices([], 2))
+    assert loads[1] - loads[0] <= REAL_CAPTURE_COST  # no better split moves a whole capture
+    assert split_for_devices(["syn_duck_beak", "beercan_yellow"], 2) == [["beercan_yellow"], ["syn_duck_beak"]]
+    with pytest.raises(InputError, match="unknown evaluation scene"):
+        split_for_devices(["nope"], 2)

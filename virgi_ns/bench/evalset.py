@@ -84,6 +84,29 @@ def find(names: list[str]) -> list[EvalScene]:
 
 SYNTHETIC_SIZE = (SYNTHETIC_VIEWS, SYNTHETIC_WIDTH, SYNTHETIC_HEIGHT, SYNTHETIC_SPACING)
 
+REAL_CAPTURE_COST = 8
+"""How many synthetic rows one real capture's row costs on a GPU (it trains a geometry stage too):
+the weight :func:`split_for_devices` balances by."""
+
+
+def split_for_devices(names: list[str], parts: int) -> list[list[str]]:
+    """The rows ``names`` (all when empty) as at most ``parts`` lists to run side by side, one per GPU:
+    the rows of one capture in one list (its run is trained once), a real capture weighing
+    :data:`REAL_CAPTURE_COST` synthetic rows, each capture (heaviest first) onto the lightest list;
+    within a list the set's order."""
+    rows = find(names)
+    captures: dict[str, list[EvalScene]] = {}
+    for r in rows:
+        captures.setdefault(r.capture, []).append(r)
+    load = [0] * max(1, parts)
+    where: dict[str, int] = {}
+    for cap in sorted(captures, key=lambda c: -(1 if captures[c][0].synthetic else REAL_CAPTURE_COST)):
+        i = min(range(len(load)), key=lambda k: load[k])
+        where[cap] = i
+        load[i] += 1 if captures[cap][0].synthetic else REAL_CAPTURE_COST
+    out = [[r.name for r in rows if where[r.capture] == i] for i in range(len(load))]
+    return [o for o in out if o]
+
 
 def capture_folder(scene: EvalScene, data: Path, synthetic_root: Path, device: str = "cpu", console=None,
                    size: tuple = SYNTHETIC_SIZE) -> Path:
@@ -134,5 +157,5 @@ def edit_view(photos: list, rule: RecolorRule) -> int:
     return max(range(len(counts)), key=lambda i: (counts[i], -i))
 
 
-__all__ = ["EvalScene", "EVAL_SET", "REAL", "GEOMETRY_STEPS", "COLOUR_STEPS", "find", "capture_folder",
+__all__ = ["EvalScene", "EVAL_SET", "REAL", "GEOMETRY_STEPS", "COLOUR_STEPS", "find", "split_for_devices", "capture_folder",
            "dataparser_config", "edit_view"]
