@@ -173,14 +173,18 @@ def test_colour_pick_makes_the_colour_the_surface_s_and_keeps_the_highlight(worl
         assert float(wa.max()) > 0.7, (v, float(wa.max()))
 
 
-def test_recolour_rules_against_colorsys():
-    g = torch.Generator().manual_seed(0)
+def _random_selection(seed: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, np.ndarray]:
+    """A small random image, a random selection of it, its HSV by colorsys and the selection as numpy."""
+    g = torch.Generator().manual_seed(seed)
     rgb = torch.rand(6, 7, 3, generator=g) * 0.8 + 0.1
     mask = torch.rand(6, 7, generator=g) > 0.4
+    return rgb, mask, _hsv(rgb), mask.numpy()
+
+
+def test_recolour_rules_against_colorsys():
+    rgb, mask, hsv, m = _random_selection(0)
     colour = (0.2, 0.7, 0.4)
     th, ts, tv = colorsys.rgb_to_hsv(*colour)
-    hsv = _hsv(rgb)
-    m = mask.numpy()
     s_typ, v_typ = np.median(hsv[..., 1][m]), np.median(hsv[..., 2][m])
     want = rgb.double().numpy().copy()
     for y, x in zip(*np.nonzero(m)):
@@ -221,13 +225,9 @@ def test_shift_turns_every_hue_by_the_click_s_angle_against_colorsys():
     """``shift``: the clicked pixel takes the colour's hue and saturation, every other selected pixel
     turns its hue by the same angle and keeps its saturation ratio and value; without a click the
     reference hue is the selection's saturation-weighted circular mean."""
-    g = torch.Generator().manual_seed(1)
-    rgb = torch.rand(6, 7, 3, generator=g) * 0.8 + 0.1
-    mask = torch.rand(6, 7, generator=g) > 0.4
+    rgb, mask, hsv, m = _random_selection(1)
     colour = (0.2, 0.4, 0.7)
     th, ts, tv = colorsys.rgb_to_hsv(*colour)
-    hsv = _hsv(rgb)
-    m = mask.numpy()
     cy, cx = (int(v[0]) for v in np.nonzero(m))
     h_at, s_at = hsv[cy, cx, 0], hsv[cy, cx, 1]
     want = rgb.double().numpy().copy()
