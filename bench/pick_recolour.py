@@ -1,11 +1,11 @@
 """Benchmark: how far a pick's recolour is from the rule's, before any fit, for each recolour mode.
 
 A pick and the rule edit of the evaluation set differ in what they select, in how they recolour it, and
-in their fits. This script measures the recolour alone: on the training photo the rule recolours most (the bench's edit view), the rule's
-own pixels are recoloured as a pick would recolour them (the click the bench's pick makes, the rule's
-colour at that pixel, :func:`virgi_ns.edit.pick.recolour` in each mode) and compared with the rule's
-recolour of the same photo, over the whole view (the scale of the propagation PSNR) and over the rule's
-pixels. On a synthetic scene both are also compared with the truth: the photo of the really recoloured
+in their fits. This script measures the recolour alone: on the training photo the rule recolours most
+(the bench's edit view), the rule's own pixels are recoloured as a pick would recolour them (the click
+the bench's pick makes, the rule's colour at that pixel, :func:`virgi_ns.edit.pick.recolour` in each
+mode) and compared with the rule's recolour of the same photo, over the whole view (the scale of the
+propagation PSNR) and over the rule's pixels. On a synthetic scene both are also compared with the truth: the photo of the really recoloured
 scene, whose shading the rule does not always follow. Nothing is trained or fitted (CPU; a synthetic
 scene's photos take about a minute to render).
 
@@ -108,7 +108,6 @@ def main(args: Args) -> dict:
     rows = {}
     with Progress(console=console, transient=True) as bar:
         for scene in find(args.scenes):
-            truth = None
             if scene.synthetic:
                 task = bar.add_task(f"{scene.name}: rendering the photos", total=None)
                 photos, truths = synthetic_photos(scene.synthetic, args.size,
