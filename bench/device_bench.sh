@@ -56,7 +56,7 @@ if stage edit; then
   # virgi_ns.bench.evalset.split_for_devices), and their results are merged into one table
   el "edit bench: ${EDIT_SCENES:-all scenes}, seed ${SEED:-42}"
   rm -rf $RUNS/edit $RUNS/edit_gpu*  # an earlier call's results (and --dump-targets arrays) must not travel with this one's
-  NG=$(nvidia-smi -L | wc -l)
+  NG=$(nvidia-smi --query-gpu=index --format=csv,noheader 2>/dev/null | wc -l); [ "$NG" -ge 1 ] || NG=1
   edit_rows() {  # GPU, output folder, rows...
     local gpu=$1 out=$2; shift 2
     CUDA_VISIBLE_DEVICES=$gpu OMP_NUM_THREADS=$(( $(nproc) / NG )) timeout ${EDIT_TIMEOUT:-560} python3 bench/edit.py \
@@ -64,13 +64,17 @@ if stage edit; then
       --colour-steps ${EDIT_COLOUR_STEPS:-1000} --out $out ${EDIT_ARGS:-}
   }
   if [ "$NG" -gt 1 ]; then
-    i=0
+    # (--million and the pick latency then run in every process, beside the others: time them on one GPU)
+    i=0; pids=()
     while read -r rows; do
-      edit_rows $i $RUNS/edit_gpu$i $rows > $OUT/edit_gpu$i.log 2>&1 &
-      i=$((i + 1))
+      echo "GPU $i: $rows"
+      edit_rows $i $RUNS/edit_gpu$i $rows > $OUT/edit_gpu$i.log 2>&1 < /dev/null &
+      pids+=($!); i=$((i + 1))
     done < <(python3 -c "import sys; from virgi_ns.bench.evalset import split_for_devices as s
 for p in s(sys.argv[2:], int(sys.argv[1])): print(' '.join(p))" $NG ${EDIT_SCENES:-})
-    wait; el "edit on $i GPUs"
+    for g in "${!pids[@]}"; do  # a process cut short or failed is said, and its rows are missing below
+      wait ${pids[$g]}; el "edit GPU $g rc=$?"; [ -f $RUNS/edit_gpu$g/results.json ] || echo "GPU $g: no results"
+    done
     python3 bench/edit.py --merge $RUNS/edit_gpu*/results.json --out $RUNS/edit > $OUT/edit.log 2>&1; el "merge rc=$?"
     mkdir -p $RUNS/edit; cp $RUNS/edit_gpu*/*.png $RUNS/edit_gpu*/*.npz $RUNS/edit/ 2>/dev/null
   else

@@ -51,6 +51,15 @@ def psnr(a: torch.Tensor, b: torch.Tensor, where: torch.Tensor) -> float:
     return math.inf if mse == 0.0 else -10.0 * math.log10(mse)
 
 
+def finite_or_none(value):
+    """``value`` with every infinite float (two equal images) as None: JSON has no infinity."""
+    if isinstance(value, dict):
+        return {k: finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_none(v) for v in value]
+    return None if isinstance(value, float) and math.isinf(value) else value
+
+
 def real_photos(folder: Path) -> List[torch.Tensor]:
     """A real capture's photos [H,W,3] in [0, 1], in file order."""
     import numpy as np
@@ -138,8 +147,8 @@ def main(args: Args) -> dict:
     console.print(t)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(args.out) as tmp:
-        tmp.write_text(json.dumps({"size": list(args.size), "modes": args.modes, "scenes": rows}, indent=1,
-                                  default=lambda v: None))
+        tmp.write_text(json.dumps(finite_or_none({"size": list(args.size), "modes": args.modes, "scenes": rows}),
+                                  indent=1, allow_nan=False))
     console.print(f"wrote {args.out}")
     return rows
 

@@ -237,19 +237,21 @@ def test_shift_turns_every_hue_by_the_click_s_angle_against_colorsys():
     got = recolour(rgb, mask, colour, "shift", at=(cx, cy))
     np.testing.assert_allclose(got.double().numpy(), want, atol=2e-5)
     assert np.allclose(colorsys.rgb_to_hsv(*got[cy, cx].tolist())[:2], (th, ts), atol=1e-4)
-    # the selection's hues stay apart by what they were apart
-    gh = _hsv(got)
-    turned = (gh[..., 0][m] - hsv[..., 0][m]) % 360.0
-    assert np.allclose(np.minimum(turned, 360.0 - turned), min((360.0 * th - h_at) % 360.0, (h_at - 360.0 * th) % 360.0),
-                       atol=0.05)
-    # without a click: reds on both sides of 0 degrees have a typical hue of 0, not 180
-    reds = torch.tensor([[[0.9, 0.1, 0.25], [0.9, 0.25, 0.1]]])  # hues about 349 and 11 degrees, same saturation
+    # without a click: reds on both sides of 0 degrees have a typical hue near 0, not near 180, and the
+    # more saturated one weighs more
+    reds = torch.tensor([[[0.9, 0.1, 0.25], [0.9, 0.6, 0.5]]])  # hues about 349 and 11 degrees
     both = torch.ones(1, 2, dtype=torch.bool)
     out = _hsv(recolour(reds, both, (0.1, 0.9, 0.1), "shift"))[0, :, 0]  # green: 120 degrees
-    before = _hsv(reds)[0, :, 0]
-    mean = np.degrees(np.arctan2(np.sin(np.radians(before)).sum(), np.cos(np.radians(before)).sum())) % 360.0
-    np.testing.assert_allclose(out, (before + 120.0 - mean) % 360.0, atol=1e-3)
-    assert out[0] < 120.0 < out[1]
+    before = _hsv(reds)[0]
+    rad, w = np.radians(before[:, 0]), before[:, 1]
+    mean = np.degrees(np.arctan2((w * np.sin(rad)).sum(), (w * np.cos(rad)).sum())) % 360.0
+    assert 0.0 < (360.0 - mean) % 360.0 < 5.0  # pulled towards the saturated 349 degrees
+    np.testing.assert_allclose(out, (before[:, 0] + 120.0 - mean) % 360.0, atol=1e-3)
+    # a near-grey click has no hue to speak of: the selection's typical hue is the reference
+    mixed = torch.tensor([[[0.5, 0.5, 0.52], [0.8, 0.2, 0.2], [0.75, 0.25, 0.2]]])  # grey-blue, two reds
+    every = torch.ones(1, 3, dtype=torch.bool)
+    turned = _hsv(recolour(mixed, every, (0.1, 0.9, 0.1), "shift", at=(0, 0)))[0, 1:, 0]
+    assert np.all(_hue_gap(turned, 120.0) < 10.0), turned  # the reds turn green, not by the grey's 240 degrees
 
 
 def test_shift_with_the_rule_s_colour_at_the_click_is_the_rule_s_recolour():

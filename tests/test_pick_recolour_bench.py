@@ -16,7 +16,7 @@ from virgi_ns.errors import InputError
 def test_shift_is_the_rule_s_recolour_and_hue_is_not_on_an_object_of_several_hues(tmp_path):
     """A real capture made of two photos whose blue can has two hues (the rule takes both): the shift
     mode gives the rule's pixels the rule's recolour up to rounding; one hue for all of them is
-    measurably off, over the rule's pixels more than over the view. A missing capture is skipped."""
+    measurably off. A missing capture is skipped; two equal images score None in the JSON (no infinity)."""
     h, w = 24, 32
     photo = np.full((h, w, 3), 230, np.uint8)  # a pale backdrop the rule leaves alone
     photo[4:20, 6:16] = (40, 90, 200)  # blue, about 222 degrees
@@ -33,11 +33,17 @@ def test_shift_is_the_rule_s_recolour_and_hue_is_not_on_an_object_of_several_hue
     r = json.loads((tmp_path / "r.json").read_text())["scenes"]["beercan"]
     assert r["view"] == 1 and r["mask_fraction"] == pytest.approx(320 / (h * w))
     shift, hue = r["modes"]["shift"], r["modes"]["hue"]
-    assert shift["mask_psnr"] is None or shift["mask_psnr"] > 90  # None: equal (inf is not JSON)
-    assert 15 < hue["mask_psnr"] < 60 and hue["view_psnr"] > hue["mask_psnr"]
+    assert shift["mask_psnr"] > 90 and rows["beercan"]["modes"]["shift"]["mask_psnr"] == shift["mask_psnr"]
+    assert 15 < hue["mask_psnr"] < 60
     # the view's figure is the rule's pixels' figure spread over the view
     share = r["mask_fraction"]
     assert hue["view_psnr"] == pytest.approx(hue["mask_psnr"] - 10 * math.log10(share), abs=1e-6)
+
+
+def test_equal_images_are_written_as_none():
+    with script_module("bench/pick_recolour.py", "bench_pick_recolour") as mod:
+        assert mod.finite_or_none({"a": [1.0, float("inf")], "b": {"c": float("inf")}}) == {"a": [1.0, None],
+                                                                                            "b": {"c": None}}
 
 
 def test_on_a_synthetic_scene_both_are_compared_with_the_truth(tmp_path):

@@ -93,7 +93,7 @@ def split_for_devices(names: list[str], parts: int) -> list[list[str]]:
     """The rows ``names`` (all when empty) as at most ``parts`` lists to run side by side, one per GPU:
     the rows of one capture in one list (its run is trained once), a real capture weighing
     :data:`REAL_CAPTURE_COST` synthetic rows, each capture (heaviest first) onto the lightest list;
-    within a list the set's order."""
+    within a list the order of ``names`` (the set's when empty)."""
     rows = find(names)
     captures: dict[str, list[EvalScene]] = {}
     for r in rows:

@@ -277,6 +277,11 @@ highlight: in ``hue`` and ``shift`` mode a click there takes its reference satur
 selection instead (scaling the selection by a highlight's near-zero saturation would saturate it all)."""
 
 
+GREY_SATURATION = 0.05
+"""Saturation under which a pixel is taken for grey: its hue means nothing (``shift`` then turns the
+selection from its typical hue), and a reference saturation is never taken below it."""
+
+
 def _on_highlight(hsv: Tensor, diffuse: Tensor, at: tuple[int, int]) -> bool:
     """Whether the render's pixel ``at`` (x, y) is mostly highlight (:data:`HIGHLIGHT_SATURATION_SHARE`)."""
     x, y = at
@@ -303,11 +308,12 @@ def recolour(rgb: Tensor, mask: Tensor, colour: tuple[float, float, float], mode
         typical = at is None or (diffuse is not None and _on_highlight(hsv, diffuse, at))
         if typical:
             ref = lambda v: _typical(v, mask)  # noqa: E731  (a highlight's saturation is not the surface's)
-        sat = (hsv[..., 1] * float(t_hsv[1]) / max(ref(hsv[..., 1]), 0.05)).clamp(0.0, 1.0)
+        sat = (hsv[..., 1] * float(t_hsv[1]) / max(ref(hsv[..., 1]), GREY_SATURATION)).clamp(0.0, 1.0)
         if mode == "hue":
             hue = torch.full_like(sat, float(t_hsv[0]))
-        else:
-            turn = float(t_hsv[0]) - (_typical_hue(hsv, mask) if typical else float(hsv[at[1], at[0], 0]))
+        else:  # a near-grey click's hue is noise: the selection's typical hue stands in for it
+            by_click = not typical and float(hsv[at[1], at[0], 1]) >= GREY_SATURATION
+            turn = float(t_hsv[0]) - (float(hsv[at[1], at[0], 0]) if by_click else _typical_hue(hsv, mask))
             hue = torch.remainder(hsv[..., 0] + turn, 360.0)
         new = hsv_to_rgb(torch.stack([hue, sat, hsv[..., 2]], -1))
     else:
