@@ -5,9 +5,9 @@ in their fits. This script measures the recolour alone: on the training photo th
 (the bench's edit view), the rule's own pixels are recoloured as a pick would recolour them (the click
 the bench's pick makes, the rule's colour at that pixel, :func:`virgi_ns.edit.pick.recolour` in each
 mode) and compared with the rule's recolour of the same photo, over the whole view (the scale of the
-propagation PSNR) and over the rule's pixels. On a synthetic scene both are also compared with the truth: the photo of the really recoloured
-scene, whose shading the rule does not always follow. Nothing is trained or fitted (CPU; a synthetic
-scene's photos take about a minute to render).
+propagation PSNR) and over the rule's pixels. On a synthetic scene both are also compared with the
+truth: the photo of the really recoloured scene, whose shading the rule does not always follow.
+Nothing is trained or fitted (CPU; a synthetic scene's photos take about a minute to render).
 
     python bench/pick_recolour.py --out bench_out/pick_recolour.json
 """
@@ -140,10 +140,11 @@ def main(args: Args) -> dict:
     t.add_column("against the truth: rule, " + ", ".join(args.modes))
     fmt = lambda v: "inf" if math.isinf(v) else f"{v:.2f}"  # noqa: E731
     for name, r in rows.items():
+        modes = [r["modes"][m] for m in args.modes]
         truth = ("-" if "rule_truth_view_psnr" not in r else
-                 ", ".join(fmt(v) for v in [r["rule_truth_view_psnr"]] + [r["modes"][m]["truth_view_psnr"] for m in args.modes]))
+                 ", ".join(fmt(v) for v in [r["rule_truth_view_psnr"]] + [m["truth_view_psnr"] for m in modes]))
         t.add_row(name, f"{100 * r['mask_fraction']:.1f}%",
-                  *(f"{fmt(r['modes'][m]['view_psnr'])} / {fmt(r['modes'][m]['mask_psnr'])}" for m in args.modes), truth)
+                  *(f"{fmt(m['view_psnr'])} / {fmt(m['mask_psnr'])}" for m in modes), truth)
     console.print(t)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(args.out) as tmp:

@@ -86,8 +86,8 @@ SYNTHETIC_SIZE = (SYNTHETIC_VIEWS, SYNTHETIC_WIDTH, SYNTHETIC_HEIGHT, SYNTHETIC_
 
 REAL_CAPTURE_COST = 3
 """How many synthetic rows one real capture costs on a GPU, the weight :func:`split_for_devices`
-balances by: a real capture trains 7000 geometry + 1000 colour steps (beercan about 100 s, RESULTS "Training"), a
-synthetic one writes its photos and trains the colour stage only (about 40 s)."""
+balances by: a real capture trains 7000 geometry + 1000 colour steps (beercan about 100 s, RESULTS
+"Training"), a synthetic one writes its photos and trains the colour stage only (about 40 s)."""
 
 
 def split_for_devices(names: list[str], parts: int) -> list[list[str]]:
@@ -158,5 +158,5 @@ def edit_view(photos: list, rule: RecolorRule) -> int:
     return max(range(len(counts)), key=lambda i: (counts[i], -i))
 
 
-__all__ = ["EvalScene", "EVAL_SET", "REAL", "GEOMETRY_STEPS", "COLOUR_STEPS", "find", "split_for_devices", "capture_folder",
-           "dataparser_config", "edit_view"]
+__all__ = ["EvalScene", "EVAL_SET", "REAL", "GEOMETRY_STEPS", "COLOUR_STEPS", "find", "split_for_devices",
+           "capture_folder", "dataparser_config", "edit_view"]
