@@ -9,7 +9,7 @@ toy's red spots, the duck's beak) is told to keep its colour only by its own unc
 to change by its rim, blended with the object, among the changed pixels. Per object label this script
 gives both: the sum over the unchanged (``keep``) or changed (``turn``) pixels of each pixel's loss weight
 times the label's share of that pixel's colour, on the training photo the rule recolours most (the
-evaluation set's edit view, :func:`virgi_ns.bench.evalset.edit_view`), rendered from the scene's known
+evaluation set's edit view, :func:`virgi_ns.bench.evalset.edit_view_of_capture`), rendered from the scene's known
 Gaussians. Nothing is fitted, nothing is trained: CPU is enough (the reference rasterizer, about a minute
 a scene at the evaluation set's size).
 
@@ -47,7 +47,7 @@ class Args:
 def loss_shares(name: str, near_shares: List[float], size: tuple, progress=None) -> dict:
     """Per object label of scene ``name`` and per ``near_share``: its ``keep`` and ``turn`` shares of the
     edit's loss on the evaluation set's edit view (module docstring); with the view and its pixel counts."""
-    from virgi_ns.bench.evalset import SYNTHETIC_SIZE, edit_view
+    from virgi_ns.bench.evalset import SYNTHETIC_SIZE, edit_view_of_capture
     from virgi_ns.bench.synthetic import BACKDROP, FLOOR, SCENES, gaussians_of, render_scene, scene_cameras
     from virgi_ns.bench.synthetic import surface_points
     from virgi_ns.edit.engine import EditConfig
@@ -69,8 +69,7 @@ def loss_shares(name: str, near_shares: List[float], size: tuple, progress=None)
         if lab in label_of:
             one_hot[k, label_of[lab]] = 1.0
     photos = render_scene(spec, pts, g, cams, backend="reference", progress=progress).images
-    train = [i for i in range(views) if i % 8 != 0]  # nerfstudio's interval split: every 8th held out
-    view = train[edit_view([photos[i] for i in train], spec.rule)]
+    view = edit_view_of_capture(photos, spec.rule)
     photo, cam = photos[view], cams.index(view)
     c = rasterize(g.means, g.quats, torch.exp(g.scales), torch.sigmoid(g.opacities), cam, Request.whole_images(cam),
                   backend="reference")

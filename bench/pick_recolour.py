@@ -28,10 +28,6 @@ from rich.table import Table
 
 from virgi_ns.errors import InputError, atomic_path, cli_entry
 
-IMAGE_FOLDERS = ("images", "images_8")
-"""Where a real capture's photos are, the first that exists (COLMAP's, then an LLFF capture's)."""
-
-
 @dataclass
 class Args:
     scenes: List[str] = field(default_factory=list)
@@ -61,15 +57,17 @@ def finite_or_none(value):
 
 
 def real_photos(folder: Path) -> List[torch.Tensor]:
-    """A real capture's photos [H,W,3] in [0, 1], in file order."""
+    """A real capture's photos [H,W,3] in [0, 1], in file order, from the folder its parser reads."""
     import numpy as np
     from PIL import Image
 
-    for name in IMAGE_FOLDERS:
-        files = sorted(p for p in (folder / name).glob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
-        if files:
-            return [torch.from_numpy(np.asarray(Image.open(p).convert("RGB"), dtype=np.float32) / 255.0) for p in files]
-    raise InputError(f"no photos in {folder} ({' or '.join(IMAGE_FOLDERS)})")
+    from virgi_ns.bench.evalset import capture_images
+
+    images = folder / capture_images(folder)
+    files = sorted(p for p in images.glob("*") if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+    if not files:
+        raise InputError(f"no photos in {images}")
+    return [torch.from_numpy(np.asarray(Image.open(p).convert("RGB"), dtype=np.float32) / 255.0) for p in files]
 
 
 def synthetic_photos(name: str, size: tuple, progress=None) -> tuple[List[torch.Tensor], List[torch.Tensor]]:
@@ -108,7 +106,7 @@ def measure(photo: torch.Tensor, rule, modes: List[str], truth=None) -> dict:
 
 
 def main(args: Args) -> dict:
-    from virgi_ns.bench.evalset import edit_view, find
+    from virgi_ns.bench.evalset import edit_view_of_capture, find
     from virgi_ns.edit.pick import check_mode
 
     for m in args.modes:
@@ -128,8 +126,7 @@ def main(args: Args) -> dict:
                     console.print(f"{scene.name}: skipped, no capture at {folder}")
                     continue
                 photos, truths = real_photos(folder), None
-            train = [i for i in range(len(photos)) if i % 8 != 0]  # every 8th held out, as the bench's parsers do
-            view = train[edit_view([photos[i] for i in train], scene.rule)]
+            view = edit_view_of_capture(photos, scene.rule)
             truth = truths[view] if truths is not None else None
             rows[scene.name] = {"view": view, **measure(photos[view], scene.rule, args.modes, truth)}
     t = Table(title="the pick's recolour of the rule's pixels against the rule's recolour, before any fit (PSNR, dB)")

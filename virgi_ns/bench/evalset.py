@@ -130,6 +130,18 @@ def capture_folder(scene: EvalScene, data: Path, synthetic_root: Path, device: s
     return folder
 
 
+HELD_OUT_EVERY = 8
+"""Every 8th view of a capture (0, 8, 16, ...) is held out, as nerfstudio's interval split does."""
+
+
+def capture_images(folder: Path) -> str:
+    """The folder of a real capture's photos that its parser reads: COLMAP's ``images``, an LLFF
+    capture's ``images_8`` where there is one."""
+    if (folder / "sparse" / "0").is_dir() or not (folder / "images_8").is_dir():
+        return "images"
+    return "images_8"
+
+
 def dataparser_config(folder: Path):
     """nerfstudio's parser for a capture folder: COLMAP (``sparse/0``), a nerfstudio-format capture
     (``transforms.json``: the synthetic ones), or LLFF; every 8th view held out."""
@@ -137,15 +149,15 @@ def dataparser_config(folder: Path):
         from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
 
         return ColmapDataParserConfig(data=folder, colmap_path=Path("sparse/0"), images_path=Path("images"),
-                                      eval_mode="interval", eval_interval=8, load_3D_points=True, downscale_factor=1)
+                                      eval_mode="interval", eval_interval=HELD_OUT_EVERY, load_3D_points=True,
+                                      downscale_factor=1)
     if (folder / "transforms.json").is_file():
         from virgi_ns.data.bundle import BundleDataParserConfig
 
         return BundleDataParserConfig(data=folder)
     from virgi_ns.data.llff import LLFFDataParserConfig
 
-    images = "images_8" if (folder / "images_8").is_dir() else "images"
-    return LLFFDataParserConfig(data=folder, images_dir=images, llffhold=8)
+    return LLFFDataParserConfig(data=folder, images_dir=capture_images(folder), llffhold=HELD_OUT_EVERY)
 
 
 def edit_view(photos: list, rule: RecolorRule) -> int:
@@ -158,5 +170,13 @@ def edit_view(photos: list, rule: RecolorRule) -> int:
     return max(range(len(counts)), key=lambda i: (counts[i], -i))
 
 
-__all__ = ["EvalScene", "EVAL_SET", "REAL", "GEOMETRY_STEPS", "COLOUR_STEPS", "find", "split_for_devices",
-           "capture_folder", "dataparser_config", "edit_view"]
+def edit_view_of_capture(photos: list, rule: RecolorRule) -> int:
+    """:func:`edit_view` over all of a capture's photos in order, the held-out ones
+    (:data:`HELD_OUT_EVERY`) left out: the index of the edited photo among all of them."""
+    train = [i for i in range(len(photos)) if i % HELD_OUT_EVERY != 0]
+    return train[edit_view([photos[i] for i in train], rule)]
+
+
+__all__ = ["EvalScene", "EVAL_SET", "REAL", "GEOMETRY_STEPS", "COLOUR_STEPS", "HELD_OUT_EVERY", "find",
+           "split_for_devices", "capture_folder", "capture_images", "dataparser_config", "edit_view",
+           "edit_view_of_capture"]
