@@ -57,10 +57,10 @@ if stage edit; then
   el "edit bench: ${EDIT_SCENES:-all scenes}, seed ${SEED:-42}"
   rm -rf $RUNS/edit $RUNS/edit_gpu*  # an earlier call's results (and --dump-targets arrays) must not travel with this one's
   NG=$(nvidia-smi --query-gpu=index --format=csv,noheader 2>/dev/null | wc -l); [ "$NG" -ge 1 ] || NG=1
-  edit_rows() {  # GPU, output folder, rows...
+  edit_rows() {  # GPU, output folder, rows... (none: the whole set)
     local gpu=$1 out=$2; shift 2
     CUDA_VISIBLE_DEVICES=$gpu OMP_NUM_THREADS=$(( $(nproc) / NG )) timeout ${EDIT_TIMEOUT:-560} python3 bench/edit.py \
-      --data $PWD/.data --scenes "$@" --train-out $RUNS/edit_runs --seed ${SEED:-42} --geometry-steps $STEPS \
+      --data $PWD/.data ${1:+--scenes} "$@" --train-out $RUNS/edit_runs --seed ${SEED:-42} --geometry-steps $STEPS \
       --colour-steps ${EDIT_COLOUR_STEPS:-1000} --out $out ${EDIT_ARGS:-}
   }
   if [ "$NG" -gt 1 ]; then
@@ -78,8 +78,7 @@ for p in s(sys.argv[2:], int(sys.argv[1])): print(' '.join(p))" $NG ${EDIT_SCENE
     python3 bench/edit.py --merge $RUNS/edit_gpu*/results.json --out $RUNS/edit > $OUT/edit.log 2>&1; el "merge rc=$?"
     mkdir -p $RUNS/edit; cp $RUNS/edit_gpu*/*.png $RUNS/edit_gpu*/*.npz $RUNS/edit/ 2>/dev/null
   else
-    edit_rows 0 $RUNS/edit ${EDIT_SCENES:-$(python3 -c "from virgi_ns.bench.evalset import EVAL_SET; print(' '.join(s.name for s in EVAL_SET))")} \
-      > $OUT/edit.log 2>&1; el "edit rc=$?"
+    edit_rows 0 $RUNS/edit ${EDIT_SCENES:-} > $OUT/edit.log 2>&1; el "edit rc=$?"
   fi
   tail -n 60 $OUT/edit.log
   (cd $RUNS/edit && tar czf $OUT/edit_results.tgz *.json *.png) 2>/dev/null

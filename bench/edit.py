@@ -405,7 +405,7 @@ last loss, ``final_l1``), to see whether what a fit can know about itself predic
 
 
 def median_over_seeds(args: Args, b: Bench, fit: tuple, config: dict, rule, edited: torch.Tensor, first: dict,
-                      first_l1: Optional[float] = None) -> dict:
+                      first_l1: float) -> dict:
     """``first`` (the figures of the fit with the row's seed, s: 0 unless the variant sets one), or with
     ``--edit-seeds N`` each figure's median over the fits with seeds s..s+N-1 (``fit``: ``Bench.fit``'s
     positional arguments), plus ``per_seed`` (``first_l1``: the first fit's last loss). Each figure's
