@@ -346,7 +346,7 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
     edit, warm = b.fit(edited, args.steps, None, args.repeats, original)
     res, pics = b.measure(edit, scene.rule, lpips=False, keep=args.pictures, edited=edited)
     res["mean"] = median_over_seeds(args, b, (edited, args.steps, None, 1, original), {}, scene.rule, edited,
-                                    res["mean"], warm["final_l1"])
+                                    res["mean"], warm)
     args.out.mkdir(parents=True, exist_ok=True)
     for i, p in enumerate(pics):
         _save_png(args.out / f"{scene.name}_view{i}.png", p)
@@ -378,7 +378,7 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
         fit = (v_edited, v_cfg.pop("steps", args.steps), v_cfg.pop("pixel_batches", None), 1, b.original(v_source))
         v_edit, v_t = b.fit(*fit, **v_cfg)
         v_res, _ = b.measure(v_edit, v_rule, lpips=False, edited=v_edited)
-        v_res["mean"] = median_over_seeds(args, b, fit, v_cfg, v_rule, v_edited, v_res["mean"], v_t["final_l1"])
+        v_res["mean"] = median_over_seeds(args, b, fit, v_cfg, v_rule, v_edited, v_res["mean"], v_t)
         rows.append({**base, "variant": text, "rule": v_rule.to_dict(), **v_res["mean"], "timing_warm": v_t,
                      "targets": targets(v_res["mean"], v_t["total_s"], scene.synthetic is not None)})
         rows[-1]["limits"] = limits(rows[-1])
@@ -400,27 +400,29 @@ def dump_targets(path: Path, b: Bench, scene: EvalScene, edited: torch.Tensor) -
 
 SEED_FIGURES = ("propagation_psnr", "miss_psnr", "leak_psnr", "recolour_psnr", "unedited_psnr", "truth_psnr",
                 "edit_fit_changed_psnr", "edit_view_propagation_psnr", "edit_view_miss_psnr")
+LOSS_FIGURES = ("final_l1", "fit_l1")
 """Each fit's figures kept in ``per_seed``: the held-out ones, and the edited view's own (with each fit's
-last loss, ``final_l1``), to see whether what a fit can know about itself predicts how it carries."""
+last step's loss, ``final_l1``, and its loss on every pixel set at the end, ``fit_l1``), to see whether
+what a fit can know about itself predicts how it carries."""
 
 
 def median_over_seeds(args: Args, b: Bench, fit: tuple, config: dict, rule, edited: torch.Tensor, first: dict,
-                      first_l1: float) -> dict:
+                      first_timing: dict) -> dict:
     """``first`` (the figures of the fit with the row's seed, s: 0 unless the variant sets one), or with
     ``--edit-seeds N`` each figure's median over the fits with seeds s..s+N-1 (``fit``: ``Bench.fit``'s
-    positional arguments), plus ``per_seed`` (``first_l1``: the first fit's last loss). Each figure's
-    median is taken on its own, so a row's figures may come from different fits."""
+    positional arguments), plus ``per_seed`` (``first_timing``: the first fit's ``Bench.fit`` timing, with
+    its losses). Each figure's median is taken on its own, so a row's figures may come from different fits."""
     if args.edit_seeds <= 1:
         return first
-    runs, losses = [first], [first_l1]
+    runs, losses = [first], [{k: first_timing[k] for k in LOSS_FIGURES}]
     base = int(config.get("seed", 0))
     for seed in range(base + 1, base + args.edit_seeds):
         edit, timing = b.fit(*fit, **{**config, "seed": seed})
         runs.append(b.measure(edit, rule, lpips=False, edited=edited)[0]["mean"])
-        losses.append(timing["final_l1"])
+        losses.append({k: timing[k] for k in LOSS_FIGURES})
     median = {k: float(statistics.median(r[k] for r in runs)) for k, v in first.items()
               if isinstance(v, float) and all(isinstance(r.get(k), float) for r in runs)}
-    per_seed = [{**{k: r[k] for k in SEED_FIGURES if k in r}, "final_l1": l1} for r, l1 in zip(runs, losses)]
+    per_seed = [{**{k: r[k] for k in SEED_FIGURES if k in r}, **loss} for r, loss in zip(runs, losses)]
     return {**first, **median, "per_seed": per_seed}
 
 

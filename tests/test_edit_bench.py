@@ -260,7 +260,9 @@ def test_edit_bench_takes_each_figure_as_the_median_over_edit_seeds(pipeline, be
         assert row["targets"] == bench_edit.targets(row, row["timing_warm"]["total_s"], False)
         # each fit also keeps what it knows of itself: the edited view's figures and its last loss
         assert seeds[0]["final_l1"] == row["timing_warm"]["final_l1"]
+        assert seeds[0]["fit_l1"] == row["timing_warm"]["fit_l1"]
         assert all(math.isfinite(s["final_l1"]) and math.isfinite(s["edit_fit_changed_psnr"]) for s in seeds)
+        assert len({s["fit_l1"] for s in seeds}) == 3
         assert len({s["edit_view_propagation_psnr"] for s in seeds}) == 3
     assert rows[0]["per_seed"][1] != rows[1]["per_seed"][1]
 

@@ -233,14 +233,16 @@ class Bench:
             cfg.pixel_batches = int(pixel_batches)
         cfg.whole_image = whole_image
         EditEngine(self.scene, self.edit_camera, edited, cfg=cfg, original=original).fit()  # warm-up
-        times, edit = [], None
+        times, edit, engine = [], None, None
         for _ in range(max(1, repeats)):
-            edit, t = EditEngine(self.scene, self.edit_camera, edited, cfg=cfg, original=original).fit()
+            engine = EditEngine(self.scene, self.edit_camera, edited, cfg=cfg, original=original)
+            edit, t = engine.fit()
             times.append(t)
         med = lambda xs: float(statistics.median(xs))  # noqa: E731
         return edit, {"setup_s": med([t.setup_s for t in times]), "steps_s": med([t.steps_s for t in times]),
                       "total_s": med([t.total_s for t in times]), "steps": cfg.steps,
                       "pixel_batches": cfg.pixel_batches, "final_l1": times[-1].final_loss,
+                      "fit_l1": engine.fit_loss(),
                       "start": edit.info.get("start"), "changed_fraction": edit.info.get("changed_fraction"),
                       "map_explained": edit.info.get("map_explained")}
 

@@ -753,6 +753,18 @@ class EditEngine:
         timing = EditTiming(self.setup_s, steps_s, n, float(loss))
         return self.edit(timing), timing
 
+    @torch.no_grad()
+    def fit_loss(self) -> float:
+        """The loss the steps minimise, on every pixel set at once under the current heads (each set's
+        loss, averaged): a figure a fit knows about itself, steadier than its last step's, which
+        saw one set."""
+        C, _ = self.colours()
+        losses = []
+        for b in self.batches:
+            err = (b.render(C) + b.background - b.target).abs()
+            losses.append(err.mean() if b.weight is None else (err.mean(-1) * b.weight).sum())
+        return float(torch.stack(losses).mean())
+
     def _fit_graphed(self, n: int, progress: Optional[Callable[[int, int], None]]) -> tuple[int, Tensor]:
         """Up to ``n`` steps as replays of recorded CUDA graphs, in the eager order: one graph per
         pixel set, or one for all when the sets are chosen on the device (the ``fused`` kind).
