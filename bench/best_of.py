@@ -1,7 +1,8 @@
 """One fit against the best of several: from ``bench/edit.py --edit-seeds N`` results, what a user
-would get from one fit (seed 0, the product today) and from N fits with the one of the lowest last
-loss kept, per row and variant, judged by the set's targets. No GPU, no training: it reads the
-``per_seed`` records (each fit's held-out figures and its own last loss, ``final_l1``).
+would get from one fit (seed 0, the product today) and from N fits with the one a figure of its own
+ranks best kept (``--by``: its last step's loss, its loss on every pixel set, or its PSNR against the
+edited image on the changed pixels), per row and variant, judged by the set's targets. No GPU, no
+training: it reads the ``per_seed`` records (each fit's held-out figures and what it knows of itself).
 
     python bench/best_of.py --results runs17.json runs18.json --out bench_out/best_of
 
@@ -37,18 +38,27 @@ class Args:
     results: List[Path] = field(default_factory=list)
     """results.json files of bench/edit.py runs made with --edit-seeds N (N >= 2)."""
     out: Path = Path("bench_out/best_of")
+    by: str = "final_l1"
+    """The fit's own figure that ranks the fits: one of :data:`SELECTORS`."""
 
 
-def chosen_fits(per_seed: List[dict]) -> tuple[dict, dict, int]:
-    """(the first fit's figures, the figures of the fit with the lowest last loss, its index)."""
-    best = min(range(len(per_seed)), key=lambda i: per_seed[i]["final_l1"])
+SELECTORS = {"final_l1": min, "fit_l1": min, "edit_fit_changed_psnr": max}
+"""Each figure a fit knows about itself (``per_seed``'s keys), and whether its lowest or highest is best."""
+
+
+def chosen_fits(per_seed: List[dict], by: str = "final_l1") -> tuple[dict, dict, int]:
+    """(the first fit's figures, the figures of the fit that ``by`` ranks best, its index)."""
+    if any(by not in r for r in per_seed):
+        raise InputError(f"--by {by}: not recorded for every fit of these results (bench/edit.py records it "
+                         "since it was added)")
+    best = SELECTORS[by](range(len(per_seed)), key=lambda i: per_seed[i][by])
     return per_seed[0], per_seed[best], best
 
 
-def row_summary(row: dict) -> dict:
+def row_summary(row: dict, by: str = "final_l1") -> dict:
     """One row (scene and variant): the first fit and the best of its fits, each with its targets."""
     per_seed = row["per_seed"]
-    first, best, index = chosen_fits(per_seed)
+    first, best, index = chosen_fits(per_seed, by)
     n = len(per_seed)
     edit_s = row["timing_warm"]["total_s"]
     synthetic = bool(row["synthetic"])
@@ -58,7 +68,7 @@ def row_summary(row: dict) -> dict:
             "difference_db": best["propagation_psnr"] - first["propagation_psnr"]}
 
 
-def rows_of(paths: List[Path]) -> List[dict]:
+def rows_of(paths: List[Path], by: str = "final_l1") -> List[dict]:
     out = []
     for p in paths:
         data = json.loads(p.read_text())
@@ -66,7 +76,7 @@ def rows_of(paths: List[Path]) -> List[dict]:
             if len(row.get("per_seed", [])) < 2:
                 raise InputError(f"{p}: row {row['scene']} ({row['variant']}) has no per-seed fits "
                                  "(run bench/edit.py with --edit-seeds 2 or more)")
-            out.append(row_summary(row))
+            out.append(row_summary(row, by))
     return out
 
 
@@ -110,8 +120,8 @@ def _pass(t: dict) -> str:
     return "PASS" if not missed else "FAIL: " + ", ".join(k.split(" ")[0] for k in missed)
 
 
-def print_table(rows: List[dict], tot: dict) -> None:
-    t = Table(title="one fit (seed 0) against the best of its fits by their own last loss")
+def print_table(rows: List[dict], tot: dict, by: str) -> None:
+    t = Table(title=f"one fit (seed 0) against the best of its fits by their own {by}")
     for c in ("scene", "seed", "variant", "first: prop / miss / truth", "first", "best: which, prop / miss / truth",
               "best", "difference"):
         t.add_column(c)
@@ -137,13 +147,15 @@ def print_table(rows: List[dict], tot: dict) -> None:
 def main(args: Args) -> None:
     if not args.results:
         raise InputError("--results: name at least one results.json of bench/edit.py --edit-seeds N")
-    rows = rows_of(args.results)
+    if args.by not in SELECTORS:
+        raise InputError(f"--by: one of {', '.join(SELECTORS)}, got {args.by!r}")
+    rows = rows_of(args.results, args.by)
     tot = totals(rows)
-    print_table(rows, tot)
+    print_table(rows, tot, args.by)
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "best_of.json"
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps({"sources": [str(p) for p in args.results], "rows": rows, "totals": tot},
+        tmp.write_text(json.dumps({"sources": [str(p) for p in args.results], "by": args.by, "rows": rows, "totals": tot},
                                   indent=1))
     console.print(f"wrote {path}")
 

@@ -1,0 +1,85 @@
+"""bench/best_of.py: which fit it keeps, how it judges the targets, and its totals, on hand-made rows."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from script_module import script_module
+from virgi_ns.errors import InputError
+
+
+@pytest.fixture(scope="module")
+def best_of():
+    with script_module("bench/best_of.py", "bench_best_of") as mod:
+        yield mod
+
+
+def _fit(prop, miss, l1, own, rec=-0.1, truth=None):
+    out = {"propagation_psnr": prop, "miss_psnr": miss, "leak_psnr": 40.0, "recolour_psnr": 20.0 + rec,
+           "unedited_psnr": 20.0, "final_l1": l1, "fit_l1": l1 / 2, "edit_fit_changed_psnr": own}
+    if truth is not None:
+        out["truth_psnr"] = truth
+    return out
+
+
+def _row(scene, seed, variant, fits, synthetic=False, edit_s=0.05):
+    return {"scene": scene, "seed": seed, "variant": variant, "synthetic": synthetic,
+            "timing_warm": {"total_s": edit_s}, "per_seed": fits}
+
+
+ROWS = [
+    # the first fit misses (miss 28); the lowest loss is fit 2, which passes and gains 2 dB
+    _row("a", 1, "engine defaults", [_fit(40, 28, 0.03, 30), _fit(38, 31, 0.02, 29), _fit(42, 33, 0.01, 31)]),
+    # the lowest loss is fit 1, which loses 3 dB; the own PSNR ranks fit 0 best
+    _row("b", 1, "engine defaults", [_fit(50, 40, 0.02, 35), _fit(47, 38, 0.01, 33), _fit(49, 39, 0.03, 34)],
+         synthetic=True),
+    # the first fit is also the lowest loss; three fits' time breaks the 0.25 s target
+    _row("a", 2, "engine defaults", [_fit(41, 35, 0.01, 30), _fit(43, 36, 0.02, 31), _fit(40, 34, 0.03, 29)],
+         edit_s=0.1),
+    _row("a", 1, "steps=200", [_fit(43, 34, 0.01, 31), _fit(40, 30, 0.02, 30)]),
+]
+
+
+def test_keeps_the_fit_its_own_figure_ranks_best(best_of):
+    fits = ROWS[1]["per_seed"]
+    assert best_of.chosen_fits(fits, "final_l1")[2] == 1
+    assert best_of.chosen_fits(fits, "fit_l1")[2] == 1
+    assert best_of.chosen_fits(fits, "edit_fit_changed_psnr")[2] == 0  # the highest PSNR
+    with pytest.raises(InputError, match="not recorded"):
+        best_of.chosen_fits([{"final_l1": 0.1}], "fit_l1")
+
+
+def test_rows_and_totals(best_of):
+    rows = [best_of.row_summary(r) for r in ROWS]
+    a1, b1, a2, v = rows
+    assert (a1["best_index"], a1["difference_db"]) == (2, 2.0)
+    assert not a1["first"]["targets"]["miss>=30"] and all(a1["best"]["targets"].values())
+    assert b1["difference_db"] == -3.0 and "truth>=35" in b1["first"]["targets"]  # synthetic: judged on truth
+    assert a2["best_index"] == 0 and a2["difference_db"] == 0.0
+    assert a2["first"]["targets"]["edit <= 0.25 s warm"] and not a2["best"]["targets"]["edit <= 0.25 s warm"]
+    tot = best_of.totals(rows)
+    d = tot["engine defaults"]
+    # run set 1: the first fits pass on neither row (a: miss, b: no truth), the best on a only
+    assert d["per_run_set"]["1"] == {"rows": 2, "first_passed": 0, "best_passed": 1}
+    assert d["per_run_set"]["2"] == {"rows": 1, "first_passed": 1, "best_passed": 0}
+    assert d["mean_difference_db"] == pytest.approx((2.0 - 3.0 + 0.0) / 3)
+    assert (d["median_difference_db"], d["worst_difference_db"]) == (0.0, -3.0)
+    # a variant's first fit against the defaults' first fit on the same scene and run
+    assert v["first_vs_defaults_db"] == 3.0
+    assert tot["steps=200"]["first_vs_defaults_mean_db"] == 3.0
+
+
+def test_main_writes_its_json_and_refuses_results_without_fits(best_of, tmp_path):
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps({"scenes": ROWS}))
+    best_of.main(best_of.Args(results=[path], out=tmp_path / "out", by="edit_fit_changed_psnr"))
+    data = json.loads((tmp_path / "out" / "best_of.json").read_text())
+    assert data["by"] == "edit_fit_changed_psnr" and len(data["rows"]) == 4
+    assert data["rows"][1]["best_index"] == 0
+    with pytest.raises(InputError, match="--by"):
+        best_of.main(best_of.Args(results=[path], out=tmp_path / "out", by="loss"))
+    path.write_text(json.dumps({"scenes": [{**ROWS[0], "per_seed": ROWS[0]["per_seed"][:1]}]}))
+    with pytest.raises(InputError, match="no per-seed fits"):
+        best_of.main(best_of.Args(results=[path], out=tmp_path / "out"))
