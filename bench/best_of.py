@@ -47,46 +47,66 @@ SELECTORS = {"final_l1": min, "fit_l1": min, "edit_fit_changed_psnr": max}
 
 
 def chosen_fits(per_seed: List[dict], by: str = "final_l1") -> tuple[dict, dict, int]:
-    """(the first fit's figures, the figures of the fit that ``by`` ranks best, its index)."""
+    """(the first fit's figures, the figures of the fit that ``by`` ranks best, its index). A fit
+    whose figure is not finite (a diverged fit) ranks last."""
     if any(by not in r for r in per_seed):
         raise InputError(f"--by {by}: not recorded for every fit of these results (bench/edit.py records it "
                          "since it was added)")
-    best = SELECTORS[by](range(len(per_seed)), key=lambda i: per_seed[i][by])
+    pick = SELECTORS[by]
+    worst = math.inf if pick is min else -math.inf
+    best = pick(range(len(per_seed)), key=lambda i: per_seed[i][by] if math.isfinite(per_seed[i][by]) else worst)
     return per_seed[0], per_seed[best], best
+
+
+NEEDED = ("propagation_psnr", "miss_psnr", "leak_psnr", "recolour_psnr", "unedited_psnr")
+"""The figures every fit must have to be judged (a synthetic row's also ``truth_psnr``)."""
 
 
 def row_summary(row: dict, by: str = "final_l1") -> dict:
     """One row (scene and variant): the first fit and the best of its fits, each with its targets."""
     per_seed = row["per_seed"]
+    synthetic = bool(row["synthetic"])
+    needed = NEEDED + (("truth_psnr",) if synthetic else ())
+    missing = sorted({k for fit in per_seed for k in needed if not isinstance(fit.get(k), (int, float))})
+    if missing:
+        raise InputError(f"row {row['scene']} ({row['variant']}): its fits lack {', '.join(missing)}")
     first, best, index = chosen_fits(per_seed, by)
     n = len(per_seed)
     edit_s = row["timing_warm"]["total_s"]
-    synthetic = bool(row["synthetic"])
-    return {"scene": row["scene"], "seed": row["seed"], "variant": row["variant"], "fits": n, "best_index": index,
+    return {"scene": row["scene"], "seed": row["seed"], "variant": row["variant"], "rule": row.get("rule"),
+            "fits": n, "best_index": index,
             "first": {**first, "targets": targets(first, edit_s, synthetic)},
             "best": {**best, "targets": targets(best, n * edit_s, synthetic)},
             "difference_db": best["propagation_psnr"] - first["propagation_psnr"]}
 
 
 def rows_of(paths: List[Path], by: str = "final_l1") -> List[dict]:
+    """Every row of the results, each marked with the file it came from (``source``)."""
     out = []
-    for p in paths:
+    for source, p in enumerate(paths):
         data = json.loads(p.read_text())
         for row in data["scenes"]:
             if len(row.get("per_seed", [])) < 2:
                 raise InputError(f"{p}: row {row['scene']} ({row['variant']}) has no per-seed fits "
                                  "(run bench/edit.py with --edit-seeds 2 or more)")
-            out.append(row_summary(row, by))
+            out.append({**row_summary(row, by), "source": source})
     return out
 
 
 def against_defaults(rows: List[dict]) -> None:
-    """Each variant row's first fit against the engine defaults' first fit on the same run and scene
-    (``first_vs_defaults_db``: propagation, dB), in place."""
-    defaults = {(r["scene"], r["seed"]): r for r in rows if r["variant"] == "engine defaults"}
+    """Each variant row's first fit against the engine defaults' first fit on the same run and scene of
+    the same results file, where both fitted the same rule (``first_vs_defaults_db``: propagation, dB),
+    in place. Two default rows of one run and scene in one file are refused."""
+    defaults: dict = {}
     for r in rows:
-        d = defaults.get((r["scene"], r["seed"]))
-        if r["variant"] != "engine defaults" and d is not None:
+        if r["variant"] == "engine defaults":
+            key = (r.get("source", 0), r["scene"], r["seed"])
+            if key in defaults:
+                raise InputError(f"two default rows of {r['scene']} on run seed {r['seed']} in one results file")
+            defaults[key] = r
+    for r in rows:
+        d = defaults.get((r.get("source", 0), r["scene"], r["seed"]))
+        if r["variant"] != "engine defaults" and d is not None and r.get("rule") == d.get("rule"):
             r["first_vs_defaults_db"] = r["first"]["propagation_psnr"] - d["first"]["propagation_psnr"]
 
 
@@ -121,7 +141,7 @@ def _pass(t: dict) -> str:
 
 
 def print_table(rows: List[dict], tot: dict, by: str) -> None:
-    t = Table(title=f"one fit (seed 0) against the best of its fits by their own {by}")
+    t = Table(title=f"one fit (the row's first seed) against the best of its fits by their own {by}")
     for c in ("scene", "seed", "variant", "first: prop / miss / truth", "first", "best: which, prop / miss / truth",
               "best", "difference"):
         t.add_column(c)
@@ -137,11 +157,11 @@ def print_table(rows: List[dict], tot: dict, by: str) -> None:
     for name, v in tot.items():
         sets = ", ".join(f"run set seed {k}: {s['first_passed']} -> {s['best_passed']} of {s['rows']}"
                          for k, s in v["per_run_set"].items())
+        vs = (f"; its first fit against the defaults' first fit: mean {v['first_vs_defaults_mean_db']:+.2f}, "
+              f"worst {v['first_vs_defaults_worst_db']:+.2f} dB" if "first_vs_defaults_mean_db" in v else "")
         console.print(f"{name}: rows meeting every target, one fit -> best of N: {sets}; difference over "
                       f"{v['rows']} rows: median {v['median_difference_db']:+.2f}, mean "
-                      f"{v['mean_difference_db']:+.2f}, worst {v['worst_difference_db']:+.2f} dB"
-                      + (f"; its first fit against the defaults' first fit: mean {v['first_vs_defaults_mean_db']:+.2f}, "
-                         f"worst {v['first_vs_defaults_worst_db']:+.2f} dB" if "first_vs_defaults_mean_db" in v else ""))
+                      f"{v['mean_difference_db']:+.2f}, worst {v['worst_difference_db']:+.2f} dB{vs}")
 
 
 def main(args: Args) -> None:
@@ -155,8 +175,8 @@ def main(args: Args) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "best_of.json"
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps({"sources": [str(p) for p in args.results], "by": args.by, "rows": rows, "totals": tot},
-                                  indent=1))
+        tmp.write_text(json.dumps({"sources": [str(p) for p in args.results], "by": args.by, "rows": rows,
+                                   "totals": tot}, indent=1))
     console.print(f"wrote {path}")
 
 

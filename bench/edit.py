@@ -400,10 +400,11 @@ def dump_targets(path: Path, b: Bench, scene: EvalScene, edited: torch.Tensor) -
 
 SEED_FIGURES = ("propagation_psnr", "miss_psnr", "leak_psnr", "recolour_psnr", "unedited_psnr", "truth_psnr",
                 "edit_fit_changed_psnr", "edit_view_propagation_psnr", "edit_view_miss_psnr")
-LOSS_FIGURES = ("final_l1", "fit_l1")
-"""Each fit's figures kept in ``per_seed``: the held-out ones, and the edited view's own (with each fit's
-last step's loss, ``final_l1``, and its loss on every pixel set at the end, ``fit_l1``), to see whether
+"""Each fit's figures kept in ``per_seed``: the held-out ones and the edited view's own, to see whether
 what a fit can know about itself predicts how it carries."""
+LOSS_FIGURES = ("final_l1", "fit_l1")
+"""Each fit's losses kept in ``per_seed`` beside them: its last step's (``final_l1``) and its loss on
+every pixel set at the end (``fit_l1``)."""
 
 
 def median_over_seeds(args: Args, b: Bench, fit: tuple, config: dict, rule, edited: torch.Tensor, first: dict,
@@ -687,8 +688,9 @@ def merged(paths: List[Path]) -> dict:
         rows += r["scenes"]
         if "pick_latency" in r:
             latencies.append({"device": r.get("device"), **r["pick_latency"]})
+        latencies += r.get("pick_latencies", [])  # a merge's, kept by a merge of merges
         devices.append(r.get("device"))
-        commits.append(r.get("commit"))
+        commits += r["commits"] if "commits" in r else [r.get("commit")]
     return {"device": ", ".join(sorted(set(filter(None, devices)))), "commits": commits, "merged": [str(p) for p in paths],
             "scenes": rows, "worst_case": worst_case(rows), "pick_latencies": latencies}
 

@@ -834,8 +834,8 @@ def test_a_fresh_segmentation_head_is_drawn_from_the_seed_and_copied_per_edit(wo
     assert not torch.equal(other.seg.l1.weight, second.seg.l1.weight)
 
 
-@pytest.mark.parametrize("pixel_batches", [1, 4])
-def test_fit_loss_is_the_weighted_l1_of_the_preview_against_the_target(world, pixel_batches):
+@pytest.mark.parametrize("pixel_batches,composite", [(1, "csr"), (4, "csr"), (4, "fused")])
+def test_fit_loss_is_the_weighted_l1_of_the_preview_against_the_target(world, pixel_batches, composite):
     """``EditEngine.fit_loss`` (a fit's loss on every pixel set at once) against the same loss computed
     on the whole preview: the changed pixels carry ``changed_share`` of it, the rest the remainder,
     each group's |preview - target| averaged over its pixels and channels. The sets split each group
@@ -845,13 +845,14 @@ def test_fit_loss_is_the_weighted_l1_of_the_preview_against_the_target(world, pi
     g = torch.Generator().manual_seed(5)
     photo = (render + 0.1 * (torch.rand(render.shape, generator=g) - 0.5)).clamp(0, 1)
     edited, _ = recolor(photo, BLUE_TO_RED)
-    cfg = EditConfig(steps=15, pixel_batches=pixel_batches, changed_share=0.7)
+    cfg = EditConfig(steps=15, pixel_batches=pixel_batches, changed_share=0.7, batch_composite=composite)
     eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), edited, cfg=cfg, original=photo)
     eng.fit()
     err = (eng.preview()["rgb"] - eng._target).abs().mean(-1).reshape(-1)
     changed = eng._changed
     assert 0 < int(changed.sum()) < changed.numel()
     expected = 0.7 * float(err[changed].mean()) + 0.3 * float(err[~changed].mean())
+    assert eng.batches[0].composite == composite
     assert eng.fit_loss() == pytest.approx(expected, rel=1e-6 if pixel_batches == 1 else 2e-4)
     # and it is the fit's own: a fresh engine's heads (no steps) score worse on the same target
     fresh = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), edited, cfg=cfg, original=photo)

@@ -207,7 +207,7 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     for p in stale[0]["pick_variants"].values():
         p["pass"] = not p["pass"]
     for name in ("a", "b"):
-        (tmp_path / f"{name}.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": stale,
+        (tmp_path / f"{name}.json").write_text(json.dumps({"device": "cpu", "commit": f"commit-{name}", "scenes": stale,
                                                            **({"pick_latency": latency} if name == "a" else {})},
                                                           default=float))
     m = bench_edit.merged([tmp_path / "a.json", tmp_path / "b.json"])
@@ -219,6 +219,10 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     assert [lat["device"] for lat in m["pick_latencies"]] == ["cpu"]
     assert "30 ms" in bench_edit.latency_line(m["pick_latencies"][0])
     bench_edit.print_pick(m["scenes"], m["pick_latencies"])
+    # a merge of merges keeps their commits and latency lines
+    (tmp_path / "ab.json").write_text(json.dumps(m, default=float))
+    mm = bench_edit.merged([tmp_path / "ab.json", tmp_path / "b.json"])
+    assert mm["commits"] == ["commit-a", "commit-b", "commit-b"] and len(mm["pick_latencies"]) == 1
     with pytest.raises(InputError, match="--merge"):
         bench_edit.merged([tmp_path / "missing.json"])
     # a call made while another default held: its rows are named against today's defaults
