@@ -103,3 +103,17 @@ def test_main_writes_its_json_and_refuses_results_without_fits(best_of, tmp_path
     path.write_text(json.dumps({"scenes": [{**ROWS[0], "per_seed": ROWS[0]["per_seed"][:1]}]}))
     with pytest.raises(InputError, match="no per-seed fits"):
         best_of.main(best_of.Args(results=[path], out=tmp_path / "out"))
+
+
+def test_fit_spread_correlations_say_plus_one_where_the_better_fit_by_its_own_figure_carries_better():
+    with script_module("bench/fit_spread.py", "bench_fit_spread") as fs:
+        assert fs.spearman([1, 2, 3, 4], [10, 20, 30, 40]) == pytest.approx(1.0)
+        assert fs.spearman([1, 2, 3, 4], [4, 3, 2, 1]) == pytest.approx(-1.0)
+        assert fs.spearman([1, 3, 2, 4], [1, 2, 3, 4]) == pytest.approx(0.8)  # 1 - 6 * 2 / (4 * 15)
+        fits = [{"miss_psnr": 30 - k, "propagation_psnr": 40 + k, "final_l1": 0.01 * (k + 1),
+                 "fit_l1": 0.01 * (k + 1), "edit_fit_changed_psnr": 25 - k} for k in range(4)]
+        c = fs.correlations(fits)
+        # a lower loss and a higher own PSNR go with a higher miss: +1; propagation runs the other way here
+        assert c["fit_l1"]["miss_psnr"] == pytest.approx(1.0)
+        assert c["final_l1"]["propagation_psnr"] == pytest.approx(-1.0)
+        assert c["edit_fit_changed_psnr"]["miss_psnr"] == pytest.approx(1.0)
