@@ -18,7 +18,7 @@ import statistics
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import List
+from typing import List, Optional
 
 import torch
 import tyro
@@ -56,6 +56,8 @@ class Args:
     """More fits at seed 0, each with the edited image moved by fresh noise."""
     noise: float = 1e-6
     """Standard deviation of that noise (the image is in [0, 1])."""
+    steps: Optional[int] = None
+    """Steps of each fit (default: the engine's)."""
 
 
 def spearman(a: List[float], b: List[float]) -> float:
@@ -118,7 +120,7 @@ def main(args: Args) -> None:
         if eng_changed != changed:
             raise InputError(f"--noise {args.noise} changes which pixels count as changed ({eng_changed} against "
                              f"{changed}): use a smaller one")
-        edit, t = b.fit(image, None, None, 1, original, seed=seed)
+        edit, t = b.fit(image, args.steps, None, 1, original, seed=seed)
         m = b.measure(edit, scene.rule, lpips=False, edited=image)[0]["mean"]
         fits.append({"fit": name, "seed": seed, **{k: m[k] for k in HELD_OUT}, "truth_psnr": m.get("truth_psnr"),
                      "edit_fit_changed_psnr": m["edit_fit_changed_psnr"], "final_l1": t["final_l1"],
@@ -140,6 +142,7 @@ def main(args: Args) -> None:
     result = {"device": torch.cuda.get_device_name() if dev == "cuda" else "cpu", "commit": bench_edit._commit(),
               "scene": args.scene, "training_seed": args.seed, "colour_steps": args.colour_steps,
               "synthetic_size": list(args.synthetic_size), "noise": args.noise, "changed_pixels": changed,
+              "steps": args.steps or EditConfig().steps,
               "fits": fits, "rank_correlations": corr}
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(result, indent=1))
