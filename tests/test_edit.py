@@ -857,3 +857,27 @@ def test_fit_loss_is_the_weighted_l1_of_the_preview_against_the_target(world, pi
     # and it is the fit's own: a fresh engine's heads (no steps) score worse on the same target
     fresh = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), edited, cfg=cfg, original=photo)
     assert fresh.fit_loss() > 1.5 * eng.fit_loss()
+
+
+def test_a_cosine_schedule_is_the_constant_fit_with_its_rate_decayed_step_by_step(world):
+    """``lr_schedule="cosine"`` (the rate computed on the device from Adam's step count) against the
+    constant-rate engine stepped by hand with the rate set before each step to lr (1 + cos(pi k / n)) / 2."""
+    import math
+
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    n = 20
+    eng = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=n, lr_schedule="cosine"))
+    eng.fit()
+    hand = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=n))
+    with torch.enable_grad():
+        for k in range(n):
+            hand.opt.lr = 0.5 * hand.cfg.lr * (1 + math.cos(math.pi * k / n))
+            hand.step(k)
+    torch.testing.assert_close(eng.weight, hand.weight, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(eng.preview()["rgb"], hand.preview()["rgb"], atol=1e-5, rtol=0)
+    constant = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=n))
+    constant.fit()
+    assert float((constant.weight - eng.weight).abs().max()) > 1e-3  # the schedule changes the fit
+    with pytest.raises(ValueError, match="lr_schedule"):
+        EditConfig(lr_schedule="linear")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
 import torch
 
 from virgi_ns.edit.optim import EditAdam
@@ -66,3 +67,34 @@ def test_edit_adam_does_not_import_the_compiler():
             "print('torch._dynamo' in sys.modules)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+def test_a_cosine_decay_steps_by_half_a_cosine_to_zero_then_stops():
+    """With a constant gradient, Adam's bias-corrected step is exactly its learning rate, so the
+    parameter walks by the sum of the schedule: lr (1 + cos(pi k / n)) / 2 for steps k = 0..n-1, and
+    not at all after step n. Also through torch.optim.Adam (the fallback, which sets the rate on the host)."""
+    import math
+
+    n, lr = 8, 0.1
+    expected = [-sum(0.5 * lr * (1 + math.cos(math.pi * min(j, n) / n)) for j in range(k + 1)) for k in range(n + 3)]
+    for fallback in (False, True):
+        p = torch.zeros(2, requires_grad=True)
+        opt = EditAdam([p], lr=lr, decay_steps=n)
+        if fallback:
+            opt._fallback = torch.optim.Adam([p], lr=lr)
+        walked = []
+        for _ in range(n + 3):
+            opt.zero_grad()
+            p.sum().backward()
+            opt.step()
+            walked.append(float(p[0]))
+        assert walked == [pytest.approx(e, abs=1e-6) for e in expected], fallback
+        assert walked[n] == pytest.approx(walked[n - 1], abs=1e-7) and walked[-1] == pytest.approx(walked[n], abs=1e-7)
+        opt.restart()  # a restart starts the schedule again: the next step is the full rate
+        before = float(p[0])
+        opt.zero_grad()
+        p.sum().backward()
+        opt.step()
+        assert float(p[0]) - before == pytest.approx(-lr, abs=1e-6)
+    with pytest.raises(ValueError, match="decay_steps"):
+        EditAdam([p], lr=lr, decay_steps=0)

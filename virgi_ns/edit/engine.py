@@ -82,6 +82,10 @@ class EditConfig:
     time")."""
     lr: float = 2e-2
     """Learning rate of both heads."""
+    lr_schedule: str = "constant"
+    """``constant``: ``lr`` at every step; ``cosine``: from ``lr`` at the first step to 0 at the last
+    (``steps``) by half a cosine, so the fit settles where a constant rate leaves it moving
+    (bench/RESULTS.md, "Why one fit's spread")."""
     seg_width: int = 64
     """Hidden width of the segmentation head."""
     seg_init_bias: float = -4.0
@@ -228,6 +232,8 @@ class EditConfig:
         if not 1 <= self.map_levels <= 3:
             raise ValueError(f"EditConfig.map_levels must be 1, 2 or 3, got {self.map_levels}")
         parse_composite(self.batch_composite)  # ValueError naming the kinds
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"EditConfig.lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
         if self.recipe not in ("joint", "staged"):
             raise ValueError(f"EditConfig.recipe must be 'joint' or 'staged', got {self.recipe!r}")
         if self.seg_steps < 0 or self.seg_samples < 2:
@@ -609,7 +615,8 @@ class EditEngine:
         if self.opt is not None and [id(p) for p in self.opt.params] == [id(p) for p in trainable]:
             self.opt.restart()  # the same tensors, which recorded steps read and write
         else:
-            self.opt = EditAdam(trainable, lr=cfg.lr)
+            decay = max(cfg.steps, 1) if cfg.lr_schedule == "cosine" else None
+            self.opt = EditAdam(trainable, lr=cfg.lr, decay_steps=decay)
             self._graphs = None
 
     def _set_heads(self) -> None:

@@ -10,7 +10,8 @@ falls back to ``torch.optim.Adam``.
 
 from __future__ import annotations
 
-from typing import Iterable
+import math
+from typing import Iterable, Optional
 
 import torch
 from torch import Tensor
@@ -27,17 +28,30 @@ def _has_fused_kernel(params: list[Tensor]) -> bool:
 
 class EditAdam:
     """Adam (no weight decay, no AMSGrad) over ``params``; capturable in a CUDA graph: the step counts
-    live on the parameters' device and nothing reads them on the host."""
+    live on the parameters' device and nothing reads them on the host. ``decay_steps``: the learning
+    rate falls from ``lr`` at the first step to 0 after that many by half a cosine (computed on the
+    device from the step count, so a recorded step replays it); None keeps it constant."""
 
     def __init__(self, params: Iterable[Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.999),
-                 eps: float = 1e-8) -> None:
+                 eps: float = 1e-8, decay_steps: Optional[int] = None) -> None:
         self.params = list(params)
         self.lr, self.betas, self.eps = float(lr), betas, float(eps)
+        if decay_steps is not None and decay_steps < 1:
+            raise ValueError(f"EditAdam: decay_steps must be >= 1, got {decay_steps}")
+        self.decay_steps = decay_steps
+        self._host_steps = 0  # the fallback's step count (it sets its learning rate on the host)
         self._fallback = None if _has_fused_kernel(self.params) else torch.optim.Adam(self.params, lr=lr, betas=betas,
                                                                                        eps=eps)
         self.exp_avg = [torch.zeros_like(p) for p in self.params]
         self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
         self.steps = [torch.zeros((), dtype=torch.float32, device=p.device) for p in self.params]
+        self._lr = torch.full((), self.lr, dtype=torch.float32, device=self.params[0].device)
+
+    def lr_at(self, step: int) -> float:
+        """The learning rate of step ``step`` (0: the first) after a (re)start."""
+        if self.decay_steps is None:
+            return self.lr
+        return 0.5 * self.lr * (1.0 + math.cos(math.pi * min(step, self.decay_steps) / self.decay_steps))
 
     def zero_grad(self) -> None:
         for p in self.params:
@@ -46,13 +60,21 @@ class EditAdam:
     @torch.no_grad()
     def step(self) -> None:
         if self._fallback is not None:
+            for group in self._fallback.param_groups:
+                group["lr"] = self.lr_at(self._host_steps)
+            self._host_steps += 1
             self._fallback.step()
             return
         grads = [p.grad for p in self.params]
         if any(g is None for g in grads):
             raise RuntimeError("EditAdam.step: a parameter has no gradient")
         torch._foreach_add_(self.steps, 1.0)
-        torch._fused_adam_(self.params, grads, self.exp_avg, self.exp_avg_sq, [], self.steps, lr=self.lr,
+        lr = self.lr
+        if self.decay_steps is not None:  # lr_at(steps - 1), on the device
+            done = (self.steps[0] - 1.0).clamp(max=float(self.decay_steps)) / float(self.decay_steps)
+            torch.mul(torch.cos(done * math.pi) + 1.0, 0.5 * self.lr, out=self._lr)
+            lr = self._lr
+        torch._fused_adam_(self.params, grads, self.exp_avg, self.exp_avg_sq, [], self.steps, lr=lr,
                            beta1=self.betas[0], beta2=self.betas[1], weight_decay=0.0, eps=self.eps, amsgrad=False,
                            maximize=False)
 
@@ -66,6 +88,7 @@ class EditAdam:
         """A fresh Adam's state (no moments, step 0), written in place: recorded steps read these tensors."""
         for t in self.state_tensors():
             t.zero_()
+        self._host_steps = 0
 
 
 __all__ = ["EditAdam"]
