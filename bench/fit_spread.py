@@ -58,6 +58,8 @@ class Args:
     """Standard deviation of that noise (the image is in [0, 1])."""
     steps: Optional[int] = None
     """Steps of each fit (default: the engine's)."""
+    lr_schedule: str = "constant"
+    """EditConfig.lr_schedule of each fit."""
 
 
 def spearman(a: List[float], b: List[float]) -> float:
@@ -120,7 +122,7 @@ def main(args: Args) -> None:
         if eng_changed != changed:
             raise InputError(f"--noise {args.noise} changes which pixels count as changed ({eng_changed} against "
                              f"{changed}): use a smaller one")
-        edit, t = b.fit(image, args.steps, None, 1, original, seed=seed)
+        edit, t = b.fit(image, args.steps, None, 1, original, seed=seed, lr_schedule=args.lr_schedule)
         m = b.measure(edit, scene.rule, lpips=False, edited=image)[0]["mean"]
         fits.append({"fit": name, "seed": seed, **{k: m[k] for k in HELD_OUT}, "truth_psnr": m.get("truth_psnr"),
                      "edit_fit_changed_psnr": m["edit_fit_changed_psnr"], "final_l1": t["final_l1"],
@@ -142,7 +144,7 @@ def main(args: Args) -> None:
     result = {"device": torch.cuda.get_device_name() if dev == "cuda" else "cpu", "commit": bench_edit._commit(),
               "scene": args.scene, "training_seed": args.seed, "colour_steps": args.colour_steps,
               "synthetic_size": list(args.synthetic_size), "noise": args.noise, "changed_pixels": changed,
-              "steps": args.steps or EditConfig().steps,
+              "steps": args.steps or EditConfig().steps, "lr_schedule": args.lr_schedule,
               "fits": fits, "rank_correlations": corr}
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(result, indent=1))
