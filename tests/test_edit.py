@@ -748,10 +748,11 @@ def _on_gpu(scene):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
-@pytest.mark.parametrize("recipe", ["joint", "staged"])
-def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe):
+@pytest.mark.parametrize("recipe,lr_schedule", [("joint", "constant"), ("staged", "constant"), ("joint", "cosine")])
+def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe, lr_schedule):
     """``cuda_graphs``: the recorded steps replay the eager steps' kernels in the eager order, so the
-    edit (layer, segmentation, final loss) is the eager one's."""
+    edit (layer, segmentation, final loss) is the eager one's; a cosine rate too, computed on the
+    device from Adam's step count at each replay."""
     S = world["S"]
     sc = S.scene
     gpu = _on_gpu(sc)
@@ -759,7 +760,8 @@ def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe):
     edited = world["edited"].cuda()
     fits = {}
     for graphs in (True, False):
-        cfg = EditConfig(steps=30, cuda_graphs=graphs, recipe=recipe, seg_samples=4096, seg_steps=50)
+        cfg = EditConfig(steps=30, cuda_graphs=graphs, recipe=recipe, seg_samples=4096, seg_steps=50,
+                         lr_schedule=lr_schedule)
         fits[graphs] = EditEngine(gpu, cam, edited, EditStack(gpu.fingerprint()), cfg).fit()
     (e_g, t_g), (e_e, t_e) = fits[True], fits[False]
     torch.testing.assert_close(e_g.head_weight, e_e.head_weight, atol=1e-5, rtol=1e-5)
