@@ -144,7 +144,7 @@ def main(args: Args) -> None:
     result = {"device": torch.cuda.get_device_name() if dev == "cuda" else "cpu", "commit": bench_edit._commit(),
               "scene": args.scene, "training_seed": args.seed, "colour_steps": args.colour_steps,
               "synthetic_size": list(args.synthetic_size), "noise": args.noise, "changed_pixels": changed,
-              "steps": args.steps or EditConfig().steps, "lr_schedule": args.lr_schedule,
+              "steps": EditConfig().steps if args.steps is None else args.steps, "lr_schedule": args.lr_schedule,
               "fits": fits, "rank_correlations": corr}
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(result, indent=1))

@@ -881,5 +881,10 @@ def test_a_cosine_schedule_is_the_constant_fit_with_its_rate_decayed_step_by_ste
     constant = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=n))
     constant.fit()
     assert float((constant.weight - eng.weight).abs().max()) > 1e-3  # the schedule changes the fit
+    # the schedule spans every fit of one target: 8 steps, then 12 more, are the 20 steps at once
+    split = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=n, lr_schedule="cosine"))
+    split.fit(8)
+    split.fit(n - 8)
+    torch.testing.assert_close(split.weight, eng.weight, atol=1e-6, rtol=1e-6)
     with pytest.raises(ValueError, match="lr_schedule"):
         EditConfig(lr_schedule="linear")

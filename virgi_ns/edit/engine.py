@@ -83,9 +83,10 @@ class EditConfig:
     lr: float = 2e-2
     """Learning rate of both heads."""
     lr_schedule: str = "constant"
-    """``constant``: ``lr`` at every step; ``cosine``: from ``lr`` at the first step to 0 at the last
-    (``steps``) by half a cosine, so the fit settles where a constant rate leaves it moving
-    (bench/RESULTS.md, "Why one fit's spread")."""
+    """``constant``: ``lr`` at every step; ``cosine``: from ``lr`` at the first step, by half a cosine,
+    to 0 after ``steps`` steps, counted over every :meth:`EditEngine.fit` of one target (a retarget
+    starts it again), so the fit settles where a constant rate leaves it moving (bench/RESULTS.md,
+    "Why one fit's spread"). Steps past ``steps`` move nothing."""
     seg_width: int = 64
     """Hidden width of the segmentation head."""
     seg_init_bias: float = -4.0
