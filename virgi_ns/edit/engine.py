@@ -767,11 +767,7 @@ class EditEngine:
         loss, averaged): a figure a fit knows about itself, steadier than its last step's, which
         saw one set."""
         C, _ = self.colours()
-        losses = []
-        for b in self.batches:
-            err = (b.render(C) + b.background - b.target).abs()
-            losses.append(err.mean() if b.weight is None else (err.mean(-1) * b.weight).sum())
-        return float(torch.stack(losses).mean())
+        return float(torch.stack([b.reference_loss(C) for b in self.batches]).mean())
 
     def _fit_graphed(self, n: int, progress: Optional[Callable[[int, int], None]]) -> tuple[int, Tensor]:
         """Up to ``n`` steps as replays of recorded CUDA graphs, in the eager order: one graph per
