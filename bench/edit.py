@@ -316,22 +316,29 @@ def limits_text(m: dict) -> str:
     return "; ".join(parts)
 
 
-def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
-    """The scene's rows: the engine's defaults (timed cold and warm, pictures), then one row per
-    --variants entry (timed warm, once)."""
+def scene_bench(args: Args, scene: EvalScene, loaded: dict) -> tuple[Bench, int, Path]:
+    """The scene's :class:`Bench` on its edit view (the training photo its rule recolours most), that
+    view's index and the config of its run, trained here when absent; ``loaded`` keeps the last loaded run, so that two rules
+    on one capture share it."""
     from virgi_ns.cli.edit import load_run
 
     folder = capture_folder(scene, args.data, args.train_out / "captures",
                             "cuda" if torch.cuda.is_available() else "cpu", console, args.synthetic_size)
     cfg = run_config(args, scene, folder)
-    if loaded.get("config") != cfg:  # two rules on one capture share the loaded run
+    if loaded.get("config") != cfg:
         loaded.clear()
         _, pipeline = load_run(cfg)
         loaded.update(config=cfg, pipeline=pipeline)
     pipeline = loaded["pipeline"]
     train = pipeline.datamanager.train_dataset
     view = edit_view([train.get_image_float32(i)[..., :3] for i in range(len(train))], scene.rule)
-    b = Bench.load(pipeline, view, 0, capture=folder if scene.synthetic else None)
+    return Bench.load(pipeline, view, 0, capture=folder if scene.synthetic else None), view, cfg
+
+
+def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
+    """The scene's rows: the engine's defaults (timed cold and warm, pictures), then one row per
+    --variants entry (timed warm, once)."""
+    b, view, cfg = scene_bench(args, scene, loaded)
     edited = b.edited_image(scene.rule, "photo")
     original = b.original("photo")
     if args.dump_targets:

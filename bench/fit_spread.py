@@ -29,8 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import edit as bench_edit  # noqa: E402  (bench/edit.py: the set's training and edit view)
 
-from virgi_ns.bench.evalset import SYNTHETIC_SIZE, capture_folder, find  # noqa: E402
-from virgi_ns.bench.recolor import Bench  # noqa: E402
+from virgi_ns.bench.evalset import SYNTHETIC_SIZE, find  # noqa: E402
 from virgi_ns.errors import InputError, atomic_path, cli_entry  # noqa: E402
 
 console = Console(width=160)
@@ -92,21 +91,16 @@ def correlations(fits: List[dict]) -> dict:
 
 
 def main(args: Args) -> None:
-    from virgi_ns.cli.edit import load_run
     from virgi_ns.edit.engine import EditConfig, EditEngine
 
     if args.seeds < 1 or args.perturbations < 0 or args.noise <= 0:
         raise InputError("--seeds must be >= 1, --perturbations >= 0 and --noise > 0")
     scene = find([args.scene])[0]
     dev = "cuda" if torch.cuda.is_available() else "cpu"
-    folder = capture_folder(scene, args.data, args.train_out / "captures", dev, console, args.synthetic_size)
     train_args = bench_edit.Args(scenes=[args.scene], data=args.data, train_out=args.train_out, seed=args.seed,
                                  colour_steps=args.colour_steps, geometry_steps=args.geometry_steps,
                                  synthetic_size=args.synthetic_size)
-    _, pipeline = load_run(bench_edit.run_config(train_args, scene, folder))
-    train = pipeline.datamanager.train_dataset
-    view = bench_edit.edit_view([train.get_image_float32(i)[..., :3] for i in range(len(train))], scene.rule)
-    b = Bench.load(pipeline, view, 0, capture=folder if scene.synthetic else None)
+    b, _, _ = bench_edit.scene_bench(train_args, scene, {})
     edited, original = b.edited_image(scene.rule, "photo"), b.original("photo")
     b.scene.precompute_features()
     changed = int(EditEngine(b.scene, b.edit_camera, edited, cfg=EditConfig(), original=original)._changed.sum())
