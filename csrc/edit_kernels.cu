@@ -215,31 +215,21 @@ cudaError_t launch_edit_l1(int64_t max_rows, const float* colors, const int* pai
                            const float* weight, const int64_t* offsets, const int64_t* rows,
                            const int64_t* starts, int64_t* counter, int64_t num_sets,
                            const float* background, const float* target, const float* loss_weight,
-                           float* loss, float* grad_colors, cudaStream_t stream) {
-  cudaError_t err = launch_elements(edit_l1_kernel<true>, max_rows * kGroup, stream, colors, pair,
-                                    weight, offsets, rows, starts, counter, num_sets, background,
-                                    target, loss_weight, loss, grad_colors,
-                                    static_cast<char4*>(nullptr));
+                           const EditGather* gather, float* loss, float* grad_colors,
+                           cudaStream_t stream) {
+  cudaError_t err =
+      gather == nullptr
+          ? launch_elements(edit_l1_kernel<true>, max_rows * kGroup, stream, colors, pair, weight,
+                            offsets, rows, starts, counter, num_sets, background, target,
+                            loss_weight, loss, grad_colors, static_cast<char4*>(nullptr))
+          : launch_elements(edit_l1_kernel<false>, max_rows * kGroup, stream, colors, pair, weight,
+                            offsets, rows, starts, counter, num_sets, background, target,
+                            loss_weight, loss, grad_colors, gather->signs);
   if (err != cudaSuccess) return err;
-  advance_kernel<<<1, 1, 0, stream>>>(counter);
-  return cudaGetLastError();
-}
-
-cudaError_t launch_edit_l1_gathered(int64_t max_rows, const float* colors, const int* pair,
-                                    const float* weight, const int64_t* offsets, const int64_t* rows,
-                                    const int64_t* starts, int64_t* counter, int64_t num_sets,
-                                    const float* background, const float* target,
-                                    const float* loss_weight, const int64_t* t_start,
-                                    const int* t_gauss, const int* t_row, const float* t_w,
-                                    int num_blocks, float* loss, float* grad_colors, char4* signs,
-                                    cudaStream_t stream) {
-  cudaError_t err = launch_elements(edit_l1_kernel<false>, max_rows * kGroup, stream, colors, pair,
-                                    weight, offsets, rows, starts, counter, num_sets, background,
-                                    target, loss_weight, loss, grad_colors, signs);
-  if (err != cudaSuccess) return err;
-  if (num_blocks > 0)
-    edit_gather_kernel<<<num_blocks, kThreads, 0, stream>>>(t_start, counter, num_sets, t_gauss,
-                                                            t_row, t_w, signs, grad_colors);
+  if (gather != nullptr && gather->num_blocks > 0)
+    edit_gather_kernel<<<gather->num_blocks, kThreads, 0, stream>>>(
+        gather->t_start, counter, num_sets, gather->t_gauss, gather->t_row, gather->t_w,
+        gather->signs, grad_colors);
   err = cudaGetLastError();
   if (err != cudaSuccess) return err;
   advance_kernel<<<1, 1, 0, stream>>>(counter);

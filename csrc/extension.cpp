@@ -13,6 +13,7 @@
 #include <cstdint>
 #include <cstdlib>
 #include <limits>
+#include <optional>
 #include <vector>
 
 #include "kernels.h"
@@ -732,25 +733,46 @@ void check_edit_step(const torch::Tensor& colors, const torch::Tensor& pair,
 }
 
 // One step of an edit's weighted L1 pixel loss for the pixel set counter % num_sets, and its
-// gradient to the colours; advances the counter. Returns {loss [1], grad_colors [U, 4]} (the
-// fourth column is padding).
-std::vector<torch::Tensor> edit_l1_step(torch::Tensor colors, torch::Tensor pair, torch::Tensor weight,
-                                        torch::Tensor pixel_offsets, torch::Tensor rows,
-                                        torch::Tensor starts, torch::Tensor counter,
-                                        torch::Tensor background, torch::Tensor target,
-                                        torch::Tensor loss_weight, int64_t max_rows) {
+// gradient to the colours; advances the counter. The gradient is scattered by one atomic per entry,
+// or, given t_start, t_gauss, t_row and t_w (edit_by_gaussian's), gathered per Gaussian. Returns
+// {loss [1], grad_colors [U, 4]} (the fourth column is padding).
+std::vector<torch::Tensor> edit_l1_step(
+    torch::Tensor colors, torch::Tensor pair, torch::Tensor weight, torch::Tensor pixel_offsets,
+    torch::Tensor rows, torch::Tensor starts, torch::Tensor counter, torch::Tensor background,
+    torch::Tensor target, torch::Tensor loss_weight, int64_t max_rows,
+    std::optional<torch::Tensor> t_start, std::optional<torch::Tensor> t_gauss,
+    std::optional<torch::Tensor> t_row, std::optional<torch::Tensor> t_w) {
   check_edit_step(colors, pair, weight, pixel_offsets, rows, starts, counter, background, target,
                   loss_weight);
+  const bool gathered = t_start.has_value();
+  TORCH_CHECK(t_gauss.has_value() == gathered && t_row.has_value() == gathered &&
+                  t_w.has_value() == gathered,
+              "t_start, t_gauss, t_row and t_w: all four or none");
   const OnDevice on(colors);
   auto loss = torch::zeros({1}, colors.options());
   auto grad_colors = torch::zeros({colors.size(0), 4}, colors.options());
+  torch::Tensor signs;
+  EditGather gather{};
+  if (gathered) {
+    check_i64(*t_start, "t_start");
+    check_i32(*t_gauss, "t_gauss");
+    check_i32(*t_row, "t_row");
+    check_f32(*t_w, "t_w");
+    TORCH_CHECK(t_start->numel() == starts.numel(), "t_start needs num_sets + 1 entries, as starts");
+    TORCH_CHECK(t_gauss->numel() == t_row->numel() && t_row->numel() == t_w->numel(),
+                "t_gauss, t_row and t_w must have one entry each");
+    signs = torch::empty({rows.numel(), 4}, colors.options().dtype(torch::kInt8));
+    gather = {t_start->data_ptr<int64_t>(), t_gauss->data_ptr<int>(), t_row->data_ptr<int>(),
+              t_w->data_ptr<float>(), 8 * at::cuda::getCurrentDeviceProperties()->multiProcessorCount,
+              reinterpret_cast<char4*>(signs.data_ptr<int8_t>())};
+  }
   VIRGI_CUDA_CHECK(launch_edit_l1(max_rows, colors.data_ptr<float>(), pair.data_ptr<int>(),
                                   weight.data_ptr<float>(), pixel_offsets.data_ptr<int64_t>(),
                                   rows.data_ptr<int64_t>(), starts.data_ptr<int64_t>(),
                                   counter.data_ptr<int64_t>(), starts.numel() - 1,
                                   background.data_ptr<float>(), target.data_ptr<float>(),
-                                  loss_weight.data_ptr<float>(), loss.data_ptr<float>(),
-                                  grad_colors.data_ptr<float>(), on.stream));
+                                  loss_weight.data_ptr<float>(), gathered ? &gather : nullptr,
+                                  loss.data_ptr<float>(), grad_colors.data_ptr<float>(), on.stream));
   return {loss, grad_colors};
 }
 
@@ -794,38 +816,6 @@ std::vector<torch::Tensor> edit_by_gaussian(torch::Tensor pair, torch::Tensor we
                                            t_w.data_ptr<float>(), on.stream));
   auto t_start = bin_start.index_select(0, torch::arange(S + 1, pixel_offsets.options()) * U);
   return {t_start, t_gauss, t_row, t_w};
-}
-
-// edit_l1_step with the gradient gathered over t_start, t_gauss, t_row, t_w (edit_by_gaussian's).
-std::vector<torch::Tensor> edit_l1_step_gathered(
-    torch::Tensor colors, torch::Tensor pair, torch::Tensor weight, torch::Tensor pixel_offsets,
-    torch::Tensor rows, torch::Tensor starts, torch::Tensor counter, torch::Tensor background,
-    torch::Tensor target, torch::Tensor loss_weight, int64_t max_rows, torch::Tensor t_start,
-    torch::Tensor t_gauss, torch::Tensor t_row, torch::Tensor t_w) {
-  check_edit_step(colors, pair, weight, pixel_offsets, rows, starts, counter, background, target,
-                  loss_weight);
-  check_i64(t_start, "t_start");
-  check_i32(t_gauss, "t_gauss");
-  check_i32(t_row, "t_row");
-  check_f32(t_w, "t_w");
-  TORCH_CHECK(t_start.numel() == starts.numel(), "t_start needs num_sets + 1 entries, as starts");
-  TORCH_CHECK(t_gauss.numel() == t_row.numel() && t_row.numel() == t_w.numel(),
-              "t_gauss, t_row and t_w must have one entry each");
-  const int64_t R = rows.numel();
-  const OnDevice on(colors);
-  auto loss = torch::zeros({1}, colors.options());
-  auto grad_colors = torch::zeros({colors.size(0), 4}, colors.options());
-  auto signs = torch::empty({R, 4}, colors.options().dtype(torch::kInt8));
-  const int num_blocks = 8 * at::cuda::getCurrentDeviceProperties()->multiProcessorCount;
-  VIRGI_CUDA_CHECK(launch_edit_l1_gathered(
-      max_rows, colors.data_ptr<float>(), pair.data_ptr<int>(), weight.data_ptr<float>(),
-      pixel_offsets.data_ptr<int64_t>(), rows.data_ptr<int64_t>(), starts.data_ptr<int64_t>(),
-      counter.data_ptr<int64_t>(), starts.numel() - 1, background.data_ptr<float>(),
-      target.data_ptr<float>(), loss_weight.data_ptr<float>(), t_start.data_ptr<int64_t>(),
-      t_gauss.data_ptr<int>(), t_row.data_ptr<int>(), t_w.data_ptr<float>(), num_blocks,
-      loss.data_ptr<float>(), grad_colors.data_ptr<float>(),
-      reinterpret_cast<char4*>(signs.data_ptr<int8_t>()), on.stream));
-  return {loss, grad_colors};
 }
 
 // The edit heads' forward (kernels.h, launch_heads_forward): pre [U, S] = x W1^T + b1, x [U, Dx]
@@ -906,11 +896,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("deferred_composite_backward", &virgi::deferred_composite_backward,
         "Gradient of deferred_composite_forward to colours");
   m.def("edit_l1_step", &virgi::edit_l1_step,
-        "One step of an edit's weighted L1 pixel loss and its gradient to the colours");
+        "One step of an edit's weighted L1 pixel loss and its gradient to the colours, scattered, or "
+        "gathered over the entries sorted by Gaussian (edit_by_gaussian's) where given");
   m.def("edit_by_gaussian", &virgi::edit_by_gaussian,
-        "An edit's pixel sets' entries sorted by Gaussian, for edit_l1_step_gathered");
-  m.def("edit_l1_step_gathered", &virgi::edit_l1_step_gathered,
-        "edit_l1_step with the gradient gathered over the entries sorted by Gaussian");
+        "An edit's pixel sets' entries sorted by Gaussian, for edit_l1_step's gathered gradient");
   m.def("edit_heads_forward", &virgi::edit_heads_forward, "The edit heads' colours from pre = x W1^T + b1");
   m.def("edit_heads_backward", &virgi::edit_heads_backward,
         "The edit heads' gradients from the loss's gradient to the colours");

@@ -136,30 +136,31 @@ cudaError_t launch_deferred_backward(int num_units, int D, const int* units, con
 cudaError_t launch_list_pair(int64_t n, const int* sorted_vals, const uint8_t* mark,
                              const int* rank_incl, int* list_pair, cudaStream_t stream);
 
+// The gathered gradient's inputs for launch_edit_l1: the loss kernel writes each row's signs
+// (signs [rows], char4), then the set's entries sorted by Gaussian (t_start [num_sets + 1]; t_gauss,
+// t_row, t_w: each entry's Gaussian, row, and weight x loss_weight[row] / 3, from
+// launch_edit_by_gaussian) are summed into grad_colors by num_blocks blocks.
+struct EditGather {
+  const int64_t* t_start;
+  const int* t_gauss;
+  const int* t_row;
+  const float* t_w;
+  int num_blocks;
+  char4* signs;
+};
+
 // One step of an edit's weighted L1 pixel loss (edit_kernels.cu): for the pixel set
 // counter % num_sets (rows [starts[set], starts[set + 1]) of rows / background / target /
 // loss_weight, rows naming the view's pixels whose entries start at offsets[row]), loss[0] (pre-
 // zeroed) += sum of loss_weight * mean_c |composite + background - target|, and grad_colors
-// [U, 4] (pre-zeroed) += that loss's gradient to colors [U, 3]; then counter += 1. max_rows: the
-// largest set.
+// [U, 4] (pre-zeroed) += that loss's gradient to colors [U, 3], scattered by one atomic per entry,
+// or gathered per Gaussian with gather (not null); then counter += 1. max_rows: the largest set.
 cudaError_t launch_edit_l1(int64_t max_rows, const float* colors, const int* pair,
                            const float* weight, const int64_t* offsets, const int64_t* rows,
                            const int64_t* starts, int64_t* counter, int64_t num_sets,
                            const float* background, const float* target, const float* loss_weight,
-                           float* loss, float* grad_colors, cudaStream_t stream);
-
-// The same step with the gradient gathered instead of scattered: the loss kernel writes each row's
-// signs (signs [rows], char4), then the set's entries sorted by Gaussian (t_start [num_sets + 1];
-// t_gauss, t_row, t_w: each entry's Gaussian, row, and weight x loss_weight[row] / 3, from
-// launch_edit_by_gaussian) are summed into grad_colors (pre-zeroed) by num_blocks blocks.
-cudaError_t launch_edit_l1_gathered(int64_t max_rows, const float* colors, const int* pair,
-                                    const float* weight, const int64_t* offsets, const int64_t* rows,
-                                    const int64_t* starts, int64_t* counter, int64_t num_sets,
-                                    const float* background, const float* target,
-                                    const float* loss_weight, const int64_t* t_start,
-                                    const int* t_gauss, const int* t_row, const float* t_w,
-                                    int num_blocks, float* loss, float* grad_colors, char4* signs,
-                                    cudaStream_t stream);
+                           const EditGather* gather, float* loss, float* grad_colors,
+                           cudaStream_t stream);
 // Once per edit, for the gathered step: each entry of every set's rows by bin set * U + Gaussian.
 // fill = false: bins [num_sets * U] (pre-zeroed) += the bins' counts; fill = true: bins holds each
 // bin's first free slot (advanced here) and t_gauss, t_row, t_w are written at the slots.

@@ -419,11 +419,9 @@ def edit_l1_step(colors: Tensor, pair: Tensor, weight: Tensor, pixel_offsets: Te
     to ``colors`` [U, 4], the last column padding); advances ``counter``. No host sync. The gradient
     is scattered by one atomic per entry, or, with ``by_gaussian`` (:func:`edit_by_gaussian`'s),
     gathered per Gaussian."""
-    args = (colors, pair, weight, pixel_offsets, rows, starts, counter, background, target, loss_weight, int(max_rows))
-    if by_gaussian is None:
-        loss, grad = _load().edit_l1_step(*args)
-    else:
-        loss, grad = _load().edit_l1_step_gathered(*args, *by_gaussian)
+    gather = (None,) * 4 if by_gaussian is None else tuple(by_gaussian)
+    loss, grad = _load().edit_l1_step(colors, pair, weight, pixel_offsets, rows, starts, counter, background, target,
+                                      loss_weight, int(max_rows), *gather)
     return loss, grad
 
 
