@@ -748,11 +748,12 @@ def _on_gpu(scene):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
-@pytest.mark.parametrize("recipe,lr_schedule", [("joint", "constant"), ("staged", "constant"), ("joint", "cosine")])
-def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe, lr_schedule):
+@pytest.mark.parametrize("recipe,lr_schedule,lr_hold", [("joint", "constant", 0.0), ("staged", "constant", 0.0),
+                                                        ("joint", "cosine", 0.0), ("joint", "cosine", 0.5)])
+def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe, lr_schedule, lr_hold):
     """``cuda_graphs``: the recorded steps replay the eager steps' kernels in the eager order, so the
-    edit (layer, segmentation, final loss) is the eager one's; a cosine rate too, computed on the
-    device from Adam's step count at each replay."""
+    edit (layer, segmentation, final loss) is the eager one's; a cosine rate too (with a hold or
+    not), computed on the device from Adam's step count at each replay."""
     S = world["S"]
     sc = S.scene
     gpu = _on_gpu(sc)
@@ -761,7 +762,7 @@ def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe, lr_schedule):
     fits = {}
     for graphs in (True, False):
         cfg = EditConfig(steps=30, cuda_graphs=graphs, recipe=recipe, seg_samples=4096, seg_steps=50,
-                         lr_schedule=lr_schedule)
+                         lr_schedule=lr_schedule, lr_hold=lr_hold)
         fits[graphs] = EditEngine(gpu, cam, edited, EditStack(gpu.fingerprint()), cfg).fit()
     (e_g, t_g), (e_e, t_e) = fits[True], fits[False]
     torch.testing.assert_close(e_g.head_weight, e_e.head_weight, atol=1e-5, rtol=1e-5)
@@ -861,20 +862,23 @@ def test_fit_loss_is_the_weighted_l1_of_the_preview_against_the_target(world, pi
     assert fresh.fit_loss() > 1.5 * eng.fit_loss()
 
 
-def test_a_cosine_schedule_is_the_constant_fit_with_its_rate_decayed_step_by_step(world):
+@pytest.mark.parametrize("lr_hold", [0.0, 0.5])
+def test_a_cosine_schedule_is_the_constant_fit_with_its_rate_decayed_step_by_step(world, lr_hold):
     """``lr_schedule="cosine"`` (the rate computed on the device from Adam's step count) against the
-    constant-rate engine stepped by hand with the rate set before each step to lr (1 + cos(pi k / n)) / 2."""
+    constant-rate engine stepped by hand with the rate set before each step: lr for the first
+    ``lr_hold * n`` steps h, then lr (1 + cos(pi (k - h) / (n - h))) / 2."""
     import math
 
     S = world["S"]
     cam = S.cameras.index(EDIT_VIEW)
     n = 20
-    eng = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=n, lr_schedule="cosine"))
+    h = round(lr_hold * n)
+    eng = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=n, lr_schedule="cosine", lr_hold=lr_hold))
     eng.fit()
     hand = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=n))
     with torch.enable_grad():
         for k in range(n):
-            hand.opt.lr = 0.5 * hand.cfg.lr * (1 + math.cos(math.pi * k / n))
+            hand.opt.lr = hand.cfg.lr if k < h else 0.5 * hand.cfg.lr * (1 + math.cos(math.pi * (k - h) / (n - h)))
             hand.step(k)
     torch.testing.assert_close(eng.weight, hand.weight, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(eng.preview()["rgb"], hand.preview()["rgb"], atol=1e-5, rtol=0)
@@ -882,9 +886,12 @@ def test_a_cosine_schedule_is_the_constant_fit_with_its_rate_decayed_step_by_ste
     constant.fit()
     assert float((constant.weight - eng.weight).abs().max()) > 1e-3  # the schedule changes the fit
     # the schedule spans every fit of one target: 8 steps, then 12 more, are the 20 steps at once
-    split = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=n, lr_schedule="cosine"))
+    split = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=n, lr_schedule="cosine", lr_hold=lr_hold))
     split.fit(8)
     split.fit(n - 8)
     torch.testing.assert_close(split.weight, eng.weight, atol=1e-6, rtol=1e-6)
     with pytest.raises(ValueError, match="lr_schedule"):
         EditConfig(lr_schedule="linear")
+    for bad in (dict(lr_hold=0.5), dict(lr_schedule="cosine", lr_hold=1.0)):  # a hold without a decay; no decay
+        with pytest.raises(ValueError, match="lr_hold"):
+            EditConfig(**bad)

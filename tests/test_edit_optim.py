@@ -69,27 +69,31 @@ def test_edit_adam_does_not_import_the_compiler():
     assert out.strip() == "False"
 
 
-def test_a_cosine_decay_steps_by_half_a_cosine_to_zero_then_stops():
+@pytest.mark.parametrize("hold", [0, 3])
+def test_a_cosine_decay_steps_by_half_a_cosine_to_zero_then_stops(hold):
     """With a constant gradient, Adam's bias-corrected step is exactly its learning rate, so the
-    parameter walks by the sum of the schedule: lr (1 + cos(pi k / n)) / 2 for steps k = 0..n-1, and
-    not at all after step n. Also through torch.optim.Adam (the fallback, which sets the rate on the host)."""
+    parameter walks by the sum of the schedule: lr for the ``hold`` first steps, then
+    lr (1 + cos(pi k / n)) / 2 for k = 0..n-1, and not at all after that. Also through torch.optim.Adam
+    (the fallback, which sets the rate on the host)."""
     import math
 
     n, lr = 8, 0.1
-    expected = [-sum(0.5 * lr * (1 + math.cos(math.pi * min(j, n) / n)) for j in range(k + 1)) for k in range(n + 3)]
+    rates = [lr] * hold + [0.5 * lr * (1 + math.cos(math.pi * k / n)) for k in range(n)] + [0.0] * 3
+    expected = [-sum(rates[: k + 1]) for k in range(len(rates))]
     for fallback in (False, True):
         p = torch.zeros(2, requires_grad=True)
-        opt = EditAdam([p], lr=lr, decay_steps=n)
+        opt = EditAdam([p], lr=lr, decay_steps=n, hold_steps=hold)
         if fallback:
             opt._fallback = torch.optim.Adam([p], lr=lr)
         walked = []
-        for _ in range(n + 3):
+        for _ in range(len(rates)):
             opt.zero_grad()
             p.sum().backward()
             opt.step()
             walked.append(float(p[0]))
         assert walked == [pytest.approx(e, abs=1e-6) for e in expected], fallback
-        assert walked[n] == pytest.approx(walked[n - 1], abs=1e-7) and walked[-1] == pytest.approx(walked[n], abs=1e-7)
+        last = hold + n - 1  # the last step that moves
+        assert walked[last + 1] == pytest.approx(walked[last], abs=1e-7) and walked[-1] == pytest.approx(walked[last], abs=1e-7)
         opt.restart()  # a restart starts the schedule again: the next step is the full rate
         before = float(p[0])
         opt.zero_grad()
@@ -98,3 +102,5 @@ def test_a_cosine_decay_steps_by_half_a_cosine_to_zero_then_stops():
         assert float(p[0]) - before == pytest.approx(-lr, abs=1e-6)
     with pytest.raises(ValueError, match="decay_steps"):
         EditAdam([p], lr=lr, decay_steps=0)
+    with pytest.raises(ValueError, match="hold_steps"):
+        EditAdam([p], lr=lr, hold_steps=2)  # a hold without a decay

@@ -87,6 +87,10 @@ class EditConfig:
     to 0 after ``steps`` steps, counted over every :meth:`EditEngine.fit` of one target (a retarget
     starts it again), so the fit settles where a constant rate leaves it moving (bench/RESULTS.md,
     "Why one fit's spread"). Steps past ``steps`` move nothing."""
+    lr_hold: float = 0.0
+    """With ``lr_schedule="cosine"``: the fraction of ``steps`` at the full rate before the half cosine
+    (which then spans the remaining steps), so the fit travels as far as at a constant rate for longer
+    before it settles. 0: the decay starts at the first step."""
     seg_width: int = 64
     """Hidden width of the segmentation head."""
     seg_init_bias: float = -4.0
@@ -235,6 +239,8 @@ class EditConfig:
         parse_composite(self.batch_composite)  # ValueError naming the kinds
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"EditConfig.lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
+        if not 0.0 <= self.lr_hold < 1.0 or (self.lr_hold and self.lr_schedule != "cosine"):
+            raise ValueError(f"EditConfig.lr_hold must be in [0, 1) and needs lr_schedule='cosine', got {self.lr_hold}")
         if self.recipe not in ("joint", "staged"):
             raise ValueError(f"EditConfig.recipe must be 'joint' or 'staged', got {self.recipe!r}")
         if self.seg_steps < 0 or self.seg_samples < 2:
@@ -616,8 +622,9 @@ class EditEngine:
         if self.opt is not None and [id(p) for p in self.opt.params] == [id(p) for p in trainable]:
             self.opt.restart()  # the same tensors, which recorded steps read and write
         else:
-            decay = max(cfg.steps, 1) if cfg.lr_schedule == "cosine" else None
-            self.opt = EditAdam(trainable, lr=cfg.lr, decay_steps=decay)
+            hold = round(cfg.lr_hold * cfg.steps) if cfg.lr_schedule == "cosine" else 0
+            decay = max(cfg.steps - hold, 1) if cfg.lr_schedule == "cosine" else None
+            self.opt = EditAdam(trainable, lr=cfg.lr, decay_steps=decay, hold_steps=hold)
             self._graphs = None
 
     def _set_heads(self) -> None:

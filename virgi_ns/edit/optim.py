@@ -30,15 +30,18 @@ class EditAdam:
     """Adam (no weight decay, no AMSGrad) over ``params``; capturable in a CUDA graph: the step counts
     live on the parameters' device and nothing reads them on the host. ``decay_steps``: the learning
     rate falls from ``lr`` at the first step to 0 after that many by half a cosine (computed on the
-    device from the step count, so a recorded step replays it); None keeps it constant."""
+    device from the step count, so a recorded step replays it); None keeps it constant. ``hold_steps``:
+    steps at the full rate before the decay starts (the decay then spans ``decay_steps`` more)."""
 
     def __init__(self, params: Iterable[Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.999),
-                 eps: float = 1e-8, decay_steps: Optional[int] = None) -> None:
+                 eps: float = 1e-8, decay_steps: Optional[int] = None, hold_steps: int = 0) -> None:
         self.params = list(params)
         self.lr, self.betas, self.eps = float(lr), betas, float(eps)
         if decay_steps is not None and decay_steps < 1:
             raise ValueError(f"EditAdam: decay_steps must be >= 1, got {decay_steps}")
-        self.decay_steps = decay_steps
+        if hold_steps < 0 or (hold_steps and decay_steps is None):
+            raise ValueError(f"EditAdam: hold_steps must be >= 0 and needs decay_steps, got {hold_steps}")
+        self.decay_steps, self.hold_steps = decay_steps, int(hold_steps)
         self._host_steps = 0  # the fallback's step count (it sets its learning rate on the host)
         self._fallback = None if _has_fused_kernel(self.params) else torch.optim.Adam(self.params, lr=lr, betas=betas,
                                                                                        eps=eps)
@@ -51,7 +54,8 @@ class EditAdam:
         """The learning rate of step ``step`` (0: the first) after a (re)start."""
         if self.decay_steps is None:
             return self.lr
-        return 0.5 * self.lr * (1.0 + math.cos(math.pi * min(step, self.decay_steps) / self.decay_steps))
+        done = min(max(step - self.hold_steps, 0), self.decay_steps) / self.decay_steps
+        return 0.5 * self.lr * (1.0 + math.cos(math.pi * done))
 
     def zero_grad(self) -> None:
         for p in self.params:
@@ -71,7 +75,7 @@ class EditAdam:
         torch._foreach_add_(self.steps, 1.0)
         lr = self.lr
         if self.decay_steps is not None:  # lr_at(steps - 1), on the device
-            done = (self.steps[0] - 1.0).clamp(max=float(self.decay_steps)) / float(self.decay_steps)
+            done = (self.steps[0] - 1.0 - self.hold_steps).clamp(0.0, float(self.decay_steps)) / float(self.decay_steps)
             torch.mul(torch.cos(done * math.pi) + 1.0, 0.5 * self.lr, out=self._lr)
             lr = self._lr
         torch._fused_adam_(self.params, grads, self.exp_avg, self.exp_avg_sq, [], self.steps, lr=lr,
