@@ -220,13 +220,16 @@ def engine_defaults() -> dict:
     return asdict(EditConfig())
 
 
+REPEAT = " (repeat of defaults)"
+
+
 def label_against_today(row: dict) -> str:
     """The row's variant named against today's EditConfig defaults, from the defaults its call
     recorded (``engine_defaults``): a row whose settings are today's defaults is "engine defaults",
     any other is named by the fields that differ (and its rule or source). Rows of calls that
     recorded no defaults keep their label."""
     recorded = row.get("engine_defaults")
-    if recorded is None:
+    if recorded is None or row["variant"].endswith(REPEAT):
         return row["variant"]
     today = engine_defaults()
     settings = dict(recorded)
@@ -239,7 +242,11 @@ def label_against_today(row: dict) -> str:
             else:
                 settings[key] = typed_like(today[key], value, key, "variant")
     differ = [f"{k}={settings[k]}" for k in today if k in settings and today[k] != settings[k]]
-    return ",".join(differ + extra) or "engine defaults"
+    label = ",".join(differ + extra) or "engine defaults"
+    if row["variant"] != "engine defaults" and not extra and settings == recorded:
+        # a variant that changed nothing in its own call (seed=0, a refit): a label of its own, apart from the defaults
+        return row["variant"] + REPEAT
+    return label
 
 
 def _safe(text: str) -> str:

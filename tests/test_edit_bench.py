@@ -238,6 +238,14 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     # a merge of that merge keeps the labels
     (tmp_path / "m.json").write_text(json.dumps(m, default=float))
     assert [r["variant"] for r in bench_edit.merged([tmp_path / "m.json"])["scenes"]] == labels
+    # a variant that changed nothing in its call (a refit, seed=0) keeps a label apart from the defaults, merged twice
+    seed = EditConfig().seed
+    (tmp_path / "r.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": [
+        rows[0], {**rows[0], "variant": f"seed={seed}"}]}, default=float))
+    twice = bench_edit.merged([tmp_path / "r.json"])
+    (tmp_path / "r2.json").write_text(json.dumps(twice, default=float))
+    assert [r["variant"] for r in bench_edit.merged([tmp_path / "r2.json"])["scenes"]] == [
+        "engine defaults", f"seed={seed} (repeat of defaults)"]
 
 
 def test_edit_bench_takes_each_figure_as_the_median_over_edit_seeds(pipeline, bench_edit, tmp_path, monkeypatch):
