@@ -4,9 +4,11 @@
 # STAGE picks the work: "train" (builds, then bench/train.py), "rest" (export, edit, demo geometry),
 # or any single one of export|edit|demo. Runs go under /tmp/runs (kept while the machine is warm);
 # tables, JSON, pictures and logs are packed into $OUT. Environment knobs: STEPS, COLOUR_STEPS,
-# DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE, EDIT_SCENES (rows of the evaluation set), SEED,
+# DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE, EDIT_SCENES (rows of the evaluation set), SEED (one
+# run set, or several side by side: "69 70"),
 # EDIT_TIMEOUT, EDIT_COLOUR_STEPS, EDIT_ARGS (more bench/edit.py flags, e.g. --variants), TRAIN_ARGS (more bench/train.py
-# flags), TRAIN_TIMEOUT. With several GPUs the edit rows run side by side, one process per GPU (a log each).
+# flags), TRAIN_TIMEOUT. With several GPUs the edit rows run side by side, one process per GPU (a log each); the
+# edit results come back as edit_results_s<SEED>.tgz.
 set -o pipefail
 export TORCH_EXTENSIONS_DIR=/tmp/torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
 export PYTHONPATH=/tmp/site:$PWD NERFSTUDIO_METHOD_CONFIGS="virgi=method_configs.virgi:virgi_method"
@@ -51,39 +53,45 @@ if stage train; then
 fi
 CFG=$RUNS/train/runs/beercan-virgi/virgi/run/config.yml
 if stage edit; then
-  # the evaluation set (bench/edit.py): EDIT_SCENES picks rows (default all), SEED a run set, EDIT_ARGS more flags
-  # with several GPUs the rows run side by side, one process per GPU (the rows of one capture together,
-  # virgi_ns.bench.evalset.split_for_devices), and their results are merged into one table
-  el "edit bench: ${EDIT_SCENES:-all scenes}, seed ${SEED:-42}"
-  rm -rf $RUNS/edit $RUNS/edit_gpu*  # an earlier call's results (and --dump-targets arrays) must not travel with this one's
+  # the evaluation set (bench/edit.py): EDIT_SCENES picks rows (default all), SEED a run set, EDIT_ARGS more flags.
+  # SEED may name several run sets ("69 70"): they run side by side, each on its share of the GPUs.
+  # A run set's rows run side by side over its GPUs, one process per GPU (the rows of one capture together,
+  # virgi_ns.bench.evalset.split_for_devices), and their results are merged into one table per run set.
+  SEEDS=(${SEED:-42}); NS=${#SEEDS[@]}
+  el "edit bench: ${EDIT_SCENES:-all scenes}, run set seed(s) ${SEEDS[*]}"
+  rm -rf $RUNS/edit $RUNS/edit_gpu* $RUNS/edit_s*  # an earlier call's results (and --dump-targets arrays) must not travel
   NG=$(nvidia-smi --query-gpu=index --format=csv,noheader 2>/dev/null | wc -l); [ "$NG" -ge 1 ] || NG=1
-  edit_rows() {  # GPU, output folder, rows... (none: the whole set)
-    local gpu=$1 out=$2; shift 2
-    CUDA_VISIBLE_DEVICES=$gpu OMP_NUM_THREADS=$(( $(nproc) / NG )) timeout ${EDIT_TIMEOUT:-560} python3 bench/edit.py \
-      --data $PWD/.data ${1:+--scenes} "$@" --train-out $RUNS/edit_runs --seed ${SEED:-42} --geometry-steps $STEPS \
+  G=$(( NG / NS )); [ "$G" -ge 1 ] || { echo "$NS run sets need at least $NS GPUs; this machine has $NG"; exit 2; }
+  edit_rows() {  # GPU, run set seed, output folder, rows... (none: the whole set)
+    local gpu=$1 seed=$2 out=$3; shift 3
+    # each run set trains under its own folder: two run sets must not write one synthetic capture at once
+    CUDA_VISIBLE_DEVICES=$gpu OMP_NUM_THREADS=$(( $(nproc) / NG > 0 ? $(nproc) / NG : 1 )) timeout ${EDIT_TIMEOUT:-560} python3 bench/edit.py \
+      --data $PWD/.data ${1:+--scenes} "$@" --train-out $RUNS/edit_runs_s$seed --seed $seed --geometry-steps $STEPS \
       --colour-steps ${EDIT_COLOUR_STEPS:-1000} --out $out ${EDIT_ARGS:-}
   }
-  if [ "$NG" -gt 1 ]; then
-    # (--million and the pick latency then run in every process, beside the others: time them on one GPU)
-    i=0; pids=()
+  # (--million and the pick latency run in every process, beside the others: time them on one GPU)
+  pids=(); names=()
+  for j in "${!SEEDS[@]}"; do
+    seed=${SEEDS[$j]}; i=0
     while read -r rows; do
-      echo "GPU $i: $rows"
-      edit_rows $i $RUNS/edit_gpu$i $rows > $OUT/edit_gpu$i.log 2>&1 < /dev/null &
-      pids+=($!); i=$((i + 1))
+      g=$(( j * G + i )); echo "GPU $g: run set $seed: ${rows:-all rows}"
+      edit_rows $g $seed $RUNS/edit_s${seed}_gpu$i $rows > $OUT/edit_s${seed}_gpu$i.log 2>&1 < /dev/null &
+      pids+=($!); names+=("run set $seed, GPU $g"); i=$((i + 1))
     done < <(python3 -c "import sys; from virgi_ns.bench.evalset import split_for_devices as s
-for p in s(sys.argv[2:], int(sys.argv[1])): print(' '.join(p))" $NG ${EDIT_SCENES:-})
-    for g in "${!pids[@]}"; do  # a process cut short or failed is said, and its rows are missing below
-      wait ${pids[$g]}; el "edit GPU $g rc=$?"; [ -f $RUNS/edit_gpu$g/results.json ] || echo "GPU $g: no results"
-    done
-    python3 bench/edit.py --merge $RUNS/edit_gpu*/results.json --out $RUNS/edit > $OUT/edit.log 2>&1; el "merge rc=$?"
-    mkdir -p $RUNS/edit; cp $RUNS/edit_gpu*/*.png $RUNS/edit_gpu*/*.npz $RUNS/edit/ 2>/dev/null
-  else
-    edit_rows 0 $RUNS/edit ${EDIT_SCENES:-} > $OUT/edit.log 2>&1; el "edit rc=$?"
-  fi
-  tail -n 60 $OUT/edit.log
-  (cd $RUNS/edit && tar czf $OUT/edit_results.tgz *.json *.png) 2>/dev/null
-  # --dump-targets arrays, apart (they would take the results archive over the size that comes back)
-  (cd $RUNS/edit && ls *.npz > /dev/null 2>&1 && tar cf $OUT/edit_targets.tar *.npz)
+for p in s(sys.argv[2:], int(sys.argv[1])): print(' '.join(p))" $G ${EDIT_SCENES:-})
+  done
+  for k in "${!pids[@]}"; do  # a process cut short or failed is said, and its rows are missing below
+    wait ${pids[$k]}; el "edit ${names[$k]} rc=$?"
+  done
+  for seed in "${SEEDS[@]}"; do
+    ls $RUNS/edit_s${seed}_gpu*/results.json > /dev/null 2>&1 || { echo "run set $seed: no results"; continue; }
+    python3 bench/edit.py --merge $RUNS/edit_s${seed}_gpu*/results.json --out $RUNS/edit_s$seed > $OUT/edit_s$seed.log 2>&1
+    el "merge run set $seed rc=$?"; tail -n 60 $OUT/edit_s$seed.log
+    cp $RUNS/edit_s${seed}_gpu*/*.png $RUNS/edit_s${seed}_gpu*/*.npz $RUNS/edit_s$seed/ 2>/dev/null
+    (cd $RUNS/edit_s$seed && tar czf $OUT/edit_results_s$seed.tgz *.json *.png) 2>/dev/null
+    # --dump-targets arrays, apart (they would take the results archive over the size that comes back)
+    (cd $RUNS/edit_s$seed && ls *.npz > /dev/null 2>&1 && tar cf $OUT/edit_targets_s$seed.tar *.npz)
+  done
 fi
 if stage export; then
   el "export bench"
