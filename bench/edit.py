@@ -221,17 +221,22 @@ def engine_defaults() -> dict:
 
 
 REPEAT = " (repeat of defaults)"
+BEFORE_IT_EXISTED = {"lr_schedule": "constant", "lr_hold": 0.0}
+"""The EditConfig fields added after calls were recorded, each with the value that gives the engine those calls
+ran: a call that recorded no such field ran with this."""
 
 
 def label_against_today(row: dict) -> str:
     """The row's variant named against today's EditConfig defaults, from the defaults its call
     recorded (``engine_defaults``): a row whose settings are today's defaults is "engine defaults",
-    any other is named by the fields that differ (and its rule or source). Rows of calls that
-    recorded no defaults keep their label."""
+    any other is named by the fields that differ (and its rule or source); a field the call did not
+    record counts as :data:`BEFORE_IT_EXISTED` has it. Rows of calls that recorded no defaults keep
+    their label."""
     recorded = row.get("engine_defaults")
     if recorded is None or row["variant"].endswith(REPEAT):
         return row["variant"]
     today = engine_defaults()
+    recorded = {**{k: v for k, v in BEFORE_IT_EXISTED.items() if k in today}, **recorded}
     settings = dict(recorded)
     extra = []
     if row["variant"] != "engine defaults":

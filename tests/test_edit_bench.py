@@ -246,6 +246,15 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     (tmp_path / "r2.json").write_text(json.dumps(twice, default=float))
     assert [r["variant"] for r in bench_edit.merged([tmp_path / "r2.json"])["scenes"]] == [
         "engine defaults", f"seed={seed} (repeat of defaults)"]
+    # a call made before a field existed ran with the value that field was added with (BEFORE_IT_EXISTED)
+    ancient = {k: v for k, v in rows[0]["engine_defaults"].items() if k not in bench_edit.BEFORE_IT_EXISTED}
+    (tmp_path / "old.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": [
+        {**rows[0], "engine_defaults": ancient}, {**rows[0], "engine_defaults": ancient, "variant": "lr_schedule=cosine"}]},
+        default=float))
+    now = EditConfig()
+    expect = [",".join(f"{k}={v}" for k, v in bench_edit.BEFORE_IT_EXISTED.items() if getattr(now, k) != v),
+              ",".join(f"{k}={v}" for k, v in {"lr_schedule": "cosine", "lr_hold": 0.0}.items() if getattr(now, k) != v)]
+    assert [r["variant"] for r in bench_edit.merged([tmp_path / "old.json"])["scenes"]] == [e or "engine defaults" for e in expect]
 
 
 def test_edit_bench_takes_each_figure_as_the_median_over_edit_seeds(pipeline, bench_edit, tmp_path, monkeypatch):
