@@ -32,7 +32,7 @@ from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from edit import targets  # noqa: E402  (bench/edit.py: the set's targets)
+from edit import read_result, targets  # noqa: E402  (bench/edit.py: its results and the set's targets)
 
 from virgi_ns.errors import InputError, atomic_path, cli_entry  # noqa: E402
 
@@ -67,13 +67,7 @@ def rows_by_run(paths: List[Path]) -> Dict[tuple, Dict[str, dict]]:
     variant is refused: two files of the same run set would count it twice."""
     out: Dict[tuple, Dict[str, dict]] = {}
     for p in paths:
-        try:
-            data = json.loads(Path(p).read_text())
-        except (OSError, ValueError) as e:
-            raise InputError(f"--results: cannot read {p}: {e}") from None
-        if "scenes" not in data:
-            raise InputError(f"--results: {p} is not a bench/edit.py result")
-        for row in data["scenes"]:
+        for row in read_result(p, "--results")["scenes"]:
             key = (row["seed"], row["scene"])
             variants = out.setdefault(key, {})
             if row["variant"] in variants:

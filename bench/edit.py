@@ -681,6 +681,17 @@ def _write(path: Path, result: dict) -> None:
     console.print(f"wrote {path}")
 
 
+def read_result(path: Path, flag: str) -> dict:
+    """A results.json of this bench, or an InputError naming ``flag`` (the option that named the file)."""
+    try:
+        r = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(f"{flag}: cannot read {path}: {e}") from None
+    if "scenes" not in r:
+        raise InputError(f"{flag}: {path} is not a bench/edit.py result")
+    return r
+
+
 def merged(paths: List[Path]) -> dict:
     """One result of several calls' results.json (rows concatenated; devices and commits listed;
     variants named against today's defaults, :func:`label_against_today`)."""
@@ -688,12 +699,7 @@ def merged(paths: List[Path]) -> dict:
 
     rows, devices, commits, latencies = [], [], [], []
     for p in paths:
-        try:
-            r = json.loads(Path(p).read_text())
-        except (OSError, ValueError) as e:
-            raise InputError(f"--merge: cannot read {p}: {e}") from None
-        if "scenes" not in r:
-            raise InputError(f"--merge: {p} is not a bench/edit.py result")
+        r = read_result(p, "--merge")
         for row in r["scenes"]:  # judged again: the targets may have been refined since the call
             row["targets"] = targets(row, row["timing_warm"]["total_s"], row["synthetic"])
             row["limits"] = limits(row)
