@@ -863,6 +863,20 @@ def test_fit_loss_is_the_weighted_l1_of_the_preview_against_the_target(world, pi
     assert fresh.fit_loss() > 1.5 * eng.fit_loss()
 
 
+@pytest.mark.parametrize("steps,lr_hold,hold", [(100, 0.5, 50), (3, 0.5, 1), (2, 0.5, 0), (1, 0.5, 0), (100, 0.995, 98),
+                                                (7, 0.0, 0)])
+def test_the_hold_leaves_at_least_one_step_to_decay(world, steps, lr_hold, hold):
+    """The engine's hold is the floor of ``lr_hold * steps``, at most ``steps - 2`` (the cosine's first
+    step is still at ``lr``), and the decay spans the rest: the last step's rate is below ``lr``
+    whenever there are two steps or more."""
+    S = world["S"]
+    eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), world["edited"],
+                     cfg=EditConfig(steps=steps, lr_hold=lr_hold))
+    assert (eng.opt.hold_steps, eng.opt.decay_steps) == (hold, max(steps - hold, 1))
+    if steps > 1:
+        assert eng.opt.lr_at(steps - 1) < eng.cfg.lr
+
+
 @pytest.mark.parametrize("lr_hold", [0.0, 0.5])
 def test_a_cosine_schedule_is_the_constant_fit_with_its_rate_decayed_step_by_step(world, lr_hold):
     """``lr_schedule="cosine"`` (the rate computed on the device from Adam's step count) against the

@@ -440,7 +440,10 @@ def pick(args: Pick, console: "Console", pipeline=None) -> str:
     source = EditSource("", cams.Ks[0].cpu(), cams.viewmats[0].cpu(), W, H, f"{where}, pixel {x} {y}")
     warmup.wait()
     with torch.no_grad(), console.status("fitting the pick"):
-        session = PickSession(FrozenScene.from_model(model), cams, x, y, stack, pick_config(model.device), source,
+        cfg = pick_config(model.device)
+        if args.steps is not None:  # the rate's schedule spans the config's steps: set them there
+            cfg.steps = args.steps
+        session = PickSession(FrozenScene.from_model(model), cams, x, y, stack, cfg, source,
                               criterion=args.selection, reference=args.reference)
         edit = session.update(colour, tolerance, args.mode, args.steps, contiguous=args.contiguous)
     number = commit(stack, session, edit)

@@ -84,15 +84,16 @@ class EditConfig:
     lr_schedule: str = "cosine"
     """``cosine``: from ``lr`` at the first step, by half a cosine, to 0 after ``steps`` steps, counted
     over every :meth:`EditEngine.fit` of one target (a retarget starts it again), so the fit settles
-    where a constant rate leaves it moving, and one fit lands where another would (bench/RESULTS.md,
+    where a constant rate leaves it moving, so fits of one edit spread less (bench/RESULTS.md,
     "Why one fit's spread"); steps past ``steps`` move nothing. ``constant``: ``lr`` at every step
     (the default before run sets 23 and 24)."""
     lr_hold: float = 0.5
     """With ``lr_schedule="cosine"``: the fraction of ``steps`` at the full rate before the half cosine
     (which then spans the remaining steps), so the fit travels far first and settles after: a cosine
     from the first step travels half as far, too little where the colour map starts far from the target.
-    Chosen with the cosine by a rule written before run sets 23 and 24 (bench/RESULTS.md, "Edit").
-    0: the decay starts at the first step."""
+    It passed the rule written before run sets 23 and 24, as did the cosine over 200 steps, which the
+    rule's tie-break preferred but which breaks the 50 ms edit at 1M Gaussians (bench/RESULTS.md,
+    "Edit"). 0: the decay starts at the first step."""
     seg_width: int = 64
     """Hidden width of the segmentation head."""
     seg_init_bias: float = -4.0
@@ -624,7 +625,8 @@ class EditEngine:
         if self.opt is not None and [id(p) for p in self.opt.params] == [id(p) for p in trainable]:
             self.opt.restart()  # the same tensors, which recorded steps read and write
         else:
-            hold = round(cfg.lr_hold * cfg.steps) if cfg.lr_schedule == "cosine" else 0
+            # the cosine's first step is still at lr: leave it two, so that the last step's rate is lower
+            hold = min(int(cfg.lr_hold * cfg.steps), max(cfg.steps - 2, 0)) if cfg.lr_schedule == "cosine" else 0
             decay = max(cfg.steps - hold, 1) if cfg.lr_schedule == "cosine" else None
             self.opt = EditAdam(trainable, lr=cfg.lr, decay_steps=decay, hold_steps=hold)
             self._graphs = None

@@ -177,7 +177,7 @@ class PanelActions:
 
     def _fit(self, name: str, image: np.ndarray, view: SavedView, stack, steps: Optional[int],
              progress: Callable[[int, int], None]) -> str:
-        from virgi_ns.edit.engine import EditEngine
+        from virgi_ns.edit.engine import EditConfig, EditEngine
         from virgi_ns.edit.scene import FrozenScene
         from virgi_ns.edit.stack import EditSource
 
@@ -190,8 +190,10 @@ class PanelActions:
         # the view's saved render is what the user painted over: the pixels they left alone match it
         original = torch.from_numpy(np.ascontiguousarray(view.image[..., :3], dtype=np.float32)) \
             if view.image is not None and tuple(view.image.shape[:2]) == tuple(image.shape[:2]) else None
-        engine = EditEngine(scene, cams, torch.from_numpy(image), stack, source=source, original=original)
-        edit, timing = engine.fit(steps, progress)
+        # the rate's schedule spans the config's steps, so other steps are set there, not only run
+        cfg = EditConfig() if steps is None else EditConfig(steps=int(steps))
+        engine = EditEngine(scene, cams, torch.from_numpy(image), stack, cfg, source=source, original=original)
+        edit, timing = engine.fit(progress=progress)
         with self._lock():
             number = stack.add(edit)
         self._refresh_edits()
