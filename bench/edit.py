@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import statistics
 import sys
 import time
@@ -220,7 +221,9 @@ def engine_defaults() -> dict:
     return asdict(EditConfig())
 
 
-REPEAT = " (repeat of defaults)"
+REPEAT = re.compile(r" \((?:repeat: (?P<asked>.*)|repeat of defaults)\)$")
+"""The label's suffix of a variant that changed nothing in its own call (a refit: ``seed=0``), holding
+what it asked for (an older suffix, ``(repeat of defaults)``, held it in front)."""
 BEFORE_IT_EXISTED = {"lr_schedule": "constant", "lr_hold": 0.0}
 """The EditConfig fields added after calls were recorded, each with the value that gives the engine those calls
 ran: a call that recorded no such field ran with this."""
@@ -233,14 +236,18 @@ def label_against_today(row: dict) -> str:
     record counts as :data:`BEFORE_IT_EXISTED` has it. Rows of calls that recorded no defaults keep
     their label."""
     recorded = row.get("engine_defaults")
-    if recorded is None or row["variant"].endswith(REPEAT):
+    if recorded is None:
         return row["variant"]
+    variant = row["variant"]
+    repeat = REPEAT.search(variant)
+    if repeat:  # a merge of a merge: what the repeat asked for, named against today again
+        variant = repeat.group("asked") or variant[: repeat.start()]
     today = engine_defaults()
     recorded = {**{k: v for k, v in BEFORE_IT_EXISTED.items() if k in today}, **recorded}
     settings = dict(recorded)
     extra = []
-    if row["variant"] != "engine defaults":
-        for key, value in split_settings(row["variant"], "variant"):
+    if variant != "engine defaults":
+        for key, value in split_settings(variant, "variant"):
             key = key.replace("-", "_")
             if key in ("rule", "source") or key not in today:
                 extra.append(f"{key}={value}")
@@ -248,9 +255,9 @@ def label_against_today(row: dict) -> str:
                 settings[key] = typed_like(today[key], value, key, "variant")
     differ = [f"{k}={settings[k]}" for k in today if k in settings and today[k] != settings[k]]
     label = ",".join(differ + extra) or "engine defaults"
-    if row["variant"] != "engine defaults" and not extra and settings == recorded:
+    if variant != "engine defaults" and not extra and settings == recorded:
         # a variant that changed nothing in its own call (seed=0, a refit): a label of its own, apart from the defaults
-        return row["variant"] + REPEAT
+        return f"{label} (repeat: {variant})"
     return label
 
 

@@ -245,7 +245,14 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     twice = bench_edit.merged([tmp_path / "r.json"])
     (tmp_path / "r2.json").write_text(json.dumps(twice, default=float))
     assert [r["variant"] for r in bench_edit.merged([tmp_path / "r2.json"])["scenes"]] == [
-        "engine defaults", f"seed={seed} (repeat of defaults)"]
+        "engine defaults", f"engine defaults (repeat: seed={seed})"]
+    # ... and once the defaults change, the repeat is named by what it ran, as its defaults row is
+    then = {**rows[0]["engine_defaults"], "changed_target": "map" if today == "affine" else "affine"}
+    for label in (f"engine defaults (repeat: seed={seed})", f"seed={seed} (repeat of defaults)"):  # an older suffix
+        (tmp_path / "r3.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": [
+            {**rows[0], "engine_defaults": then}, {**rows[0], "engine_defaults": then, "variant": label}]}, default=float))
+        assert [r["variant"] for r in bench_edit.merged([tmp_path / "r3.json"])["scenes"]] == [
+            f"changed_target={then['changed_target']}", f"changed_target={then['changed_target']} (repeat: seed={seed})"]
     # a call made before a field existed ran with the value that field was added with (BEFORE_IT_EXISTED)
     ancient = {k: v for k, v in rows[0]["engine_defaults"].items() if k not in bench_edit.BEFORE_IT_EXISTED}
     (tmp_path / "old.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": [
