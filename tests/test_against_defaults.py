@@ -21,17 +21,16 @@ MISS = {**PASS, "miss_psnr": 28.0}  # one fit that misses the miss target
 
 
 def _row(scene, seed, variant, passes, fits, prop=40.0):
-    """A row as bench/edit.py writes it: its own (median) targets, and its single fits."""
-    return {"scene": scene, "seed": seed, "variant": variant, "synthetic": None, "propagation_psnr": prop,
-            "timing_warm": {"total_s": 0.05}, "per_seed": fits,
-            "targets": {"propagation>=35": True, "miss>=30": passes}}
+    """A row as bench/edit.py writes it: its own figures (the medians), and its single fits."""
+    return {**(PASS if passes else MISS), "scene": scene, "seed": seed, "variant": variant, "synthetic": False,
+            "propagation_psnr": prop, "timing_warm": {"total_s": 0.05}, "per_seed": fits}
 
 
 def _rows():
     rows = []
     for s in (1, 2):
-        # defaults: a passes on both run sets (stable), b on run set 2 only, c on neither; 2 good fits of 9 per run set
-        # (a: 1 of 3, b: 1 of 3 on run set 2 and 0 on 1, c: 0) -- counted below
+        # defaults: a passes on both run sets (stable), b on run set 2 only, c on neither; single fits meeting every
+        # target: a 1 of 3, b 1 of 3 on run set 2 and 0 on 1, c 0 (counted below)
         rows += [_row("a", s, "engine defaults", True, [PASS, MISS, MISS], prop=40.0),
                  _row("b", s, "engine defaults", s == 2, [PASS if s == 2 else MISS, MISS, MISS], prop=38.0),
                  _row("c", s, "engine defaults", False, [MISS, MISS, MISS], prop=36.0)]
@@ -46,6 +45,13 @@ def _rows():
         # noise: one single fit more than the defaults over the two run sets, the same rows
         rows += [_row("a", s, "noise", True, [PASS, PASS, MISS]), _row("b", s, "noise", s == 2, [MISS, MISS, MISS]),
                  _row("c", s, "noise", False, [MISS, MISS, MISS])]
+        # fewer: many more single fits and no stable pass broken, but on run set 2 one row where the defaults pass two
+        rows += [_row("a", s, "fewer", True, [PASS] * 3), _row("b", s, "fewer", s == 1, [PASS] * 3),
+                 _row("c", s, "fewer", s == 1, [PASS] * 3)]
+        # partial: a row short (no c on run set 2), otherwise the good variant's
+        rows += [_row("a", s, "partial", True, [PASS] * 3), _row("b", s, "partial", True, [PASS] * 3)]
+        if s == 1:
+            rows.append(_row("c", s, "partial", True, [PASS] * 3))
     return rows
 
 
@@ -64,6 +70,12 @@ def test_the_three_conditions(ad, tmp_path):
     assert [k for k, ok in breaks["conditions"].items() if not ok] == ["3: no stable pass broken"]
     assert noise["fits_passed"] == 4 and not noise["conditions"]["2: at least 3 more single fits"]
     assert noise["conditions"]["1: as many rows on each run set"] and not noise["candidate"]
+    fewer = v["variants"]["fewer"]
+    assert fewer["per_run_set"]["1"]["passed"] == 3 and fewer["per_run_set"]["2"]["passed"] == 1
+    assert fewer["fits_passed"] == 18 and not fewer["broken"]
+    assert [k for k, ok in fewer["conditions"].items() if not ok] == ["1: as many rows on each run set"]
+    partial = v["variants"]["partial"]
+    assert [k for k, ok in partial["conditions"].items() if not ok] == ["0: a row on every run set and scene"]
 
 
 def test_refuses_rows_it_cannot_compare(ad, tmp_path):
@@ -76,6 +88,14 @@ def test_refuses_rows_it_cannot_compare(ad, tmp_path):
     alone.write_text(json.dumps({"scenes": [r for r in rows if not (r["scene"] == "c" and r["variant"] == "engine defaults")]}))
     with pytest.raises(InputError, match="no defaults row for c"):
         ad.judge(ad.rows_by_run([alone]))
+    bare = tmp_path / "bare.json"  # a row without its single fits cannot be judged by the rule
+    bare.write_text(json.dumps({"scenes": [{**rows[0], "per_seed": []}]}))
+    with pytest.raises(InputError, match="no per-seed fits"):
+        ad.rows_by_run([bare])
+    short = tmp_path / "short.json"
+    short.write_text(json.dumps({"scenes": [{**rows[0], "per_seed": [{"propagation_psnr": 40.0}]}]}))
+    with pytest.raises(InputError, match="lacks leak_psnr, miss_psnr"):
+        ad.rows_by_run([short])
     bad = tmp_path / "bad.json"
     bad.write_text("{}")
     with pytest.raises(InputError, match="not a bench/edit.py result"):
