@@ -58,6 +58,8 @@ if stage edit; then
   # A run set's rows run side by side over its GPUs, one process per GPU (the rows of one capture together,
   # virgi_ns.bench.evalset.split_for_devices), and their results are merged into one table per run set.
   SEEDS=(${SEED:-42}); NS=${#SEEDS[@]}
+  [ "$NS" -ge 1 ] || SEEDS=(42) NS=1
+  [ "$(printf '%s\n' "${SEEDS[@]}" | sort -u | wc -l)" -eq "$NS" ] || { echo "SEED names a run set twice: ${SEEDS[*]}"; exit 2; }
   el "edit bench: ${EDIT_SCENES:-all scenes}, run set seed(s) ${SEEDS[*]}"
   rm -rf $RUNS/edit $RUNS/edit_gpu* $RUNS/edit_s*  # an earlier call's results (and --dump-targets arrays) must not travel
   NG=$(nvidia-smi --query-gpu=index --format=csv,noheader 2>/dev/null | wc -l); [ "$NG" -ge 1 ] || NG=1
@@ -83,6 +85,7 @@ for p in s(sys.argv[2:], int(sys.argv[1])): print(' '.join(p))" $G ${EDIT_SCENES
   for k in "${!pids[@]}"; do  # a process cut short or failed is said, and its rows are missing below
     wait ${pids[$k]}; el "edit ${names[$k]} rc=$?"
   done
+  for d in $RUNS/edit_s*_gpu*; do [ -f $d/results.json ] || echo "${d##*/}: no results (its rows are missing)"; done
   for seed in "${SEEDS[@]}"; do
     ls $RUNS/edit_s${seed}_gpu*/results.json > /dev/null 2>&1 || { echo "run set $seed: no results"; continue; }
     python3 bench/edit.py --merge $RUNS/edit_s${seed}_gpu*/results.json --out $RUNS/edit_s$seed > $OUT/edit_s$seed.log 2>&1
