@@ -8,7 +8,7 @@
 # run set, or several side by side: "69 70"),
 # EDIT_TIMEOUT, EDIT_COLOUR_STEPS, EDIT_ARGS (more bench/edit.py flags, e.g. --variants), TRAIN_ARGS (more bench/train.py
 # flags), TRAIN_TIMEOUT. With several GPUs the edit rows run side by side, one process per GPU (a log each); the
-# edit results come back as edit_results_s<SEED>.tgz.
+# edit results come back as edit_results_s<SEED>.tgz, their logs as edit_logs.tgz.
 set -o pipefail
 export TORCH_EXTENSIONS_DIR=/tmp/torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
 export PYTHONPATH=/tmp/site:$PWD NERFSTUDIO_METHOD_CONFIGS="virgi=method_configs.virgi:virgi_method"
@@ -61,7 +61,8 @@ if stage edit; then
   [ "$NS" -ge 1 ] || SEEDS=(42) NS=1
   [ "$(printf '%s\n' "${SEEDS[@]}" | sort -u | wc -l)" -eq "$NS" ] || { echo "SEED names a run set twice: ${SEEDS[*]}"; exit 2; }
   el "edit bench: ${EDIT_SCENES:-all scenes}, run set seed(s) ${SEEDS[*]}"
-  rm -rf $RUNS/edit $RUNS/edit_gpu* $RUNS/edit_s*  # an earlier call's results (and --dump-targets arrays) must not travel
+  rm -rf $RUNS/edit $RUNS/edit_gpu* $RUNS/edit_s* $RUNS/edit_logs  # an earlier call's results must not travel
+  LOGS=$RUNS/edit_logs; mkdir -p $LOGS  # packed into one file at the end: at most 8 files come back from $OUT
   NG=$(nvidia-smi --query-gpu=index --format=csv,noheader 2>/dev/null | wc -l); [ "$NG" -ge 1 ] || NG=1
   G=$(( NG / NS )); [ "$G" -ge 1 ] || { echo "$NS run sets need at least $NS GPUs; this machine has $NG"; exit 2; }
   edit_rows() {  # GPU, run set seed, output folder, rows... (none: the whole set)
@@ -77,7 +78,7 @@ if stage edit; then
     seed=${SEEDS[$j]}; i=0
     while read -r rows; do
       g=$(( j * G + i )); echo "GPU $g: run set $seed: ${rows:-all rows}"
-      edit_rows $g $seed $RUNS/edit_s${seed}_gpu$i $rows > $OUT/edit_s${seed}_gpu$i.log 2>&1 < /dev/null &
+      edit_rows $g $seed $RUNS/edit_s${seed}_gpu$i $rows > $LOGS/edit_s${seed}_gpu$i.log 2>&1 < /dev/null &
       pids+=($!); names+=("run set $seed, GPU $g"); i=$((i + 1))
     done < <(python3 -c "import sys; from virgi_ns.bench.evalset import split_for_devices as s
 for p in s(sys.argv[2:], int(sys.argv[1])): print(' '.join(p))" $G ${EDIT_SCENES:-})
@@ -88,13 +89,17 @@ for p in s(sys.argv[2:], int(sys.argv[1])): print(' '.join(p))" $G ${EDIT_SCENES
   for d in $RUNS/edit_s*_gpu*; do [ -f $d/results.json ] || echo "${d##*/}: no results (its rows are missing)"; done
   for seed in "${SEEDS[@]}"; do
     ls $RUNS/edit_s${seed}_gpu*/results.json > /dev/null 2>&1 || { echo "run set $seed: no results"; continue; }
-    python3 bench/edit.py --merge $RUNS/edit_s${seed}_gpu*/results.json --out $RUNS/edit_s$seed > $OUT/edit_s$seed.log 2>&1
-    el "merge run set $seed rc=$?"; tail -n 60 $OUT/edit_s$seed.log
+    python3 bench/edit.py --merge $RUNS/edit_s${seed}_gpu*/results.json --out $RUNS/edit_s$seed > $LOGS/edit_s$seed.log 2>&1
+    el "merge run set $seed rc=$?"; tail -n 60 $LOGS/edit_s$seed.log
     cp $RUNS/edit_s${seed}_gpu*/*.png $RUNS/edit_s${seed}_gpu*/*.npz $RUNS/edit_s$seed/ 2>/dev/null
-    (cd $RUNS/edit_s$seed && tar czf $OUT/edit_results_s$seed.tgz *.json *.png) 2>/dev/null
+    # pictures as JPEG (the README's form): a run set's PNGs can pass the 16 MiB a file that comes back
+    (cd $RUNS/edit_s$seed && python3 -c "import sys, cv2
+for f in sys.argv[1:]: cv2.imwrite(f[:-4] + '.jpg', cv2.imread(f), [cv2.IMWRITE_JPEG_QUALITY, 90])" *.png 2>/dev/null \
+      && tar czf $OUT/edit_results_s$seed.tgz *.json *.jpg || tar czf $OUT/edit_results_s$seed.tgz *.json *.png) 2>/dev/null
     # --dump-targets arrays, apart (they would take the results archive over the size that comes back)
     (cd $RUNS/edit_s$seed && ls *.npz > /dev/null 2>&1 && tar cf $OUT/edit_targets_s$seed.tar *.npz)
   done
+  (cd $LOGS && tar czf $OUT/edit_logs.tgz *.log)
 fi
 if stage export; then
   el "export bench"
