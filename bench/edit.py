@@ -670,7 +670,8 @@ def latency_line(lat: dict) -> str:
 
 
 def _commit() -> Optional[str]:
-    """The checkout's git commit (None outside a git checkout): which code made the figures."""
+    """The checkout's git commit (None outside a git checkout): which code made the figures. On the GPU
+    machine it is the session's first HEAD, whatever the tree sent: :func:`_source` says more."""
     import subprocess
 
     try:
@@ -679,6 +680,14 @@ def _commit() -> Optional[str]:
     except (OSError, subprocess.SubprocessError):
         return None
     return out.stdout.strip() or None
+
+
+def _source() -> str:
+    """The digest of the source files that ran (bench/source_digest.py)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from source_digest import source_digest
+
+    return source_digest()
 
 
 def _write(path: Path, result: dict) -> None:
@@ -704,7 +713,7 @@ def merged(paths: List[Path]) -> dict:
     variants named against today's defaults, :func:`label_against_today`)."""
     from virgi_ns.bench.pick import pick_passes
 
-    rows, devices, commits, latencies = [], [], [], []
+    rows, devices, commits, sources, latencies = [], [], [], [], []
     for p in paths:
         r = read_result(p, "--merge")
         for row in r["scenes"]:  # judged again: the targets may have been refined since the call
@@ -723,7 +732,9 @@ def merged(paths: List[Path]) -> dict:
         latencies += r.get("pick_latencies", [])  # a merge's, kept by a merge of merges
         devices.append(r.get("device"))
         commits += r["commits"] if "commits" in r else [r.get("commit")]
-    return {"device": ", ".join(sorted(set(filter(None, devices)))), "commits": commits, "merged": [str(p) for p in paths],
+        sources += r["source_digests"] if "source_digests" in r else [r.get("source_digest")]
+    return {"device": ", ".join(sorted(set(filter(None, devices)))), "commits": commits, "source_digests": sources,
+            "merged": [str(p) for p in paths],
             "scenes": rows, "worst_case": worst_case(rows), "pick_latencies": latencies}
 
 
@@ -744,7 +755,7 @@ def main(args: Args) -> None:
     device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"
     rows: List[dict] = []
     loaded: dict = {}
-    result: dict = {"device": device, "commit": _commit(), "scenes": rows}
+    result: dict = {"device": device, "commit": _commit(), "source_digest": _source(), "scenes": rows}
     for s in scenes:
         rows += bench_scene(args, s, loaded)
         result["worst_case"] = worst_case(rows)

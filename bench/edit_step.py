@@ -39,7 +39,7 @@ from rich.console import Console
 from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from edit import _commit, million_scene, parse_variant  # noqa: E402  (bench/edit.py)
+from edit import _commit, _source, million_scene, parse_variant  # noqa: E402  (bench/edit.py)
 
 from virgi_ns.edit.engine import EditConfig, EditEngine  # noqa: E402
 from virgi_ns.edit.pixels import COMPOSITES, parse_composite  # noqa: E402
@@ -296,7 +296,7 @@ def main(args: Args) -> dict:
     device = torch.cuda.get_device_name(0) if b.dev.type == "cuda" else "cpu"
     kinds = ["csr"] + [v for v in args.variants if v != "csr"]
     rows: List[dict] = []
-    result: dict = {"device": device, "commit": _commit(), "gaussians": args.gaussians,
+    result: dict = {"device": device, "commit": _commit(), "source_digest": _source(), "gaussians": args.gaussians,
                     "image": f"{args.width}x{args.height}", "tol": args.tol, "rows": rows}
     for k in kinds:
         rows.append(b.row(k))

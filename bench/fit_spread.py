@@ -140,6 +140,7 @@ def main(args: Args) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "fit_spread.json"
     result = {"device": torch.cuda.get_device_name() if dev == "cuda" else "cpu", "commit": bench_edit._commit(),
+              "source_digest": bench_edit._source(),
               "scene": args.scene, "training_seed": args.seed, "colour_steps": args.colour_steps,
               "synthetic_size": list(args.synthetic_size), "noise": args.noise, "changed_pixels": changed,
               "steps": EditConfig().steps if args.steps is None else args.steps, "lr_schedule": args.lr_schedule,

@@ -223,6 +223,7 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     (tmp_path / "ab.json").write_text(json.dumps(m, default=float))
     mm = bench_edit.merged([tmp_path / "ab.json", tmp_path / "b.json"])
     assert mm["commits"] == ["commit-a", "commit-b", "commit-b"] and len(mm["pick_latencies"]) == 1
+    assert mm["source_digests"] == [None, None, None]  # these calls recorded none; a merge keeps one per call
     with pytest.raises(InputError, match="--merge"):
         bench_edit.merged([tmp_path / "missing.json"])
     # a call made while another default held: its rows are named against today's defaults
