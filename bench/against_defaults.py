@@ -20,11 +20,10 @@ from __future__ import annotations
 
 import json
 import statistics
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List
-
-import sys
 
 import tyro
 from rich.console import Console
@@ -32,7 +31,7 @@ from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from best_of import NEEDED  # noqa: E402  (bench/best_of.py: the figures the targets judge)
+from best_of import lacking, no_fits  # noqa: E402  (bench/best_of.py: the figures the targets judge)
 from edit import read_result, targets  # noqa: E402  (bench/edit.py: its results and the set's targets)
 
 from virgi_ns.errors import InputError, atomic_path, cli_entry  # noqa: E402
@@ -70,12 +69,10 @@ def check_fits(row: dict, path: Path) -> None:
     """Refuse a row whose single fits are missing or lack a figure the targets judge."""
     fits = row.get("per_seed") or []
     if not fits:
-        raise InputError(f"{path}: row {row['scene']} ({row['variant']}) has no per-seed fits "
-                         "(run bench/edit.py with --edit-seeds 2 or more)")
-    needed = NEEDED + (("truth_psnr",) if row["synthetic"] else ())
-    lacking = sorted({k for f in [row, *fits] for k in needed if not isinstance(f.get(k), (int, float))})
-    if lacking:
-        raise InputError(f"{path}: row {row['scene']} ({row['variant']}) lacks {', '.join(lacking)}")
+        raise no_fits(path, row)
+    missing = lacking([row, *fits], bool(row["synthetic"]))
+    if missing:
+        raise InputError(f"{path}: row {row['scene']} ({row['variant']}) lacks {', '.join(missing)}")
 
 
 def rows_by_run(paths: List[Path]) -> Dict[tuple, Dict[str, dict]]:

@@ -26,7 +26,7 @@ from rich.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from edit import targets  # noqa: E402  (bench/edit.py: the set's targets)
+from edit import read_result, targets  # noqa: E402  (bench/edit.py: its results and the set's targets)
 
 from virgi_ns.errors import InputError, atomic_path, cli_entry  # noqa: E402
 
@@ -62,12 +62,24 @@ NEEDED = ("propagation_psnr", "miss_psnr", "leak_psnr", "recolour_psnr", "unedit
 """The figures every fit must have to be judged (a synthetic row's also ``truth_psnr``)."""
 
 
+def lacking(figures: List[dict], synthetic: bool) -> List[str]:
+    """The figures the targets judge (:data:`NEEDED`, and ``truth_psnr`` where ``synthetic``) that any
+    of ``figures`` (fits, or a row) lacks, sorted."""
+    needed = NEEDED + (("truth_psnr",) if synthetic else ())
+    return sorted({k for f in figures for k in needed if not isinstance(f.get(k), (int, float))})
+
+
+def no_fits(path: Path, row: dict) -> InputError:
+    """The error for a row that has too few single fits (``per_seed``) to be judged."""
+    return InputError(f"{path}: row {row['scene']} ({row['variant']}) has no per-seed fits "
+                      "(run bench/edit.py with --edit-seeds 2 or more)")
+
+
 def row_summary(row: dict, by: str = "final_l1") -> dict:
     """One row (scene and variant): the first fit and the best of its fits, each with its targets."""
     per_seed = row["per_seed"]
     synthetic = bool(row["synthetic"])
-    needed = NEEDED + (("truth_psnr",) if synthetic else ())
-    missing = sorted({k for fit in per_seed for k in needed if not isinstance(fit.get(k), (int, float))})
+    missing = lacking(per_seed, synthetic)
     if missing:
         raise InputError(f"row {row['scene']} ({row['variant']}): its fits lack {', '.join(missing)}")
     first, best, index = chosen_fits(per_seed, by)
@@ -84,11 +96,9 @@ def rows_of(paths: List[Path], by: str = "final_l1") -> List[dict]:
     """Every row of the results, each marked with the file it came from (``source``)."""
     out = []
     for source, p in enumerate(paths):
-        data = json.loads(p.read_text())
-        for row in data["scenes"]:
+        for row in read_result(p, "--results")["scenes"]:
             if len(row.get("per_seed", [])) < 2:
-                raise InputError(f"{p}: row {row['scene']} ({row['variant']}) has no per-seed fits "
-                                 "(run bench/edit.py with --edit-seeds 2 or more)")
+                raise no_fits(p, row)
             out.append({**row_summary(row, by), "source": source})
     return out
 

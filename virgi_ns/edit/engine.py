@@ -82,9 +82,9 @@ class EditConfig:
     lr: float = 2e-2
     """Learning rate of both heads."""
     lr_schedule: str = "cosine"
-    """``cosine``: from ``lr`` at the first step, by half a cosine, to 0 after ``steps`` steps, counted
-    over every :meth:`EditEngine.fit` of one target (a retarget starts it again), so the fit settles
-    where a constant rate leaves it moving, so fits of one edit spread less (bench/RESULTS.md,
+    """``cosine``: ``lr`` for the first ``lr_hold`` of the steps, then by half a cosine to 0 at ``steps``,
+    counted over every :meth:`EditEngine.fit` of one target (a retarget starts it again): the fit
+    settles where a constant rate leaves it moving, and fits of one edit spread less (bench/RESULTS.md,
     "Why one fit's spread"); steps past ``steps`` move nothing. ``constant``: ``lr`` at every step
     (the default before run sets 23 and 24)."""
     lr_hold: float = 0.5
@@ -625,9 +625,11 @@ class EditEngine:
         if self.opt is not None and [id(p) for p in self.opt.params] == [id(p) for p in trainable]:
             self.opt.restart()  # the same tensors, which recorded steps read and write
         else:
-            # the cosine's first step is still at lr: leave it two, so that the last step's rate is lower
-            hold = min(int(cfg.lr_hold * cfg.steps), max(cfg.steps - 2, 0)) if cfg.lr_schedule == "cosine" else 0
-            decay = max(cfg.steps - hold, 1) if cfg.lr_schedule == "cosine" else None
+            hold, decay = 0, None
+            if cfg.lr_schedule == "cosine":
+                # the cosine's first step is still at lr: leave it two, so that the last step's rate is lower
+                hold = min(int(cfg.lr_hold * cfg.steps), max(cfg.steps - 2, 0))
+                decay = max(cfg.steps - hold, 1)
             self.opt = EditAdam(trainable, lr=cfg.lr, decay_steps=decay, hold_steps=hold)
             self._graphs = None
 
