@@ -87,6 +87,10 @@ class Args:
     """Edit steps (default: the engine's)."""
     repeats: int = 3
     pictures: int = 2
+    variant_pictures: bool = False
+    """Also save each variant's pictures (its first fit's, as many as ``--pictures``), named
+    ``SCENE__VARIANT_viewI.png``: where a variant may become the default, its pictures come from
+    the run that decides it."""
     variants: List[str] = field(default_factory=list)
     """More rows on the same runs, each a comma-separated list of EditConfig fields, e.g.
     'recipe=paper' or 'steps=200,seg_init_bias=-2'; an entry that starts with 'SCENE:' is measured on
@@ -123,6 +127,11 @@ class Args:
 
 
 # ------------------------------------------------------------------------------ variants
+def variant_slug(text: str) -> str:
+    """A variant's settings as a file-name part: 'lr=0.03,steps=200' -> 'lr-0.03_steps-200'."""
+    return re.sub(r"[^A-Za-z0-9.-]+", "_", text.replace("=", "-")).strip("_")
+
+
 def variant_scene(text: str) -> tuple:
     """'fern:steps=3' -> ('fern', 'steps=3'); an entry without a scene prefix -> (None, text)."""
     head, sep, rest = text.partition(":")
@@ -403,7 +412,10 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
         v_edited = b.edited_image(v_rule, v_source)
         fit = (v_edited, v_cfg.pop("steps", args.steps), v_cfg.pop("pixel_batches", None), 1, b.original(v_source))
         v_edit, v_t = b.fit(*fit, **v_cfg)
-        v_res, _ = b.measure(v_edit, v_rule, lpips=False, edited=v_edited)
+        v_res, v_pics = b.measure(v_edit, v_rule, lpips=False, keep=args.pictures if args.variant_pictures else 0,
+                                  edited=v_edited)
+        for i, p in enumerate(v_pics):
+            _save_png(args.out / f"{scene.name}__{variant_slug(text)}_view{i}.png", p)
         v_res["mean"] = median_over_seeds(args, b, fit, v_cfg, v_rule, v_edited, v_res["mean"], v_t)
         rows.append({**base, "variant": text, "rule": v_rule.to_dict(), **v_res["mean"], "timing_warm": v_t,
                      "targets": targets(v_res["mean"], v_t["total_s"], scene.synthetic is not None)})

@@ -100,7 +100,7 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     cfg.write_text("unused")
     scene = EvalScene("tiny", "tiny", BROAD.rule(), "every saturated pixel")
     args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1,
-                           pictures=1, pick=True, dump_targets=True,
+                           pictures=1, variant_pictures=True, pick=True, dump_targets=True,
                            pick_variants=["recolour=rule,recipe=joint,reference=click", "seed=1"],
                            variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05", "other:steps=5",
                                      "tiny:recipe=staged,seg_samples=512,seg_steps=20", "steps=15,source=render",
@@ -170,6 +170,16 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     # pixels against its render by itself, so it is the source=render fit
     assert abs(rows[5]["propagation_psnr"] - rows[4]["propagation_psnr"]) < 1e-3
     assert (args.out / "tiny_view0.png").is_file() and (args.out / "tiny_edit.png").is_file()
+    # --variant-pictures: each variant's own picture, named by its settings, showing its own fit
+    from PIL import Image
+
+    assert bench_edit.variant_slug("steps=10,lr=0.05,rule=0/360/60/0.2/0.05") == "steps-10_lr-0.05_rule-0_360_60_0.2_0.05"
+    variant_pics = sorted(p.name for p in args.out.glob("tiny__*_view0.png"))
+    assert variant_pics == sorted(f"tiny__{bench_edit.variant_slug(r['variant'])}_view0.png" for r in rows[1:])
+    base_pic = np.asarray(Image.open(args.out / "tiny_view0.png"), dtype=float)
+    other = np.asarray(Image.open(args.out / f"tiny__{bench_edit.variant_slug(rows[2]['variant'])}_view0.png"),
+                       dtype=float)
+    assert base_pic.shape == other.shape and abs(base_pic - other).max() > 0
     # the worst case row takes the engine defaults' rows only
     w = bench_edit.worst_case(rows + [{**rows[0], "variant": "x", "miss_psnr": -1.0}])
     assert w["miss_psnr"] == rows[0]["miss_psnr"] and w["rows"] == 1
