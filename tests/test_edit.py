@@ -863,6 +863,41 @@ def test_fit_loss_is_the_weighted_l1_of_the_preview_against_the_target(world, pi
     assert fresh.fit_loss() > 1.5 * eng.fit_loss()
 
 
+def test_the_share_floor_weighs_a_large_edits_pixels_alike_and_leaves_a_small_edit_as_it_was(world):
+    """``changed_share_floor``: an edit that changes more of the view than ``changed_share`` weighs every
+    pixel alike (the loss is the plain mean of |preview - target| over the view), where without it the
+    few unchanged pixels carry half the loss; an edit that changes less fits exactly as without it."""
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    render = world["before"][EDIT_VIEW]["rgb"]
+    g = torch.Generator().manual_seed(6)
+    photo = (render + 0.1 * (torch.rand(render.shape, generator=g) - 0.5)).clamp(0, 1)
+    W = photo.shape[1]
+    edited = photo.clone()
+    edited[:, W // 5:] = photo[:, W // 5:].roll(1, dims=-1)  # four fifths of the view, channels permuted
+    losses = {}
+    for floor in (False, True):
+        cfg = EditConfig(steps=10, pixel_batches=1, changed_share_floor=floor)
+        eng = EditEngine(S.scene, cam, edited, cfg=cfg, original=photo)
+        eng.fit()
+        err = (eng.preview()["rgb"] - eng._target).abs().mean(-1).reshape(-1)
+        changed = eng._changed
+        frac = float(changed.float().mean())
+        assert 0.6 < frac < 0.85
+        share = frac if floor else 0.5
+        losses[floor] = eng.fit_loss()
+        assert losses[floor] == pytest.approx(share * float(err[changed].mean()) +
+                                              (1 - share) * float(err[~changed].mean()), rel=1e-5)
+    assert losses[True] == pytest.approx(float(err.mean()), rel=1e-5)  # every pixel alike
+    small = {}
+    for floor in (False, True):  # the world's edit changes far less than half the view
+        eng = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=10, changed_share_floor=floor))
+        assert eng.changed_fraction < 0.5
+        eng.fit()
+        small[floor] = (eng.weight.clone(), eng.preview()["rgb"])
+    assert torch.equal(small[False][0], small[True][0]) and torch.equal(small[False][1], small[True][1])
+
+
 @pytest.mark.parametrize("steps,lr_hold,hold", [(100, 0.5, 50), (3, 0.5, 1), (2, 0.5, 0), (1, 0.5, 0), (100, 0.995, 98),
                                                 (7, 0.0, 0)])
 def test_the_hold_leaves_at_least_one_step_to_decay(world, steps, lr_hold, hold):

@@ -125,6 +125,13 @@ class EditConfig:
     """With an ``original`` image: the share of the loss carried by the changed pixels (the rest by
     the unchanged ones), whatever their numbers; a small edit would otherwise be outvoted by the
     many pixels asking for no change."""
+    changed_share_floor: bool = False
+    """Take ``changed_share`` as a floor: an edit that changes more of the view than ``changed_share``
+    keeps every pixel's equal weight (its changed pixels carry their own fraction of the loss), so the
+    few unchanged pixels of a large edit are not each weighted up over a changed one (a 90% edit's
+    unchanged tenth would otherwise weigh 9 times as much per pixel, and pull the segmentation down
+    over the object, bench/RESULTS.md, "Edit"). An edit that changes at most ``changed_share`` of
+    the view fits exactly as without it."""
     near_share: float = 0.0
     """With the changed pixels known: the part of the unchanged pixels' share of the loss carried by
     the unchanged pixels within ``near_radius`` of a changed one (a part of another colour inside the
@@ -586,8 +593,11 @@ class EditEngine:
         else:
             near = (near_changed(changed[..., 0], cfg.near_radius).reshape(-1)
                     if changed is not None and cfg.near_share > 0.0 else None)
+            share = cfg.changed_share
+            if cfg.changed_share_floor and flat is not None:
+                share = max(share, n_changed / flat.numel())
             self.batches = pixel_batches(self.contrib, edited.reshape(-1, 3), self.background, cfg.pixel_batches,
-                                         cfg.seed, flat, cfg.changed_share, kind, n_changed, near, cfg.near_share)
+                                         cfg.seed, flat, share, kind, n_changed, near, cfg.near_share)
             for b in self.batches:
                 if b.pixels is None:  # the whole image: its own copy, which a warm retarget writes into
                     b.target = b.target.clone()
