@@ -143,8 +143,9 @@ def variant_scene(text: str) -> tuple:
 
 
 def check_variant(text: str, scenes: List[str]) -> None:
-    """Refuse a --variants entry before any training: bad settings, or a scene prefix that names
-    no scene of this run (it would be skipped without a word)."""
+    """Refuse a --variants entry before any training: bad settings, or a scene prefix that names no
+    scene of ``scenes`` (the whole evaluation set: a call given some of its rows, as each process of
+    a call split over GPUs is, measures the entry where its scene runs and skips it elsewhere)."""
     only, rest = variant_scene(text)
     if only is not None and only not in scenes:
         raise InputError(f"--variants: '{text}' names '{only}', which is not among the scenes ({', '.join(scenes)})")
@@ -759,7 +760,7 @@ def main(args: Args) -> None:
         return
     scenes = find(args.scenes)
     for v in args.variants:  # refuse a bad --variants before any training
-        check_variant(v, [s.name for s in scenes])
+        check_variant(v, [s.name for s in find([])])
     for v in args.pick_variants:  # and a bad --pick-variants or --pick-criteria
         parse_pick_variant(v)
     for c in args.pick_criteria:

@@ -275,6 +275,19 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     assert [r["variant"] for r in bench_edit.merged([tmp_path / "old.json"])["scenes"]] == [e or "engine defaults" for e in expect]
 
 
+def test_a_variant_for_a_scene_another_process_runs_is_skipped_not_refused(bench_edit, tmp_path, monkeypatch):
+    """A call split over GPUs gives each process some rows of the set: a --variants entry prefixed with
+    a scene of the set that this process does not run is skipped there (the process that runs the
+    scene measures it); a prefix naming no scene of the set is still refused before any training."""
+    ran = []
+    monkeypatch.setattr(bench_edit, "bench_scene", lambda args, scene, loaded: ran.append(scene.name) or [])
+    args = bench_edit.Args(scenes=["fern"], variants=["cup:steps=3"], out=tmp_path / "out")
+    bench_edit.main(args)
+    assert ran == ["fern"]
+    with pytest.raises(InputError, match="'cpu'"):
+        bench_edit.main(bench_edit.Args(scenes=["fern"], variants=["cpu:steps=3"], out=tmp_path / "out"))
+
+
 def test_edit_bench_takes_each_figure_as_the_median_over_edit_seeds(pipeline, bench_edit, tmp_path, monkeypatch):
     """``--edit-seeds 3``: each row's figures are the median of three fits with seeds 0, 1, 2 (listed
     in ``per_seed``, seed 0's first, the seeds giving different edits), and the targets are judged on
