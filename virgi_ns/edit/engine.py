@@ -129,9 +129,10 @@ class EditConfig:
     """Take ``changed_share`` as a floor: an edit that changes more of the view than ``changed_share``
     keeps every pixel's equal weight (its changed pixels carry their own fraction of the loss), so the
     few unchanged pixels of a large edit are not each weighted up over a changed one (a 90% edit's
-    unchanged tenth would otherwise weigh 9 times as much per pixel, and pull the segmentation down
-    over the object, bench/RESULTS.md, "Edit"). An edit that changes at most ``changed_share`` of
-    the view fits exactly as without it."""
+    unchanged tenth otherwise weighs 9 times as much per pixel, and pulls the segmentation down over
+    the object). Off: on cup it sharpened the segmentation on the object but spread it over the
+    similar-coloured surface beside it, which the heavy unchanged pixels had kept out (bench/RESULTS.md,
+    "Edit"). An edit that changes at most ``changed_share`` of the view fits exactly as without it."""
     near_share: float = 0.0
     """With the changed pixels known: the part of the unchanged pixels' share of the loss carried by
     the unchanged pixels within ``near_radius`` of a changed one (a part of another colour inside the
