@@ -89,7 +89,7 @@ class Args:
     pictures: int = 2
     variant_pictures: bool = False
     """Also save each variant's pictures (its first fit's, as many as ``--pictures``), named
-    ``SCENE__VARIANT_viewI.png``: where a variant may become the default, its pictures come from
+    ``SCENE__ENTRY_viewI.png`` (the --variants entry as :func:`variant_slug` writes it): where a variant may become the default, its pictures come from
     the run that decides it."""
     variants: List[str] = field(default_factory=list)
     """More rows on the same runs, each a comma-separated list of EditConfig fields, e.g.
@@ -416,7 +416,7 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
         v_res, v_pics = b.measure(v_edit, v_rule, lpips=False, keep=args.pictures if args.variant_pictures else 0,
                                   edited=v_edited)
         for i, p in enumerate(v_pics):
-            _save_png(args.out / f"{scene.name}__{variant_slug(text)}_view{i}.png", p)
+            _save_png(args.out / f"{scene.name}__{variant_slug(v)}_view{i}.png", p)  # 'cup:x' apart from 'x'
         v_res["mean"] = median_over_seeds(args, b, fit, v_cfg, v_rule, v_edited, v_res["mean"], v_t)
         rows.append({**base, "variant": text, "rule": v_rule.to_dict(), **v_res["mean"], "timing_warm": v_t,
                      "targets": targets(v_res["mean"], v_t["total_s"], scene.synthetic is not None)})
@@ -761,6 +761,9 @@ def main(args: Args) -> None:
     scenes = find(args.scenes)
     for v in args.variants:  # refuse a bad --variants before any training
         check_variant(v, [s.name for s in find([])])
+        only = variant_scene(v)[0]
+        if only is not None and only not in [s.name for s in scenes]:
+            console.print(f"--variants '{v}': {only} is not among this call's rows, so it is not measured here")
     for v in args.pick_variants:  # and a bad --pick-variants or --pick-criteria
         parse_pick_variant(v)
     for c in args.pick_criteria:

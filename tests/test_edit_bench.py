@@ -175,10 +175,11 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
 
     assert bench_edit.variant_slug("steps=10,lr=0.05,rule=0/360/60/0.2/0.05") == "steps-10_lr-0.05_rule-0_360_60_0.2_0.05"
     variant_pics = sorted(p.name for p in args.out.glob("tiny__*_view0.png"))
-    assert variant_pics == sorted(f"tiny__{bench_edit.variant_slug(r['variant'])}_view0.png" for r in rows[1:])
+    entries = [v for v in args.variants if not v.startswith("other:")]  # named by the entry, prefix and all
+    assert variant_pics == sorted(f"tiny__{bench_edit.variant_slug(v)}_view0.png" for v in entries)
+    assert bench_edit.variant_slug("tiny:steps=3") != bench_edit.variant_slug("steps=3")
     base_pic = np.asarray(Image.open(args.out / "tiny_view0.png"), dtype=float)
-    other = np.asarray(Image.open(args.out / f"tiny__{bench_edit.variant_slug(rows[2]['variant'])}_view0.png"),
-                       dtype=float)
+    other = np.asarray(Image.open(args.out / "tiny__pixel_batches-2_view0.png"), dtype=float)  # the same rule
     assert base_pic.shape == other.shape and abs(base_pic - other).max() > 0
     # the worst case row takes the engine defaults' rows only
     w = bench_edit.worst_case(rows + [{**rows[0], "variant": "x", "miss_psnr": -1.0}])
@@ -282,8 +283,10 @@ def test_a_variant_for_a_scene_another_process_runs_is_skipped_not_refused(bench
     ran = []
     monkeypatch.setattr(bench_edit, "bench_scene", lambda args, scene, loaded: ran.append(scene.name) or [])
     args = bench_edit.Args(scenes=["fern"], variants=["cup:steps=3"], out=tmp_path / "out")
-    bench_edit.main(args)
+    with bench_edit.console.capture() as said:
+        bench_edit.main(args)
     assert ran == ["fern"]
+    assert "cup is not among this call's rows" in said.get()  # skipped, but said
     with pytest.raises(InputError, match="'cpu'"):
         bench_edit.main(bench_edit.Args(scenes=["fern"], variants=["cpu:steps=3"], out=tmp_path / "out"))
 
