@@ -748,12 +748,14 @@ def _on_gpu(scene):
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
-@pytest.mark.parametrize("recipe,lr_schedule,lr_hold", [("joint", "constant", 0.0), ("staged", "constant", 0.0),
-                                                        ("joint", "cosine", 0.0), ("joint", "cosine", 0.5)])
-def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe, lr_schedule, lr_hold):
+@pytest.mark.parametrize("recipe,lr_schedule,lr_hold,seg_scale", [
+    ("joint", "constant", 0.0, 1.0), ("staged", "constant", 0.0, 1.0), ("joint", "cosine", 0.0, 1.0),
+    ("joint", "cosine", 0.5, 1.0), ("joint", "cosine", 0.5, 2.0), ("joint", "constant", 0.0, 2.0)])
+def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe, lr_schedule, lr_hold, seg_scale):
     """``cuda_graphs``: the recorded steps replay the eager steps' kernels in the eager order, so the
     edit (layer, segmentation, final loss) is the eager one's; a cosine rate too (with a hold or
-    not), computed on the device from Adam's step count at each replay."""
+    not), computed on the device from Adam's step count at each replay, and the segmentation head's
+    own rate (``seg_rate_scale``)."""
     S = world["S"]
     sc = S.scene
     gpu = _on_gpu(sc)
@@ -762,7 +764,7 @@ def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe, lr_schedule, 
     fits = {}
     for graphs in (True, False):
         cfg = EditConfig(steps=30, cuda_graphs=graphs, recipe=recipe, seg_samples=4096, seg_steps=50,
-                         lr_schedule=lr_schedule, lr_hold=lr_hold)
+                         lr_schedule=lr_schedule, lr_hold=lr_hold, seg_rate_scale=seg_scale)
         fits[graphs] = EditEngine(gpu, cam, edited, EditStack(gpu.fingerprint()), cfg).fit()
     (e_g, t_g), (e_e, t_e) = fits[True], fits[False]
     torch.testing.assert_close(e_g.head_weight, e_e.head_weight, atol=1e-5, rtol=1e-5)
@@ -896,6 +898,36 @@ def test_the_share_floor_weighs_a_large_edits_pixels_alike_and_leaves_a_small_ed
         eng.fit()
         small[floor] = (eng.weight.clone(), eng.preview()["rgb"])
     assert torch.equal(small[False][0], small[True][0]) and torch.equal(small[False][1], small[True][1])
+
+
+@pytest.mark.parametrize("schedule", ["constant", "cosine"])
+def test_the_segmentation_heads_rate_is_its_own_multiple_of_lr(world, schedule):
+    """``seg_rate_scale``: the segmentation head steps at ``seg_rate_scale`` times the copied layer's
+    rate. The copied layer starts as the base layer, so the first step gives the head no gradient and
+    the second the same one whatever its rate (the layer's first step is the same): after two steps
+    the head has moved exactly ``seg_rate_scale`` times as far, and the layer as far; with 1 the fit is
+    the default's, bit for bit."""
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    moved = {}
+    for scale in (1.0, 3.0):
+        eng = EditEngine(S.scene, cam, world["edited"],
+                         cfg=EditConfig(steps=2, lr_schedule=schedule, seg_rate_scale=scale))
+        before = [p.detach().clone() for p in (eng.weight, *eng.seg.parameters())]
+        eng.fit()
+        moved[scale] = [(p.detach() - b) for p, b in zip((eng.weight, *eng.seg.parameters()), before)]
+    torch.testing.assert_close(moved[3.0][0], moved[1.0][0], atol=0, rtol=0)  # the copied layer
+    for slow, fast in zip(moved[1.0][1:], moved[3.0][1:]):
+        assert float(slow.abs().max()) > 1e-3  # it moved
+        torch.testing.assert_close(fast, 3.0 * slow, atol=1e-7, rtol=1e-4)
+    default = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=5, lr_schedule=schedule))
+    same = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=5, lr_schedule=schedule,
+                                                                    seg_rate_scale=1.0))
+    default.fit()
+    same.fit()
+    assert torch.equal(default.weight, same.weight)
+    with pytest.raises(ValueError, match="seg_rate_scale"):
+        EditConfig(seg_rate_scale=0.0)
 
 
 @pytest.mark.parametrize("steps,lr_hold,hold", [(100, 0.5, 50), (3, 0.5, 1), (2, 0.5, 0), (1, 0.5, 0), (100, 0.995, 98),

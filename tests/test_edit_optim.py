@@ -104,3 +104,35 @@ def test_a_cosine_decay_steps_by_half_a_cosine_to_zero_then_stops(hold):
         EditAdam([p], lr=lr, decay_steps=0)
     with pytest.raises(ValueError, match="hold_steps"):
         EditAdam([p], lr=lr, hold_steps=2)  # a hold without a decay
+
+
+@pytest.mark.parametrize("decay", [None, 6])
+def test_each_parameters_rate_is_scaled_by_its_factor(decay):
+    """``scales``: with a constant gradient each parameter walks by the sum of the schedule times its
+    own factor (fused kernel, one call per factor, and the torch.optim fallback alike); a factor of 1
+    steps as without scales, bit for bit."""
+    import math
+
+    lr, n = 0.1, 6
+    rates = [lr] * n if decay is None else [0.5 * lr * (1 + math.cos(math.pi * k / n)) for k in range(n)]
+    for fallback in (False, True):
+        ps = [torch.zeros(2, requires_grad=True) for _ in range(3)]
+        opt = EditAdam(ps, lr=lr, decay_steps=decay, scales=[1.0, 2.5, 1.0])
+        if fallback:
+            groups = [{"params": [ps[0], ps[2]], "scale": 1.0}, {"params": [ps[1]], "scale": 2.5}]
+            opt._fallback = torch.optim.Adam(groups, lr=lr)
+        alone = torch.zeros(2, requires_grad=True)
+        plain = EditAdam([alone], lr=lr, decay_steps=decay)
+        if fallback:
+            plain._fallback = torch.optim.Adam([alone], lr=lr)
+        for _ in range(n):
+            for o, q in ((opt, ps), (plain, [alone])):
+                o.zero_grad()
+                sum(x.sum() for x in q).backward()
+                o.step()
+        assert float(ps[0][0]) == pytest.approx(-sum(rates), abs=1e-6), fallback
+        assert float(ps[1][0]) == pytest.approx(-2.5 * sum(rates), abs=1e-6), fallback
+        assert torch.equal(ps[0], ps[2]) and torch.equal(ps[0].detach(), alone.detach())
+    for bad in ([1.0], [1.0, 0.0, 1.0], [1.0, -2.0, 1.0]):
+        with pytest.raises(ValueError, match="scales"):
+            EditAdam(ps, lr=lr, scales=bad)

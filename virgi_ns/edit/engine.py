@@ -94,6 +94,11 @@ class EditConfig:
     It passed the rule written before run sets 23 and 24, as did the cosine over 200 steps, which the
     rule's tie-break preferred but which breaks the 50 ms edit at 1M Gaussians (bench/RESULTS.md,
     "Edit"). 0: the decay starts at the first step."""
+    seg_rate_scale: float = 1.0
+    """The joint recipe: the segmentation head's learning rate as a multiple of ``lr`` (the copied
+    layer keeps ``lr``). The two heads can trade a soft segmentation against a larger colour change
+    (the render sees their product), and which of them moves faster decides where the fit ends:
+    ``lr`` raised for both softened the segmentation (bench/RESULTS.md, "Edit")."""
     seg_width: int = 64
     """Hidden width of the segmentation head."""
     seg_init_bias: float = -4.0
@@ -127,7 +132,8 @@ class EditConfig:
     many pixels asking for no change."""
     changed_share_floor: bool = False
     """Take ``changed_share`` as a floor: an edit that changes more of the view than ``changed_share``
-    keeps every pixel's equal weight (its changed pixels carry their own fraction of the loss), so the
+    gives its changed pixels their own fraction of the loss (every pixel's equal weight, but for
+    ``near_share``'s split of the unchanged pixels' part), so the
     few unchanged pixels of a large edit are not each weighted up over a changed one (a 90% edit's
     unchanged tenth otherwise weighs 9 times as much per pixel, and pulls the segmentation down over
     the object). Off: on cup it sharpened the segmentation on the object but spread it over the
@@ -250,6 +256,8 @@ class EditConfig:
         parse_composite(self.batch_composite)  # ValueError naming the kinds
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"EditConfig.lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
+        if not self.seg_rate_scale > 0.0:
+            raise ValueError(f"EditConfig.seg_rate_scale must be > 0, got {self.seg_rate_scale}")
         if not 0.0 <= self.lr_hold < 1.0:
             raise ValueError(f"EditConfig.lr_hold must be in [0, 1), got {self.lr_hold}")
         if self.recipe not in ("joint", "staged"):
@@ -633,7 +641,9 @@ class EditEngine:
         self._target = edited
         self._set_heads()
         trainable = [self.weight, self.bias] + ([] if staged else list(self.seg.parameters()))
-        if self.opt is not None and [id(p) for p in self.opt.params] == [id(p) for p in trainable]:
+        scales = [1.0, 1.0] + [float(cfg.seg_rate_scale)] * (len(trainable) - 2)
+        if (self.opt is not None and [id(p) for p in self.opt.params] == [id(p) for p in trainable]
+                and self.opt.scales == scales):
             self.opt.restart()  # the same tensors, which recorded steps read and write
         else:
             hold, decay = 0, None
@@ -641,7 +651,7 @@ class EditEngine:
                 # the cosine's first step is still at lr: leave it two, so that the last step's rate is lower
                 hold = min(int(cfg.lr_hold * cfg.steps), max(cfg.steps - 2, 0))
                 decay = max(cfg.steps - hold, 1)
-            self.opt = EditAdam(trainable, lr=cfg.lr, decay_steps=decay, hold_steps=hold)
+            self.opt = EditAdam(trainable, lr=cfg.lr, decay_steps=decay, hold_steps=hold, scales=scales)
             self._graphs = None
 
     def _set_heads(self) -> None:
