@@ -89,7 +89,8 @@ class Args:
     pictures: int = 2
     variant_pictures: bool = False
     """Also save each variant's pictures (its first fit's, as many as ``--pictures``), named
-    ``SCENE__ENTRY_viewI.png`` (the --variants entry as :func:`variant_slug` writes it): where a variant may become the default, its pictures come from
+    ``SCENE__ENTRY_viewI.png`` (the --variants entry, each character but letters, digits, '.' and
+    '_' written as '_'): where a variant may become the default, its pictures come from
     the run that decides it."""
     variants: List[str] = field(default_factory=list)
     """More rows on the same runs, each a comma-separated list of EditConfig fields, e.g.
@@ -127,11 +128,6 @@ class Args:
 
 
 # ------------------------------------------------------------------------------ variants
-def variant_slug(text: str) -> str:
-    """A variant's settings as a file-name part: 'lr=0.03,steps=200' -> 'lr-0.03_steps-200'."""
-    return re.sub(r"[^A-Za-z0-9.-]+", "_", text.replace("=", "-")).strip("_")
-
-
 def variant_scene(text: str) -> tuple:
     """'fern:steps=3' -> ('fern', 'steps=3'); an entry without a scene prefix -> (None, text)."""
     head, sep, rest = text.partition(":")
@@ -416,7 +412,7 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
         v_res, v_pics = b.measure(v_edit, v_rule, lpips=False, keep=args.pictures if args.variant_pictures else 0,
                                   edited=v_edited)
         for i, p in enumerate(v_pics):
-            _save_png(args.out / f"{scene.name}__{variant_slug(v)}_view{i}.png", p)  # 'cup:x' apart from 'x'
+            _save_png(args.out / f"{scene.name}__{_safe(v)}_view{i}.png", p)  # 'cup:x' apart from 'x'
         v_res["mean"] = median_over_seeds(args, b, fit, v_cfg, v_rule, v_edited, v_res["mean"], v_t)
         rows.append({**base, "variant": text, "rule": v_rule.to_dict(), **v_res["mean"], "timing_warm": v_t,
                      "targets": targets(v_res["mean"], v_t["total_s"], scene.synthetic is not None)})

@@ -173,13 +173,13 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     # --variant-pictures: each variant's own picture, named by its settings, showing its own fit
     from PIL import Image
 
-    assert bench_edit.variant_slug("steps=10,lr=0.05,rule=0/360/60/0.2/0.05") == "steps-10_lr-0.05_rule-0_360_60_0.2_0.05"
+    assert bench_edit._safe("steps=10,lr=0.05,rule=0/360/60/0.2/0.05") == "steps_10_lr_0.05_rule_0_360_60_0.2_0.05"
     variant_pics = sorted(p.name for p in args.out.glob("tiny__*_view0.png"))
     entries = [v for v in args.variants if not v.startswith("other:")]  # named by the entry, prefix and all
-    assert variant_pics == sorted(f"tiny__{bench_edit.variant_slug(v)}_view0.png" for v in entries)
-    assert bench_edit.variant_slug("tiny:steps=3") != bench_edit.variant_slug("steps=3")
+    assert variant_pics == sorted(f"tiny__{bench_edit._safe(v)}_view0.png" for v in entries)
+    assert bench_edit._safe("tiny:steps=3") != bench_edit._safe("steps=3")
     base_pic = np.asarray(Image.open(args.out / "tiny_view0.png"), dtype=float)
-    other = np.asarray(Image.open(args.out / "tiny__pixel_batches-2_view0.png"), dtype=float)  # the same rule
+    other = np.asarray(Image.open(args.out / "tiny__pixel_batches_2_view0.png"), dtype=float)  # the same rule
     assert base_pic.shape == other.shape and abs(base_pic - other).max() > 0
     # the worst case row takes the engine defaults' rows only
     w = bench_edit.worst_case(rows + [{**rows[0], "variant": "x", "miss_psnr": -1.0}])
