@@ -755,10 +755,11 @@ def main(args: Args) -> None:
         _write(args.out / "results.json", result)
         return
     scenes = find(args.scenes)
+    whole_set, this_call = [s.name for s in find([])], [s.name for s in scenes]
     for v in args.variants:  # refuse a bad --variants before any training
-        check_variant(v, [s.name for s in find([])])
+        check_variant(v, whole_set)
         only = variant_scene(v)[0]
-        if only is not None and only not in [s.name for s in scenes]:
+        if only is not None and only not in this_call:
             console.print(f"--variants '{v}': {only} is not among this call's rows, so it is not measured here")
     for v in args.pick_variants:  # and a bad --pick-variants or --pick-criteria
         parse_pick_variant(v)
