@@ -930,6 +930,34 @@ def test_the_segmentation_heads_rate_is_its_own_multiple_of_lr(world, schedule):
         EditConfig(seg_rate_scale=0.0)
 
 
+def test_the_colour_maps_start_alone_scales_the_segmentation_heads_rate(world):
+    """``map_seg_rate_scale``: where the copied layer starts from the colour map, the segmentation head
+    steps at ``seg_rate_scale`` times it; an edit that starts from the base layer fits as the
+    default's, bit for bit."""
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    base = {}
+    for scale in (1.0, 3.0):  # the world's edit is too small for the map start
+        eng = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=5, map_seg_rate_scale=scale))
+        assert eng.colour_map is None
+        assert eng.opt.scales[2:] == [1.0] * (len(eng.opt.scales) - 2)
+        eng.fit()
+        base[scale] = (eng.weight.clone(), eng.preview()["rgb"])
+    assert torch.equal(base[1.0][0], base[3.0][0]) and torch.equal(base[1.0][1], base[3.0][1])
+    mapped = {}
+    for scale in (1.0, 3.0):  # every changed pixel's share starts from the map
+        cfg = EditConfig(steps=5, map_init_min_share=0.0, seg_rate_scale=0.5, map_seg_rate_scale=scale)
+        eng = EditEngine(S.scene, cam, world["edited"], cfg=cfg)
+        assert eng.colour_map is not None
+        assert eng.opt.scales[:2] == [1.0, 1.0]
+        assert eng.opt.scales[2:] == [0.5 * scale] * (len(eng.opt.scales) - 2)
+        eng.fit()
+        mapped[scale] = [p.detach().clone() for p in eng.seg.parameters()]
+    assert any(not torch.equal(a, b) for a, b in zip(mapped[1.0], mapped[3.0]))
+    with pytest.raises(ValueError, match="map_seg_rate_scale"):
+        EditConfig(map_seg_rate_scale=-1.0)
+
+
 @pytest.mark.parametrize("steps,lr_hold,hold", [(100, 0.5, 50), (3, 0.5, 1), (2, 0.5, 0), (1, 0.5, 0), (100, 0.995, 98),
                                                 (7, 0.0, 0)])
 def test_the_hold_leaves_at_least_one_step_to_decay(world, steps, lr_hold, hold):

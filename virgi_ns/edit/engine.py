@@ -99,6 +99,12 @@ class EditConfig:
     layer keeps ``lr``). The two heads can trade a soft segmentation against a larger colour change
     (the render sees their product), and which of them moves faster decides where the fit ends:
     ``lr`` raised for both softened the segmentation (bench/RESULTS.md, "Edit")."""
+    map_seg_rate_scale: float = 1.0
+    """The joint recipe, where the copied layer starts from the colour map (a large edit,
+    ``map_init_min_share``): ``seg_rate_scale`` is multiplied by this. There the layer starts near its
+    target and what is left to fit is mostly where the segmentation lands; from the base layer the
+    layer must travel far, and a faster head racing it moved small objects' fits (bench/RESULTS.md,
+    "Edit")."""
     seg_width: int = 64
     """Hidden width of the segmentation head."""
     seg_init_bias: float = -4.0
@@ -258,6 +264,8 @@ class EditConfig:
             raise ValueError(f"EditConfig.lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}")
         if not self.seg_rate_scale > 0.0:
             raise ValueError(f"EditConfig.seg_rate_scale must be > 0, got {self.seg_rate_scale}")
+        if not self.map_seg_rate_scale > 0.0:
+            raise ValueError(f"EditConfig.map_seg_rate_scale must be > 0, got {self.map_seg_rate_scale}")
         if not 0.0 <= self.lr_hold < 1.0:
             raise ValueError(f"EditConfig.lr_hold must be in [0, 1), got {self.lr_hold}")
         if self.recipe not in ("joint", "staged"):
@@ -641,7 +649,8 @@ class EditEngine:
         self._target = edited
         self._set_heads()
         trainable = [self.weight, self.bias] + ([] if staged else list(self.seg.parameters()))
-        scales = [1.0, 1.0] + [float(cfg.seg_rate_scale)] * (len(trainable) - 2)
+        seg_scale = float(cfg.seg_rate_scale) * (float(cfg.map_seg_rate_scale) if self.colour_map is not None else 1.0)
+        scales = [1.0, 1.0] + [seg_scale] * (len(trainable) - 2)
         if (self.opt is not None and [id(p) for p in self.opt.params] == [id(p) for p in trainable]
                 and self.opt.scales == scales):
             self.opt.restart()  # the same tensors, which recorded steps read and write
