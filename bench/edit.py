@@ -231,7 +231,7 @@ REPEAT = re.compile(r" \((?:repeat: (?P<asked>.*)|repeat of defaults)\)$")
 """The label's suffix of a variant that changed nothing in its own call (a refit: ``seed=0``), holding
 what it asked for (an older suffix, ``(repeat of defaults)``, held it in front)."""
 BEFORE_IT_EXISTED = {"lr_schedule": "constant", "lr_hold": 0.0, "seg_rate_scale": 1.0, "changed_share_floor": False,
-                     "map_seg_rate_scale": 1.0}
+                     "map_seg_rate_scale": 1.0, "large_edit_seg_rate_scale": 1.0}
 """The EditConfig fields added after calls were recorded, each with the value that gives the engine those calls
 ran: a call that recorded no such field ran with this."""
 

@@ -958,6 +958,32 @@ def test_the_colour_maps_start_alone_scales_the_segmentation_heads_rate(world):
         EditConfig(map_seg_rate_scale=-1.0)
 
 
+def test_an_edit_of_most_of_the_view_alone_scales_the_segmentation_heads_rate(world):
+    """``large_edit_seg_rate_scale``: where the changed pixels are more of the view than
+    ``changed_share`` (here: a share below the world's changed fraction), the segmentation head steps
+    at ``seg_rate_scale`` times it; not with ``changed_share_floor``; an edit under the share fits as the
+    default's, bit for bit."""
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    small = {}
+    for scale in (1.0, 3.0):
+        eng = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=5, large_edit_seg_rate_scale=scale))
+        assert eng.changed_fraction < EditConfig().changed_share
+        assert eng.opt.scales == [1.0] * len(eng.opt.scales)
+        eng.fit()
+        small[scale] = (eng.weight.clone(), eng.preview()["rgb"])
+    assert torch.equal(small[1.0][0], small[3.0][0]) and torch.equal(small[1.0][1], small[3.0][1])
+    share = 0.5 * EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=1)).changed_fraction
+    for floor, want in ((False, 0.5 * 3.0), (True, 0.5)):
+        cfg = EditConfig(steps=1, changed_share=share, changed_share_floor=floor, seg_rate_scale=0.5,
+                         large_edit_seg_rate_scale=3.0)
+        eng = EditEngine(S.scene, cam, world["edited"], cfg=cfg)
+        assert eng.opt.scales[:2] == [1.0, 1.0]
+        assert eng.opt.scales[2:] == [want] * (len(eng.opt.scales) - 2), floor
+    with pytest.raises(ValueError, match="large_edit_seg_rate_scale"):
+        EditConfig(large_edit_seg_rate_scale=0.0)
+
+
 @pytest.mark.parametrize("steps,lr_hold,hold", [(100, 0.5, 50), (3, 0.5, 1), (2, 0.5, 0), (1, 0.5, 0), (100, 0.995, 98),
                                                 (7, 0.0, 0)])
 def test_the_hold_leaves_at_least_one_step_to_decay(world, steps, lr_hold, hold):

@@ -105,6 +105,11 @@ class EditConfig:
     target and what is left to fit is mostly where the segmentation lands; from the base layer the
     layer must travel far, and a faster head racing it moved small objects' fits (bench/RESULTS.md,
     "Edit")."""
+    large_edit_seg_rate_scale: float = 1.0
+    """The joint recipe, where the changed pixels cover more of the view than ``changed_share``: there
+    each unchanged pixel weighs more than a changed one, and together they pull the segmentation head
+    down inside the recoloured object too, so ``seg_rate_scale`` is multiplied by this
+    (bench/RESULTS.md, "Edit"). Off with ``changed_share_floor``, which weighs every pixel alike there."""
     seg_width: int = 64
     """Hidden width of the segmentation head."""
     seg_init_bias: float = -4.0
@@ -266,6 +271,8 @@ class EditConfig:
             raise ValueError(f"EditConfig.seg_rate_scale must be > 0, got {self.seg_rate_scale}")
         if not self.map_seg_rate_scale > 0.0:
             raise ValueError(f"EditConfig.map_seg_rate_scale must be > 0, got {self.map_seg_rate_scale}")
+        if not self.large_edit_seg_rate_scale > 0.0:
+            raise ValueError(f"EditConfig.large_edit_seg_rate_scale must be > 0, got {self.large_edit_seg_rate_scale}")
         if not 0.0 <= self.lr_hold < 1.0:
             raise ValueError(f"EditConfig.lr_hold must be in [0, 1), got {self.lr_hold}")
         if self.recipe not in ("joint", "staged"):
@@ -650,6 +657,8 @@ class EditEngine:
         self._set_heads()
         trainable = [self.weight, self.bias] + ([] if staged else list(self.seg.parameters()))
         seg_scale = float(cfg.seg_rate_scale) * (float(cfg.map_seg_rate_scale) if self.colour_map is not None else 1.0)
+        if flat is not None and not cfg.changed_share_floor and self.changed_fraction > cfg.changed_share:
+            seg_scale *= float(cfg.large_edit_seg_rate_scale)  # the unchanged pixels outweigh the changed ones
         scales = [1.0, 1.0] + [seg_scale] * (len(trainable) - 2)
         if (self.opt is not None and [id(p) for p in self.opt.params] == [id(p) for p in trainable]
                 and self.opt.scales == scales):
