@@ -272,7 +272,8 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
         default=float))
     now = EditConfig()
     expect = [",".join(f"{k}={v}" for k, v in bench_edit.BEFORE_IT_EXISTED.items() if getattr(now, k) != v),
-              ",".join(f"{k}={v}" for k, v in {"lr_schedule": "cosine", "lr_hold": 0.0}.items() if getattr(now, k) != v)]
+              ",".join(f"{k}={v}" for k, v in {**bench_edit.BEFORE_IT_EXISTED, "lr_schedule": "cosine"}.items()
+                       if getattr(now, k) != v)]
     assert [r["variant"] for r in bench_edit.merged([tmp_path / "old.json"])["scenes"]] == [e or "engine defaults" for e in expect]
 
 

@@ -105,11 +105,13 @@ class EditConfig:
     target and what is left to fit is mostly where the segmentation lands; from the base layer the
     layer must travel far, and a faster head racing it moved small objects' fits (bench/RESULTS.md,
     "Edit")."""
-    large_edit_seg_rate_scale: float = 1.0
+    large_edit_seg_rate_scale: float = 2.0
     """The joint recipe, where the changed pixels cover more of the view than ``changed_share``: there
     each unchanged pixel weighs more than a changed one, and together they pull the segmentation head
-    down inside the recoloured object too, so ``seg_rate_scale`` is multiplied by this
-    (bench/RESULTS.md, "Edit"). Off with ``changed_share_floor``, which weighs every pixel alike there."""
+    down inside the recoloured object too, so ``seg_rate_scale`` is multiplied by this. A faster head
+    sharpens the segmentation there and passed the rule of run sets 36 and 37; where nothing pulls it
+    down, a faster head can run into the sigmoid's flat tail (bench/RESULTS.md, "Edit"). 1: the rate
+    of every other edit. Off with ``changed_share_floor``, which weighs every pixel alike there."""
     seg_width: int = 64
     """Hidden width of the segmentation head."""
     seg_init_bias: float = -4.0
