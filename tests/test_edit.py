@@ -960,9 +960,10 @@ def test_the_colour_maps_start_alone_scales_the_segmentation_heads_rate(world):
 
 def test_an_edit_of_most_of_the_view_alone_scales_the_segmentation_heads_rate(world):
     """``large_edit_seg_rate_scale``: where the changed pixels are more of the view than
-    ``changed_share`` (here: a share below the world's changed fraction), the segmentation head steps
-    at ``seg_rate_scale`` times it; not with ``changed_share_floor``; an edit under the share fits as the
-    default's, bit for bit."""
+    ``changed_share`` (here: a share below the world's changed fraction) but not all of it, the
+    segmentation head steps at ``seg_rate_scale`` times it; not at the share itself, not with
+    ``changed_share_floor``, not for a selection of the whole view (no unchanged pixel to outweigh
+    anything); an edit under the share fits as the default's, bit for bit."""
     S = world["S"]
     cam = S.cameras.index(EDIT_VIEW)
     small = {}
@@ -973,13 +974,17 @@ def test_an_edit_of_most_of_the_view_alone_scales_the_segmentation_heads_rate(wo
         eng.fit()
         small[scale] = (eng.weight.clone(), eng.preview()["rgb"])
     assert torch.equal(small[1.0][0], small[3.0][0]) and torch.equal(small[1.0][1], small[3.0][1])
-    share = 0.5 * EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=1)).changed_fraction
-    for floor, want in ((False, 0.5 * 3.0), (True, 0.5)):
+    fraction = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=1)).changed_fraction
+    H, W = world["edited"].shape[:2]
+    for share, floor, whole, want in ((0.5 * fraction, False, False, 0.5 * 3.0), (0.5 * fraction, True, False, 0.5),
+                                      (fraction, False, False, 0.5), (0.5, False, True, 0.5)):
         cfg = EditConfig(steps=1, changed_share=share, changed_share_floor=floor, seg_rate_scale=0.5,
                          large_edit_seg_rate_scale=3.0)
-        eng = EditEngine(S.scene, cam, world["edited"], cfg=cfg)
+        selection = torch.ones(H, W, dtype=torch.bool) if whole else None
+        eng = EditEngine(S.scene, cam, world["edited"], cfg=cfg, changed=selection)
+        assert eng.changed_fraction == (1.0 if whole else fraction)
         assert eng.opt.scales[:2] == [1.0, 1.0]
-        assert eng.opt.scales[2:] == [want] * (len(eng.opt.scales) - 2), floor
+        assert eng.opt.scales[2:] == [want] * (len(eng.opt.scales) - 2), (share, floor, whole)
     with pytest.raises(ValueError, match="large_edit_seg_rate_scale"):
         EditConfig(large_edit_seg_rate_scale=0.0)
 

@@ -106,9 +106,10 @@ class EditConfig:
     layer must travel far, and a faster head racing it moved small objects' fits (bench/RESULTS.md,
     "Edit")."""
     large_edit_seg_rate_scale: float = 2.0
-    """The joint recipe, where the changed pixels cover more of the view than ``changed_share``: there
-    each unchanged pixel weighs more than a changed one, and together they pull the segmentation head
-    down inside the recoloured object too, so ``seg_rate_scale`` is multiplied by this. A faster head
+    """The joint recipe, where the changed pixels cover more of the view than ``changed_share`` but not
+    all of it: there each unchanged pixel weighs more than a changed one, and together they pull the
+    segmentation head down inside the recoloured object too, so ``seg_rate_scale`` is multiplied by
+    this. A faster head
     sharpens the segmentation there and passed the rule of run sets 36 and 37; where nothing pulls it
     down, a faster head can run into the sigmoid's flat tail (bench/RESULTS.md, "Edit"). 1: the rate
     of every other edit. Off with ``changed_share_floor``, which weighs every pixel alike there."""
@@ -659,8 +660,9 @@ class EditEngine:
         self._set_heads()
         trainable = [self.weight, self.bias] + ([] if staged else list(self.seg.parameters()))
         seg_scale = float(cfg.seg_rate_scale) * (float(cfg.map_seg_rate_scale) if self.colour_map is not None else 1.0)
-        if flat is not None and not cfg.changed_share_floor and self.changed_fraction > cfg.changed_share:
-            seg_scale *= float(cfg.large_edit_seg_rate_scale)  # the unchanged pixels outweigh the changed ones
+        if (flat is not None and not cfg.changed_share_floor
+                and cfg.changed_share < self.changed_fraction < 1.0):  # each unchanged pixel outweighs a changed one
+            seg_scale *= float(cfg.large_edit_seg_rate_scale)
         scales = [1.0, 1.0] + [seg_scale] * (len(trainable) - 2)
         if (self.opt is not None and [id(p) for p in self.opt.params] == [id(p) for p in trainable]
                 and self.opt.scales == scales):
