@@ -622,7 +622,7 @@ class EditEngine:
                     if changed is not None and cfg.near_share > 0.0 else None)
             share = cfg.changed_share
             if cfg.changed_share_floor and flat is not None:
-                share = max(share, n_changed / flat.numel())
+                share = max(share, self.changed_fraction)
             self.batches = pixel_batches(self.contrib, edited.reshape(-1, 3), self.background, cfg.pixel_batches,
                                          cfg.seed, flat, share, kind, n_changed, near, cfg.near_share)
             for b in self.batches:
