@@ -865,6 +865,19 @@ def test_fit_loss_is_the_weighted_l1_of_the_preview_against_the_target(world, pi
     assert fresh.fit_loss() > 1.5 * eng.fit_loss()
 
 
+def _fitted_on_the_worlds_edit(world, **settings) -> EditEngine:
+    """An engine fitted to the world's edit (a small one) with these EditConfig settings."""
+    S = world["S"]
+    eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), world["edited"], cfg=EditConfig(**settings))
+    eng.fit()
+    return eng
+
+
+def _same_fit(a: EditEngine, b: EditEngine) -> bool:
+    """Whether two fits ended with the same layer and render, bit for bit."""
+    return torch.equal(a.weight, b.weight) and torch.equal(a.preview()["rgb"], b.preview()["rgb"])
+
+
 def test_the_share_floor_weighs_a_large_edits_pixels_alike_and_leaves_a_small_edit_as_it_was(world):
     """``changed_share_floor``: an edit that changes more of the view than ``changed_share`` weighs every
     pixel alike (the loss is the plain mean of |preview - target| over the view), where without it the
@@ -891,13 +904,10 @@ def test_the_share_floor_weighs_a_large_edits_pixels_alike_and_leaves_a_small_ed
         assert losses[floor] == pytest.approx(share * float(err[changed].mean()) +
                                               (1 - share) * float(err[~changed].mean()), rel=1e-5)
     assert losses[True] == pytest.approx(float(err.mean()), rel=1e-5)  # every pixel alike
-    small = {}
-    for floor in (False, True):  # the world's edit changes far less than half the view
-        eng = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=10, changed_share_floor=floor))
-        assert eng.changed_fraction < 0.5
-        eng.fit()
-        small[floor] = (eng.weight.clone(), eng.preview()["rgb"])
-    assert torch.equal(small[False][0], small[True][0]) and torch.equal(small[False][1], small[True][1])
+    # the world's edit changes far less than half the view
+    small = {floor: _fitted_on_the_worlds_edit(world, steps=10, changed_share_floor=floor) for floor in (False, True)}
+    assert all(eng.changed_fraction < 0.5 for eng in small.values())
+    assert _same_fit(small[False], small[True])
 
 
 @pytest.mark.parametrize("schedule", ["constant", "cosine"])
@@ -920,12 +930,8 @@ def test_the_segmentation_heads_rate_is_its_own_multiple_of_lr(world, schedule):
     for slow, fast in zip(moved[1.0][1:], moved[3.0][1:]):
         assert float(slow.abs().max()) > 1e-3  # it moved
         torch.testing.assert_close(fast, 3.0 * slow, atol=1e-7, rtol=1e-4)
-    default = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=5, lr_schedule=schedule))
-    same = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=5, lr_schedule=schedule,
-                                                                    seg_rate_scale=1.0))
-    default.fit()
-    same.fit()
-    assert torch.equal(default.weight, same.weight)
+    assert _same_fit(_fitted_on_the_worlds_edit(world, steps=5, lr_schedule=schedule),
+                     _fitted_on_the_worlds_edit(world, steps=5, lr_schedule=schedule, seg_rate_scale=1.0))
     with pytest.raises(ValueError, match="seg_rate_scale"):
         EditConfig(seg_rate_scale=0.0)
 
@@ -936,14 +942,12 @@ def test_the_colour_maps_start_alone_scales_the_segmentation_heads_rate(world):
     default's, bit for bit."""
     S = world["S"]
     cam = S.cameras.index(EDIT_VIEW)
-    base = {}
-    for scale in (1.0, 3.0):  # the world's edit is too small for the map start
-        eng = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=5, map_seg_rate_scale=scale))
+    # the world's edit is too small for the map start
+    base = {scale: _fitted_on_the_worlds_edit(world, steps=5, map_seg_rate_scale=scale) for scale in (1.0, 3.0)}
+    for eng in base.values():
         assert eng.colour_map is None
         assert eng.opt.scales[2:] == [1.0] * (len(eng.opt.scales) - 2)
-        eng.fit()
-        base[scale] = (eng.weight.clone(), eng.preview()["rgb"])
-    assert torch.equal(base[1.0][0], base[3.0][0]) and torch.equal(base[1.0][1], base[3.0][1])
+    assert _same_fit(base[1.0], base[3.0])
     mapped = {}
     for scale in (1.0, 3.0):  # every changed pixel's share starts from the map
         cfg = EditConfig(steps=5, map_init_min_share=0.0, seg_rate_scale=0.5, map_seg_rate_scale=scale)
@@ -966,14 +970,11 @@ def test_an_edit_of_most_of_the_view_alone_scales_the_segmentation_heads_rate(wo
     anything); an edit under the share fits as the default's, bit for bit."""
     S = world["S"]
     cam = S.cameras.index(EDIT_VIEW)
-    small = {}
-    for scale in (1.0, 3.0):
-        eng = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=5, large_edit_seg_rate_scale=scale))
+    small = {scale: _fitted_on_the_worlds_edit(world, steps=5, large_edit_seg_rate_scale=scale) for scale in (1.0, 3.0)}
+    for eng in small.values():
         assert eng.changed_fraction < EditConfig().changed_share
         assert eng.opt.scales == [1.0] * len(eng.opt.scales)
-        eng.fit()
-        small[scale] = (eng.weight.clone(), eng.preview()["rgb"])
-    assert torch.equal(small[1.0][0], small[3.0][0]) and torch.equal(small[1.0][1], small[3.0][1])
+    assert _same_fit(small[1.0], small[3.0])
     fraction = EditEngine(S.scene, cam, world["edited"], cfg=EditConfig(steps=1)).changed_fraction
     H, W = world["edited"].shape[:2]
     for share, floor, whole, want in ((0.5 * fraction, False, False, 0.5 * 3.0), (0.5 * fraction, True, False, 0.5),
