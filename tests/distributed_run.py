@@ -222,4 +222,5 @@ def trainer_worker(rank: int, world: int, root: Path, out: Path) -> None:
     trainer.train()
     state = state_of(trainer.pipeline.model)
     torch.save({"state": state, "agreed": same_on_every_process(state), "steps": trainer.config.max_num_iterations,
-                "optimizers": type(trainer.optimizers).__name__}, out / f"trainer_rank{rank}.pt")
+                "optimizers": type(trainer.optimizers).__name__, "threads": torch.get_num_threads()},
+               out / f"trainer_rank{rank}.pt")

@@ -57,6 +57,32 @@ def barrier() -> None:
         dist.barrier()
 
 
+def processes_per_host(world: int) -> int:
+    """How many of ``world`` processes share this host: all of them over gloo (:func:`run_processes`),
+    else one per GPU of the host (nerfstudio's launcher, which may span several hosts)."""
+    gloo = dist.is_available() and dist.is_initialized() and dist.get_backend() == "gloo"
+    if gloo or not torch.cuda.is_available() or torch.cuda.device_count() == 0:
+        return max(1, world)
+    return max(1, min(world, torch.cuda.device_count()))
+
+
+def share_cpu_threads(world: int) -> int:
+    """Give each process its share of the host's CPU threads; returns the count it now uses.
+
+    Every process otherwise sizes torch's thread pool for the whole host, and the colour stage's
+    batch drawing (small CPU ops each step) then waits on threads the other processes hold.
+    ``OMP_NUM_THREADS``, where set, is the user's choice and is kept."""
+    if world <= 1 or os.environ.get("OMP_NUM_THREADS"):
+        return torch.get_num_threads()
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    threads = max(1, cores // processes_per_host(world))
+    torch.set_num_threads(threads)
+    return threads
+
+
 def prepare_cuda(device) -> None:
     """Pin this process to its GPU (splatfacto puts tensors on the current device) and load
     gsplat's and virgi's CUDA code with rank 0 first: the first use compiles them, and a second
@@ -232,7 +258,7 @@ def _gloo_worker(process: int, fn: Callable, world: int, port: int, args: tuple)
 
     dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=process, world_size=world)
     comms.LOCAL_PROCESS_GROUP = dist.new_group(list(range(world)))  # as nerfstudio's launcher sets it
-    torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
+    share_cpu_threads(world)
     try:
         fn(process, world, *args)
     finally:
@@ -250,4 +276,4 @@ def run_processes(fn: Callable, world: int, *args) -> None:
 
 __all__ = ["DistributedOptimizers", "ReducedDefaultStrategy", "all_sum", "barrier", "broadcast_state",
            "broadcast_tensor", "is_main", "make_optimizers", "prepare_cuda", "rank", "reduce_gradients",
-           "run_processes", "shared_rng", "world_size"]
+           "processes_per_host", "run_processes", "share_cpu_threads", "shared_rng", "world_size"]

@@ -4,7 +4,8 @@
 In one process it is nerfstudio's trainer. With N processes it averages the gradients before
 every optimizer step (:class:`~virgi_ns.nerfstudio.distributed.DistributedOptimizers`), evaluates
 and prints on rank 0 only (nerfstudio already writes checkpoints, logs and the viewer there), ends
-when training ends (rank 0 would otherwise wait on the viewer while the others time out), and,
+when training ends (rank 0 would otherwise wait on the viewer while the others time out), gives
+each process its share of the host's CPU threads (:func:`~virgi_ns.nerfstudio.distributed.share_cpu_threads`), and,
 with ``--pipeline.multi-gpu-batch scale`` (the default), trains by :func:`scale_batch`.
 """
 
@@ -129,9 +130,10 @@ class VirgiTrainer(Trainer):
     def __init__(self, config: TrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
         if world_size > 1:
             config = for_processes(config, world_size)
+            threads = distributed.share_cpu_threads(world_size)
             if not distributed.is_main():
                 CONSOLE.quiet = True  # one console: rank 0's
-            CONSOLE.log(_describe(config, world_size))
+            CONSOLE.log(f"{_describe(config, world_size)}; {threads} CPU threads each")
         super().__init__(config, local_rank, world_size)
 
     def train(self) -> None:
