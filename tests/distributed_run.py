@@ -14,6 +14,7 @@ import torch.distributed as dist
 
 from method_configs.virgi import virgi_trainer_config
 from virgi_ns.colour.field import ColorFieldConfig
+from virgi_ns.nerfstudio import distributed
 from virgi_ns.nerfstudio.geometry_stage import strategy_step
 from virgi_ns.nerfstudio.pipeline import train_step, training_state
 from virgi_ns.nerfstudio.trainer import for_processes
@@ -217,10 +218,12 @@ def trainer_worker(rank: int, world: int, root: Path, out: Path) -> None:
     """nerfstudio's train_loop with virgi's trainer, as one of ``world`` processes."""
     cfg = trainer_config(root, out)
     torch.manual_seed(cfg.machine.seed + rank)
+    torch.set_num_threads(distributed.host_threads())  # the trainer itself must share them out
     trainer = cfg.setup(local_rank=rank, world_size=world)
     trainer.setup()
     trainer.train()
     state = state_of(trainer.pipeline.model)
     torch.save({"state": state, "agreed": same_on_every_process(state), "steps": trainer.config.max_num_iterations,
-                "optimizers": type(trainer.optimizers).__name__, "threads": torch.get_num_threads()},
+                "optimizers": type(trainer.optimizers).__name__, "threads": torch.get_num_threads(),
+                "host_threads": distributed.host_threads()},
                out / f"trainer_rank{rank}.pt")

@@ -27,6 +27,7 @@ import torch
 import torch.distributed as dist
 from gsplat.strategy import DefaultStrategy
 from nerfstudio.engine.optimizers import Optimizers
+from nerfstudio.utils import comms
 from torch import Tensor
 
 BUCKET_ELEMENTS = 1 << 24
@@ -57,28 +58,38 @@ def barrier() -> None:
         dist.barrier()
 
 
+_DEFAULT_THREADS = torch.get_num_threads()
+"""torch's thread count when this process started (its physical cores, or ``OMP_NUM_THREADS``)."""
+
+
+def host_threads() -> int:
+    """The CPU threads this process may use on its host before any share: torch's default, at most the
+    CPUs it may run on."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(_DEFAULT_THREADS, cpus))
+
+
 def processes_per_host(world: int) -> int:
-    """How many of ``world`` processes share this host: all of them over gloo (:func:`run_processes`),
-    else one per GPU of the host (nerfstudio's launcher, which may span several hosts)."""
-    gloo = dist.is_available() and dist.is_initialized() and dist.get_backend() == "gloo"
-    if gloo or not torch.cuda.is_available() or torch.cuda.device_count() == 0:
-        return max(1, world)
-    return max(1, min(world, torch.cuda.device_count()))
+    """How many of ``world`` processes share this host: nerfstudio's per-machine process group where
+    its launcher (or :func:`run_processes`) made one, else all of them."""
+    if dist.is_available() and dist.is_initialized() and comms.LOCAL_PROCESS_GROUP is not None:
+        return max(1, comms.get_local_size())
+    return max(1, world)
 
 
 def share_cpu_threads(world: int) -> int:
-    """Give each process its share of the host's CPU threads; returns the count it now uses.
+    """Give this process its share of the host's CPU threads (:func:`host_threads` over the processes
+    on the host); returns the count it now uses.
 
     Every process otherwise sizes torch's thread pool for the whole host, and the colour stage's
     batch drawing (small CPU ops each step) then waits on threads the other processes hold.
     ``OMP_NUM_THREADS``, where set, is the user's choice and is kept."""
     if world <= 1 or os.environ.get("OMP_NUM_THREADS"):
         return torch.get_num_threads()
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
-    threads = max(1, cores // processes_per_host(world))
+    threads = max(1, host_threads() // processes_per_host(world))
     torch.set_num_threads(threads)
     return threads
 
@@ -254,8 +265,6 @@ def _free_port() -> int:
 
 
 def _gloo_worker(process: int, fn: Callable, world: int, port: int, args: tuple) -> None:
-    from nerfstudio.utils import comms
-
     dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=process, world_size=world)
     comms.LOCAL_PROCESS_GROUP = dist.new_group(list(range(world)))  # as nerfstudio's launcher sets it
     share_cpu_threads(world)
@@ -276,4 +285,4 @@ def run_processes(fn: Callable, world: int, *args) -> None:
 
 __all__ = ["DistributedOptimizers", "ReducedDefaultStrategy", "all_sum", "barrier", "broadcast_state",
            "broadcast_tensor", "is_main", "make_optimizers", "prepare_cuda", "rank", "reduce_gradients",
-           "processes_per_host", "run_processes", "share_cpu_threads", "shared_rng", "world_size"]
+           "host_threads", "processes_per_host", "run_processes", "share_cpu_threads", "shared_rng", "world_size"]
