@@ -30,6 +30,8 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+# NVLink multicast stays off (the GPU machines' rule, as in bench/multi_gpu.py)
+os.environ.setdefault("NCCL_NVLS_ENABLE", "0")
 console = Console()
 VIEWS, H, W = 60, 378, 504
 GAUSSIANS = 150_000
