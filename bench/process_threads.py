@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import socket
 import statistics
 import time
 from dataclasses import dataclass
@@ -117,17 +116,13 @@ def _worker(rank: int, world: int, port: int, threads: str, steps: int, out: str
         dist.destroy_process_group()
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def run_row(args: Args, threads: str) -> dict:
     """One row: ``args.world`` processes with ``threads`` ("whole host", "share" or "one")."""
     import tempfile
 
     import torch.multiprocessing as mp
+
+    from virgi_ns.nerfstudio.distributed import _free_port
 
     with tempfile.TemporaryDirectory() as tmp:
         mp.spawn(_worker, args=(args.world, _free_port(), threads, args.steps, tmp), nprocs=args.world)
