@@ -10,7 +10,7 @@
 # flags), TRAIN_TIMEOUT. With several GPUs the edit rows run side by side, one process per GPU (a log each); the
 # edit results come back as edit_results_s<SEED>.tgz, their logs as edit_logs.tgz.
 set -o pipefail
-export TORCH_EXTENSIONS_DIR=/tmp/torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=16 PYTHONUNBUFFERED=1
+export TORCH_EXTENSIONS_DIR=/tmp/torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=$(nproc) PYTHONUNBUFFERED=1
 export PYTHONPATH=/tmp/site:$PWD NERFSTUDIO_METHOD_CONFIGS="virgi=method_configs.virgi:virgi_method"
 STEPS=${STEPS:-7000}; COLOUR_STEPS=${COLOUR_STEPS:-3000}; DEMO_STEPS=${DEMO_STEPS:-15000}
 RUNS=/tmp/runs; mkdir -p $RUNS
@@ -29,7 +29,7 @@ if [ ! -f /tmp/site/.installed ]; then
   fi
   touch /tmp/site/.installed
 fi
-nvidia-smi --query-gpu=name,driver_version --format=csv > $OUT/gpu.txt 2>&1
+(nvidia-smi --query-gpu=name,driver_version --format=csv; nvidia-smi topo -m) > $OUT/gpu.txt 2>&1
 
 if [ ! -f $TORCH_EXTENSIONS_DIR/.built ] || [ -n "${REBUILD_OURS:-}" ]; then
   (time python3 -c "from virgi_ns.raster import cuda; cuda.build(verbose=False)") > $OUT/build_ours.log 2>&1 &
@@ -37,12 +37,21 @@ if [ ! -f $TORCH_EXTENSIONS_DIR/.built ] || [ -n "${REBUILD_OURS:-}" ]; then
   wait
   el "builds"; tail -n 4 $OUT/build_ours.log $OUT/build_gsplat.log
   touch $TORCH_EXTENSIONS_DIR/.built
-  if [ "${SAVE_CACHE:-0}" = 1 ]; then
-    tar czf - -C /tmp torch_ext | split -b 15m - $OUT/ext.tgz. ; ls -la $OUT
+  if [ "${SAVE_CACHE:-0}" = 1 ]; then  # gsplat's build, for later calls to carry as .extcache/
+    (cd /tmp && tar czf - torch_ext/gsplat_cuda*) | split -b 15m - $OUT/ext.tgz. ; ls -la $OUT
   fi
 fi
 
-stage() { case " $STAGE " in *" $1 "*) return 0;; esac; [ "$STAGE" = rest ] && [ "$1" != train ]; }
+stage() { case " $STAGE " in *" $1 "*) return 0;; esac; [ "$STAGE" = rest ] && [ "$1" != train ] && [ "$1" != multi ]; }
+
+if stage multi; then
+  # ns-train virgi on N GPUs against one (bench/multi_gpu.py): WORLDS (default "1 2"), SEED (default 42)
+  el "multi-GPU bench: worlds ${WORLDS:-1 2}, seeds ${SEED:-42}, $STEPS + ${MULTI_COLOUR_STEPS:-1000} steps"
+  timeout ${MULTI_TIMEOUT:-$(( ${CALL_BUDGET:-585} - $(date +%s) + t0 ))} python3 bench/multi_gpu.py --data $PWD/.data --out $RUNS/multi --steps $STEPS \
+    --colour-steps ${MULTI_COLOUR_STEPS:-1000} --worlds ${WORLDS:-1 2} --seeds ${SEED:-42} > $OUT/multi_gpu.log 2>&1
+  el "multi rc=$?"; grep -v "^\s*$" $OUT/multi_gpu.log | tail -n 40
+  cp $RUNS/multi/results.json $OUT/multi_gpu_results.json 2>/dev/null
+fi
 
 if stage train; then
   el "train bench: $STEPS + $COLOUR_STEPS steps"
