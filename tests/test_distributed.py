@@ -219,8 +219,18 @@ def test_each_process_takes_its_share_of_the_cpu_threads(monkeypatch):
             assert distributed.share_cpu_threads(world) == want == torch.get_num_threads()
         torch.set_num_threads(host)
         assert distributed.share_cpu_threads(2) == max(1, host // 2)  # again: not halved twice
+        # a process driving a GPU keeps at most GPU_PROCESS_THREADS, alone or sharing the host
+        monkeypatch.setattr(distributed, "GPU_PROCESS_THREADS", 1)
+        for world in (1, 2):
+            torch.set_num_threads(host)
+            assert distributed.share_cpu_threads(world, "cuda") == 1 == torch.get_num_threads()
+        monkeypatch.setattr(distributed, "GPU_PROCESS_THREADS", 4 * host)
+        torch.set_num_threads(host)
+        assert distributed.share_cpu_threads(1, "cuda") == host  # a bound above the host's threads changes nothing
         torch.set_num_threads(host)
         monkeypatch.setenv("OMP_NUM_THREADS", "1")
+        assert distributed.share_cpu_threads(2, "cuda") == host == torch.get_num_threads()
+        torch.set_num_threads(host)
         assert distributed.share_cpu_threads(2) == host == torch.get_num_threads()
     finally:
         torch.set_num_threads(before)

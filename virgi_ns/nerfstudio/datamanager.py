@@ -239,8 +239,9 @@ class VirgiDataManager(FullImageDatamanager):
                                budget, self.config.batch_mode, self._generator)
             if self._shared_tiles and self._world > 1:
                 req = views_of_process(req, self._rank, self._world)
-        valid = req.valid_mask(cams)
-        gt = _gather_tiles(self.train_image_stack(), req, valid)
+        stack = self.train_image_stack()
+        valid = req.valid_mask(cams, stack.device)  # where the images are: no per-pixel work on the host
+        gt = _gather_tiles(stack, req, valid)
         if gt.dtype == torch.uint8:
             gt = gt.float() / 255.0
         gt = gt.to(self.device)

@@ -80,16 +80,29 @@ def processes_per_host(world: int) -> int:
     return max(1, world)
 
 
-def share_cpu_threads(world: int) -> int:
+GPU_PROCESS_THREADS = 16
+"""At most this many CPU threads in a process that drives a GPU. Its CPU work is small ops between
+kernel launches (the colour stage's batch drawing), whose thread pool must not take every core
+from the process's own launching thread (bench/RESULTS.md, "Several GPUs", measures it)."""
+
+
+def share_cpu_threads(world: int, device_type: str = "cpu") -> int:
     """Give this process its share of the host's CPU threads (:func:`host_threads` over the processes
-    on the host); returns the count it now uses.
+    on the host, at most :data:`GPU_PROCESS_THREADS` where it drives a GPU); returns the count it now
+    uses.
 
     Every process otherwise sizes torch's thread pool for the whole host, and the colour stage's
-    batch drawing (small CPU ops each step) then waits on threads the other processes hold.
-    ``OMP_NUM_THREADS``, where set, is the user's choice and is kept."""
-    if world <= 1 or os.environ.get("OMP_NUM_THREADS"):
+    batch drawing (small CPU ops each step) then waits on threads the other processes, or its own
+    launching thread, hold. A CPU-only process alone keeps the whole host (the reference rasterizer
+    is its work). ``OMP_NUM_THREADS``, where set, is the user's choice and is kept."""
+    if os.environ.get("OMP_NUM_THREADS"):
+        return torch.get_num_threads()
+    gpu = device_type == "cuda"
+    if world <= 1 and not gpu:
         return torch.get_num_threads()
     threads = max(1, host_threads() // processes_per_host(world))
+    if gpu:
+        threads = min(threads, GPU_PROCESS_THREADS)
     torch.set_num_threads(threads)
     return threads
 
@@ -118,6 +131,18 @@ def prepare_cuda(device) -> None:
 
 
 # ------------------------------------------------------------------ collectives
+_HOST_GROUP = None
+
+
+def _host_group():
+    """A process group over gloo for host-side collectives (made on first use, which every process
+    reaches at the same step): exchanging a few flags over NCCL would make the host wait for the GPU."""
+    global _HOST_GROUP
+    if _HOST_GROUP is None:
+        _HOST_GROUP = dist.group.WORLD if dist.get_backend() == "gloo" else dist.new_group(backend="gloo")
+    return _HOST_GROUP
+
+
 def _buckets(tensors: Sequence[Tensor]) -> Iterator[List[Tensor]]:
     """Groups of tensors of one dtype and device: a large tensor alone, small ones together."""
     group: List[Tensor] = []
@@ -180,8 +205,8 @@ def reduce_gradients(params: Iterable[Tensor]) -> None:
             unique.append(p)
     if n == 1 or not unique:
         return
-    has = torch.tensor([p.grad is not None for p in unique], dtype=torch.int32, device=unique[0].device)
-    dist.all_reduce(has)
+    has = torch.tensor([p.grad is not None for p in unique], dtype=torch.int32)  # on the host: no GPU sync
+    dist.all_reduce(has, group=_host_group())
     live = [p for p, h in zip(unique, has.tolist()) if h]
     for p in live:
         if p.grad is None:

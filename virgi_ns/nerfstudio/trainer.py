@@ -1,11 +1,12 @@
-"""virgi's trainer: nerfstudio's, made to train on several processes
+"""virgi's trainer: nerfstudio's, sizing each process's CPU thread pool
+(:func:`~virgi_ns.nerfstudio.distributed.share_cpu_threads`: its share of the host, bounded where it
+drives a GPU), made to train on several processes
 (``ns-train virgi --machine.num-devices N``), and the batch rule it applies there.
 
 In one process it is nerfstudio's trainer. With N processes it averages the gradients before
 every optimizer step (:class:`~virgi_ns.nerfstudio.distributed.DistributedOptimizers`), evaluates
 and prints on rank 0 only (nerfstudio already writes checkpoints, logs and the viewer there), ends
-when training ends (rank 0 would otherwise wait on the viewer while the others time out), gives
-each process its share of the host's CPU threads (:func:`~virgi_ns.nerfstudio.distributed.share_cpu_threads`), and,
+when training ends (rank 0 would otherwise wait on the viewer while the others time out), and,
 with ``--pipeline.multi-gpu-batch scale`` (the default), trains by :func:`scale_batch`.
 """
 
@@ -128,9 +129,9 @@ class VirgiTrainer(Trainer):
     """nerfstudio's trainer; on several processes as the module doc says."""
 
     def __init__(self, config: TrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        threads = distributed.share_cpu_threads(world_size, config.machine.device_type)
         if world_size > 1:
             config = for_processes(config, world_size)
-            threads = distributed.share_cpu_threads(world_size)
             if not distributed.is_main():
                 CONSOLE.quiet = True  # one console: rank 0's
             CONSOLE.log(f"{_describe(config, world_size)}; {threads} CPU threads each")

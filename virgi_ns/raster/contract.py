@@ -126,20 +126,21 @@ class Request:
     def tiles(views, x0, y0, size: int) -> "Request":
         return Request(views, x0, y0, size, size)
 
-    def pixel_coords(self) -> tuple[Tensor, Tensor, Tensor]:
-        """(view, x, y) of every output pixel, each [P] long, in output order."""
+    def pixel_coords(self, device=None) -> tuple[Tensor, Tensor, Tensor]:
+        """(view, x, y) of every output pixel, each [P] long, in output order, on ``device`` (the
+        host by default)."""
         t = len(self)
-        r = torch.arange(self.height).view(1, -1, 1)
-        c = torch.arange(self.width).view(1, 1, -1)
-        x = (self.x0.view(-1, 1, 1) + c).expand(t, self.height, self.width)
-        y = (self.y0.view(-1, 1, 1) + r).expand(t, self.height, self.width)
-        v = self.views.view(-1, 1, 1).expand(t, self.height, self.width)
+        r = torch.arange(self.height, device=device).view(1, -1, 1)
+        c = torch.arange(self.width, device=device).view(1, 1, -1)
+        x = (self.x0.to(device).view(-1, 1, 1) + c).expand(t, self.height, self.width)
+        y = (self.y0.to(device).view(-1, 1, 1) + r).expand(t, self.height, self.width)
+        v = self.views.to(device).view(-1, 1, 1).expand(t, self.height, self.width)
         return v.reshape(-1), x.reshape(-1), y.reshape(-1)
 
-    def valid_mask(self, cameras: Cameras) -> Tensor:
-        """[P] bool: the output pixel lies inside its view's image."""
-        v, x, y = self.pixel_coords()
-        return (x >= 0) & (y >= 0) & (x < cameras.widths[v]) & (y < cameras.heights[v])
+    def valid_mask(self, cameras: Cameras, device=None) -> Tensor:
+        """[P] bool on ``device`` (the host by default): the output pixel lies inside its view's image."""
+        v, x, y = self.pixel_coords(device)
+        return (x >= 0) & (y >= 0) & (x < cameras.widths.to(device)[v]) & (y < cameras.heights.to(device)[v])
 
 
 @dataclass
