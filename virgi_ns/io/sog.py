@@ -202,18 +202,38 @@ def _member_means(x: torch.Tensor, labels: torch.Tensor, c: torch.Tensor) -> tor
     return torch.from_numpy(np.where(count > 0, sums / np.maximum(count, 1), c.numpy()).astype(np.float32))
 
 
-def _lloyd(x: torch.Tensor, k: int, iterations: int, gen: torch.Generator) -> torch.Tensor:
-    """k-means centres of ``x`` (k < len(x)): random distinct rows, then Lloyd steps; an emptied
-    centre restarts at a random row."""
+def _seed_centres(x: np.ndarray, k: int, rng: np.random.Generator, rounds: int = 8) -> np.ndarray:
+    """k-means++ seeding in a few rounds: after one random row, each round draws its share of the
+    centres, without replacement, with probability proportional to the squared distance from the
+    centres so far (well-separated groups each get one), in ``rounds`` passes instead of ``k``."""
     n = x.shape[0]
-    c = x[torch.randperm(n, generator=gen)[:k]].clone()
+    chosen = [int(rng.integers(n))]
+    d2 = ((x - x[chosen[0]]) ** 2).sum(1)
+    xx = (x * x).sum(1)
+    per = -(-(k - 1) // rounds)
+    while len(chosen) < k:
+        m = min(per, k - len(chosen))
+        p = d2 / d2.sum() if d2.sum() > 0 else None
+        live = int(np.count_nonzero(d2)) if p is not None else n
+        new = rng.choice(n, size=m, replace=m > live, p=p)
+        chosen.extend(int(i) for i in new)
+        c = x[new]
+        d2 = np.minimum(d2, np.maximum(xx[:, None] - 2 * x @ c.T + (c * c).sum(1)[None], 0).min(1))
+    return x[np.asarray(chosen[:k])]
+
+
+def _lloyd(x: torch.Tensor, k: int, iterations: int, rng: np.random.Generator) -> torch.Tensor:
+    """k-means centres of ``x`` (k < len(x)): k-means++ seeds, then Lloyd steps; an emptied centre
+    restarts at a random row."""
+    n = x.shape[0]
+    c = torch.from_numpy(_seed_centres(x.numpy(), k, rng))
     for _ in range(iterations):
         labels, _ = _assign(x, c)
         count = torch.bincount(labels, minlength=k)
         new = _member_means(x, labels, c)
         empty = count == 0
         if bool(empty.any()):
-            new[empty] = x[torch.randint(0, n, (int(empty.sum()),), generator=gen)]
+            new[empty] = x[torch.from_numpy(rng.integers(n, size=int(empty.sum())))]
         if torch.equal(new, c):
             break
         c = new
@@ -246,7 +266,7 @@ LEAF = 1024  # the most centres one flat k-means fits
 BRANCH = 256  # the most groups a node splits into
 
 
-def _palette(x: torch.Tensor, k: int, gen: torch.Generator, iterations: int,
+def _palette(x: torch.Tensor, k: int, rng: np.random.Generator, iterations: int,
              per_centre: int = 8) -> tuple[torch.Tensor, torch.Tensor]:
     """At most ``k`` centres for the rows of ``x`` and each row's label: the rows themselves when they
     fit; a flat k-means for ``k <= LEAF``; otherwise ``ceil(k / 256)`` groups (at most 256), each
@@ -258,8 +278,8 @@ def _palette(x: torch.Tensor, k: int, gen: torch.Generator, iterations: int,
         return x.clone(), torch.arange(n)
 
     def fit(kk: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        sample = x if n <= kk * per_centre else x[torch.randperm(n, generator=gen)[: kk * per_centre]]
-        c = _lloyd(sample, kk, iterations, gen)
+        sample = x if n <= kk * per_centre else x[torch.from_numpy(rng.choice(n, kk * per_centre, replace=False))]
+        c = _lloyd(sample, kk, iterations, rng)
         labels, sq = _assign(x, c)
         return c, labels, sq
 
@@ -278,7 +298,7 @@ def _palette(x: torch.Tensor, k: int, gen: torch.Generator, iterations: int,
     offset = 0
     for gi in np.flatnonzero(count):
         rows = order[bounds[gi] : bounds[gi + 1]]
-        cg, lg = _palette(x[rows], int(alloc[gi]), gen, iterations, per_centre)
+        cg, lg = _palette(x[rows], int(alloc[gi]), rng, iterations, per_centre)
         labels[rows] = lg + offset
         centres.append(cg)
         offset += cg.shape[0]
@@ -295,12 +315,12 @@ def sh_palette(rest: np.ndarray, palette: int = MAX_PALETTE, seed: int = 0,
     n = rest.shape[0]
     if n <= palette:
         return rest.astype(np.float64), np.arange(n)
-    gen = torch.Generator().manual_seed(seed)
+    rng = np.random.default_rng(seed)
     x = torch.from_numpy(np.ascontiguousarray(rest, dtype=np.float32))
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        c, labels = _palette(x, palette, gen, iterations)
+        c, labels = _palette(x, palette, rng, iterations)
     finally:
         torch.set_num_threads(threads)
     return c.double().numpy(), labels.numpy()
