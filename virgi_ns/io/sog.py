@@ -5,8 +5,11 @@ Written here: version 2, the current one (``meta.json`` with ``"version": 2``), 
 Read: the zip archive or the folder form (a directory holding ``meta.json``, or ``meta.json`` itself);
 version 1 files (no ``version`` key, per-channel ranges instead of codebooks) are refused.
 
+``meta.json`` holds ``version`` (2), ``count``, ``antialias`` (false: gsplat's classic rasterization),
+``asset.generator``, and per attribute its ``files`` (in order) and ``codebook`` or ranges, as below.
 What the format stores (every image 8-bit, lossless WebP, alpha 255 where unused; Gaussian ``i`` is
-pixel ``(i % W, i // W)`` of every per-Gaussian image, all of them ``W x H`` with ``W*H >= count``):
+pixel ``(i % W, i // W)`` of every per-Gaussian image, all of them ``W x H`` with ``W*H >= count``; this
+writer makes ``W = 4 ceil(sqrt(N) / 4)``, ``H = 4 ceil(N / W / 4)`` as PlayCanvas's does):
 
 - ``means_l.webp`` / ``means_u.webp`` (RGB = x y z): the low and high bytes of a 16-bit quantisation of
   ``n = sign(p) * log(1 + |p|)`` between ``meta.means.mins`` and ``maxs`` (per axis, in that log domain).
@@ -34,15 +37,18 @@ How this writer quantises (the quantities in the file are the format's; how they
   ``h = (max - min) / 65535 / 2`` per axis, so ``|dp| <= (|p| + 2) (e^h - 1)``; ``sigmoid(opacity)``
   within ``0.5 / 255``; each of the three stored quaternion components within ``sqrt2 / 510``.
 - codebooks (scales, sh0, shN): a 1-D k-means of 256 centres over all the values (Lloyd iterations on
-  the sorted values, exact, float64; centres stored as float32, the ends pinned at the data's min and
-  max), each value stored as its nearest centre: the error is at most half the widest codebook gap.
+  the sorted values, exact, float64, started at the cube-root-density quantiles; centres stored as
+  float32, the ends pinned at the data's min and max), each value stored as its nearest centre: the
+  error is at most half the widest codebook gap.
 - higher SH bands: with at most ``palette`` (65536) Gaussians each is its own palette entry (only the
   256-entry codebook loses anything); above that, a k-means of the ``3 * coeffs`` coefficients into
-  65536 entries, built as a tree (256 groups, each split again in proportion to its squared error)
-  with a fixed seed and at most ``iterations`` Lloyd steps per node fitted on a sample of 64 points a
-  centre, each Gaussian then assigned to its nearest centre and each centre moved to the mean of its
-  members. Its cost grows as ``N * 256 * 3 * coeffs`` per level (two levels at 1M Gaussians): about
-  ``bench/RESULTS.md``'s "Export" figure for a 1M-Gaussian file on a 2-core CPU.
+  65536 entries, built as a tree: a node needing ``k`` centres splits its rows into ``ceil(k / 256)``
+  groups (at most 256) and gives each group centres in proportion to its squared error, down to
+  nodes of at most 256 centres. Each k-means is seeded k-means++ style (in 8 rounds, with a fixed
+  seed) and runs at most ``iterations`` (5) Lloyd steps on a sample of 8 rows a centre; then every
+  row takes its nearest centre and each centre moves to the mean of its rows. One torch thread.
+  Cost: about two passes of ``N x 256 x 3 coeffs`` distances plus the leaves' fits; 1M Gaussians of
+  SH degree 3 take 12.7 s of CPU for the whole write (bench/RESULTS.md, "Export").
 """
 
 from __future__ import annotations
@@ -202,31 +208,30 @@ def _member_means(x: torch.Tensor, labels: torch.Tensor, c: torch.Tensor) -> tor
     return torch.from_numpy(np.where(count > 0, sums / np.maximum(count, 1), c.numpy()).astype(np.float32))
 
 
-def _seed_centres(x: np.ndarray, k: int, rng: np.random.Generator, rounds: int = 8) -> np.ndarray:
+def _seed_centres(x: torch.Tensor, k: int, rng: np.random.Generator, rounds: int = 8) -> torch.Tensor:
     """k-means++ seeding in a few rounds: after one random row, each round draws its share of the
     centres, without replacement, with probability proportional to the squared distance from the
     centres so far (well-separated groups each get one), in ``rounds`` passes instead of ``k``."""
     n = x.shape[0]
     chosen = [int(rng.integers(n))]
-    d2 = ((x - x[chosen[0]]) ** 2).sum(1)
-    xx = (x * x).sum(1)
+    _, d2 = _assign(x, x[chosen])
     per = -(-(k - 1) // rounds)
     while len(chosen) < k:
         m = min(per, k - len(chosen))
-        p = d2 / d2.sum() if d2.sum() > 0 else None
-        live = int(np.count_nonzero(d2)) if p is not None else n
-        new = rng.choice(n, size=m, replace=m > live, p=p)
+        w = d2.double().numpy()
+        live = int(np.count_nonzero(w))
+        new = rng.choice(n, size=m, replace=m > live, p=w / w.sum() if live else None)
         chosen.extend(int(i) for i in new)
-        c = x[new]
-        d2 = np.minimum(d2, np.maximum(xx[:, None] - 2 * x @ c.T + (c * c).sum(1)[None], 0).min(1))
-    return x[np.asarray(chosen[:k])]
+        _, d2_new = _assign(x, x[torch.from_numpy(new)])
+        d2 = torch.minimum(d2, d2_new)
+    return x[torch.tensor(chosen[:k])].clone()
 
 
 def _lloyd(x: torch.Tensor, k: int, iterations: int, rng: np.random.Generator) -> torch.Tensor:
     """k-means centres of ``x`` (k < len(x)): k-means++ seeds, then Lloyd steps; an emptied centre
     restarts at a random row."""
     n = x.shape[0]
-    c = torch.from_numpy(_seed_centres(x.numpy(), k, rng))
+    c = _seed_centres(x, k, rng)
     for _ in range(iterations):
         labels, _ = _assign(x, c)
         count = torch.bincount(labels, minlength=k)
@@ -262,7 +267,7 @@ def _allocate(total: int, weight: np.ndarray, cap: np.ndarray) -> np.ndarray:
     return alloc
 
 
-LEAF = 1024  # the most centres one flat k-means fits
+LEAF = 256  # the most centres one flat k-means fits
 BRANCH = 256  # the most groups a node splits into
 
 
@@ -286,7 +291,7 @@ def _palette(x: torch.Tensor, k: int, rng: np.random.Generator, iterations: int,
     if k <= LEAF:
         c, labels, _ = fit(k)
         return _member_means(x, labels, c), labels
-    groups = min(BRANCH, -(-k // 256))
+    groups = min(BRANCH, -(-k // LEAF))
     _, group, sq = fit(groups)
     count = torch.bincount(group, minlength=groups).numpy()
     sse = torch.bincount(group, weights=sq.double(), minlength=groups).numpy()
