@@ -54,7 +54,8 @@ def timing(n: int, tmp: Path) -> dict:
     load_splat(tmp / "random.sog")
     read = time.perf_counter() - read
     return {"gaussians": n, "sh_degree": 3, "write_wall_s": wall, "write_cpu_s": cpu, "read_wall_s": read,
-            "bytes": (tmp / "random.sog").stat().st_size, "cpus": os.cpu_count(), "load_average": [load0, os.getloadavg()[0]]}
+            "bytes": (tmp / "random.sog").stat().st_size, "cpus": os.cpu_count(),
+            "load_average": [load0, os.getloadavg()[0]]}
 
 
 def orbit(means: np.ndarray, views: int, size: tuple[int, int]) -> list[CameraSpec]:
@@ -91,7 +92,8 @@ def real_splat(path: Path, tmp: Path, views: int, size: tuple[int, int]) -> dict
                        ("sh_rest", got.sh[:, 1:], ref.sh[:, 1:])):
         e = (a - b).abs().double().flatten().numpy()
         if e.size:
-            errors[name] = {"rms": float(np.sqrt((e**2).mean())), "p99": float(np.percentile(e, 99)), "max": float(e.max())}
+            errors[name] = {"rms": float(np.sqrt((e**2).mean())), "p99": float(np.percentile(e, 99)),
+                            "max": float(e.max())}
     qa, qb = got.normalized_quats().double(), ref.normalized_quats().double()
     angle = np.degrees(2 * np.arccos((qa * qb).sum(1).abs().clamp(0, 1).numpy()))
     errors["rotation_deg"] = {"rms": float(np.sqrt((angle**2).mean())), "p99": float(np.percentile(angle, 99)),

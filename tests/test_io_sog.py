@@ -246,6 +246,15 @@ def test_empty_and_single_gaussian_files(tmp_path):
             check_within_bounds(spec_decode(unzip_like_playcanvas((tmp_path / f"{n}.sog").read_bytes())), src)
 
 
+def test_degree_4_keeps_its_first_three_bands(tmp_path):
+    src = random_gaussians(200, 4, seed=4)
+    write_sog(src, tmp_path / "s.sog")
+    dec = spec_decode(unzip_like_playcanvas((tmp_path / "s.sog").read_bytes()))
+    assert dec["meta"]["shN"]["bands"] == 3
+    check_within_bounds(dec, src.with_sh_degree(3).index(torch.from_numpy(sog_order(src.means))))
+    assert load_splat(tmp_path / "s.sog").sh_degree == 3
+
+
 # ------------------------------------------------------------------- (b) .ply -> .sog -> .ply
 def test_ply_to_sog_to_ply_through_virgi_convert(tmp_path):
     src = random_gaussians(3000, 3, seed=11)
@@ -448,6 +457,25 @@ def test_a_sog_export_renders_like_the_ply_export_at_held_out_views(fitted, rsce
     # the viewer's export and virgi-export accept .sog
     out = export_model(pipeline.model, tmp_path / "m.sog")
     assert len(load_splat(tmp_path / "m.sog")) == len(out)
+
+
+def test_virgi_render_reads_sog_as_the_gaussians_it_holds(tmp_path):
+    from virgi_ns.cli.render import Render, render_image
+    from virgi_ns.cli.render import run as render
+    from virgi_ns.io.camera_json import CameraSpec, write_camera_json
+
+    src = random_gaussians(300, 2, seed=2)
+    src = src.replace(means=src.means * 0.2, scales=src.scales + 1.5)
+    write_sog(src, tmp_path / "s.sog")
+    w2c = np.eye(4)
+    w2c[2, 3] = 4.0
+    cam = CameraSpec(32, 24, 30.0, 30.0, 16.0, 12.0, w2c)
+    write_camera_json(tmp_path / "cam.json", cam)
+    render(Render(splat=tmp_path / "s.sog", camera=tmp_path / "cam.json", out=tmp_path / "img.npy"))
+    got = np.load(tmp_path / "img.npy")
+    want = render_image(read_sog(tmp_path / "s.sog"), cam, "reference")
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    assert got.max() > 0.05  # the splat is in view
 
 
 def test_virgi_export_accepts_sog_and_still_refuses_other_names(tmp_path):

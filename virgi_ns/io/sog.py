@@ -48,7 +48,8 @@ How this writer quantises (the quantities in the file are the format's; how they
   seed) and runs at most ``iterations`` (5) Lloyd steps on a sample of 8 rows a centre; then every
   row takes its nearest centre and each centre moves to the mean of its rows. One torch thread.
   Cost: about two passes of ``N x 256 x 3 coeffs`` distances plus the leaves' fits; 1M Gaussians of
-  SH degree 3 take 12.7 s of CPU for the whole write (bench/RESULTS.md, "Export").
+  SH degree 3 take about 12 s of CPU for the whole write, two thirds of it the palette
+  (bench/RESULTS.md, "Export").
 """
 
 from __future__ import annotations
