@@ -346,7 +346,7 @@ def scene_bench(args: Args, scene: EvalScene, loaded: dict) -> tuple[Bench, int,
     """The scene's :class:`Bench` on its edit view (the training photo its rule recolours most), that
     view's index and the config of its run, trained here when absent; ``loaded`` keeps the last loaded run, so that two rules
     on one capture share it."""
-    from virgi_ns.cli.edit import load_run
+    from virgi_ns.nerfstudio.runs import load_run
 
     folder = capture_folder(scene, args.data, args.train_out / "captures",
                             "cuda" if torch.cuda.is_available() else "cpu", console, args.synthetic_size)

@@ -149,7 +149,7 @@ class _Scaled:
 
 def main(args: Args) -> None:
     warnings.filterwarnings("ignore", category=FutureWarning)
-    from virgi_ns.cli.export import load_run
+    from virgi_ns.nerfstudio.runs import load_run
     from virgi_ns.cli.render import render_image
     from virgi_ns.edit.engine import EditConfig, EditEngine
     from virgi_ns.edit.recolor import RecolorRule, recolor

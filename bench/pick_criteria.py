@@ -282,7 +282,7 @@ def direct_scene(name: str, spacing: float, views: int, width: int, height: int,
 
 
 def load(config: Path):
-    from virgi_ns.cli.edit import load_run
+    from virgi_ns.nerfstudio.runs import load_run
     from virgi_ns.edit.scene import FrozenScene
     from virgi_ns.nerfstudio.cameras import raster_cameras
 

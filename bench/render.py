@@ -241,7 +241,7 @@ def stage_ms(model, cams, gated: bool, repeats: int) -> Dict[str, float]:
 
 
 def bench_scene(args: Args, scene, cfg_path: Path) -> dict:
-    from virgi_ns.cli.export import load_run
+    from virgi_ns.nerfstudio.runs import load_run
 
     _, pipeline = load_run(cfg_path)
     model = pipeline.model
@@ -346,7 +346,7 @@ def bench_cli(scene, cfg_path: Path, data: Path, out: Path) -> dict:
     """Fresh-process walls of the CLIs on one trained run."""
     from PIL import Image
 
-    from virgi_ns.cli.export import load_run
+    from virgi_ns.nerfstudio.runs import load_run
     from virgi_ns.edit.recolor import recolor
     from virgi_ns.io.camera_json import CameraSpec, write_camera_json
 

@@ -91,10 +91,10 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     recolours most), then one row per --variants entry on the same loaded run (CPU, tiny scene)."""
     from virgi_ns.bench.evalset import EvalScene, edit_view
 
-    import virgi_ns.cli.edit as cli_edit
+    import virgi_ns.nerfstudio.runs as runs
 
     loads = []
-    monkeypatch.setattr(cli_edit, "load_run", lambda cfg: loads.append(cfg) or (None, pipeline))
+    monkeypatch.setattr(runs, "load_run", lambda cfg: loads.append(cfg) or (None, pipeline))
     (tmp_path / "data" / "tiny").mkdir(parents=True)
     cfg = tmp_path / "config.yml"
     cfg.write_text("unused")
@@ -298,9 +298,9 @@ def test_edit_bench_takes_each_figure_as_the_median_over_edit_seeds(pipeline, be
 
     from virgi_ns.bench.evalset import EvalScene
 
-    import virgi_ns.cli.edit as cli_edit
+    import virgi_ns.nerfstudio.runs as runs
 
-    monkeypatch.setattr(cli_edit, "load_run", lambda cfg: (None, pipeline))
+    monkeypatch.setattr(runs, "load_run", lambda cfg: (None, pipeline))
     (tmp_path / "data" / "tiny").mkdir(parents=True)
     scene = EvalScene("tiny", "tiny", BROAD.rule(), "every saturated pixel")
     args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": tmp_path / "config.yml"}, out=tmp_path / "out",

@@ -362,7 +362,7 @@ def run_recolor(args: Recolor, pipeline=None, console: Optional[Console] = None)
     console = console or Console(stderr=True)
     rule = args.rule.rule()
     if pipeline is None:
-        from virgi_ns.cli.edit import load_run
+        from virgi_ns.nerfstudio.runs import load_run
 
         with console.status(f"loading {args.load_config}"):
             _, pipeline = load_run(args.load_config)
@@ -400,7 +400,7 @@ def run_accuracy_time(args: AccuracyTime, pipeline=None, console: Optional[Conso
     if any(s < 1 for s in args.steps) or any(p < 1 for p in args.pixel_batches):
         raise InputError("--steps and --pixel-batches values must be >= 1")
     if pipeline is None:
-        from virgi_ns.cli.edit import load_run
+        from virgi_ns.nerfstudio.runs import load_run
 
         with console.status(f"loading {args.load_config}"):
             _, pipeline = load_run(args.load_config)

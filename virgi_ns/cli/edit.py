@@ -11,7 +11,7 @@
 
 Edits live in ``<run>/edits`` (beside ``config.yml``); the run itself is never written; ``pick``
 saves the edited image it made and its selection beside the edit. ``apply``, ``pick`` and
-``import`` load the run (:func:`virgi_ns.cli.runs.open_run`: from its files, without nerfstudio,
+``import`` load the run (:func:`virgi_ns.nerfstudio.runs.open_run`: from its files, without nerfstudio,
 when it can) and refuse edits of another base run; the other commands work on the edit stack's
 manifest alone (:mod:`virgi_ns.edit.manifest`), importing neither torch nor nerfstudio. Bad input
 is one line on stderr, exit 2, nothing saved.
@@ -33,7 +33,7 @@ if TYPE_CHECKING:  # torch, numpy and rich load with the commands that need them
     import numpy as np
     from rich.console import Console
 
-    from virgi_ns.cli.runs import OpenRun
+    from virgi_ns.nerfstudio.runs import OpenRun
 
 GREY_MODES = ("1", "L", "LA", "I", "I;16", "I;16B", "I;16L", "F")
 
@@ -317,19 +317,10 @@ def _manifest(load_config: Path):
 
 
 # -------------------------------------------------------------------------- running
-def load_run(config: Path):
-    """(config, pipeline) of a VIRGi run through nerfstudio; see :func:`virgi_ns.cli.export.load_run`."""
-    from virgi_ns.cli.export import load_run as _load
-
-    if not Path(config).is_file():
-        raise InputError(f"no such config: {config}")
-    return _load(Path(config))
-
-
 def _run_of(load_config: Path, console: "Console", run=None) -> "OpenRun":
-    """``run`` as an :class:`~virgi_ns.cli.runs.OpenRun`: one already (returned as is), a loaded
+    """``run`` as an :class:`~virgi_ns.nerfstudio.runs.OpenRun`: one already (returned as is), a loaded
     nerfstudio pipeline (wrapped), or None (the run of ``load_config`` is opened)."""
-    from virgi_ns.cli.runs import OpenRun, open_run
+    from virgi_ns.nerfstudio.runs import OpenRun, open_run
 
     if isinstance(run, OpenRun):
         return run
@@ -342,7 +333,7 @@ def _run_of(load_config: Path, console: "Console", run=None) -> "OpenRun":
 def open_view(args: Union[Apply, Pick], console: "Console", pipeline=None):
     """(the run, its edit stack on the model's device, the camera on it, its description): what
     ``apply`` and ``pick`` edit. ``pipeline``: an already loaded run (a nerfstudio pipeline or an
-    :class:`~virgi_ns.cli.runs.OpenRun`)."""
+    :class:`~virgi_ns.nerfstudio.runs.OpenRun`)."""
     from virgi_ns.edit.stack import EditStack
 
     run = _run_of(args.load_config, console, pipeline)
@@ -455,7 +446,7 @@ def pick(args: Pick, console: "Console", pipeline=None) -> str:
 
 def run(cmd: object, console: Optional["Console"] = None, pipeline=None) -> str:
     """Run one parsed command; returns the line to print. ``pipeline``: an already loaded run (a
-    nerfstudio pipeline or an :class:`~virgi_ns.cli.runs.OpenRun`) for the commands that load one."""
+    nerfstudio pipeline or an :class:`~virgi_ns.nerfstudio.runs.OpenRun`) for the commands that load one."""
     if isinstance(cmd, (Apply, Pick, Import)):
         if console is None:
             from rich.console import Console

@@ -1,7 +1,7 @@
 """A trained VIRGi run read from its files without nerfstudio's loader: what ``virgi-edit apply|pick|import``
 and ``virgi-export`` need of it.
 
-nerfstudio's own loader (``eval_setup``, or :func:`virgi_ns.cli.export.load_run`) imports the
+nerfstudio's own loader (``eval_setup``, or :func:`virgi_ns.nerfstudio.runs.load_run`) imports the
 classes a run's ``config.yml`` names (most of nerfstudio), runs the dataparser and builds the whole
 model, re-reading an imported splat, before the checkpoint overwrites it all: seconds a command pays
 for a handful of tensors. Here instead
@@ -17,7 +17,7 @@ for a handful of tensors. Here instead
 
 A run without ``virgi_run.json`` (saved before it existed), whose ``config.yml`` changed since it was
 written, or whose config this module does not recognise, is loaded through nerfstudio
-(:func:`virgi_ns.cli.runs.open_run` decides).
+(:func:`virgi_ns.nerfstudio.runs.open_run` decides).
 """
 
 from __future__ import annotations
