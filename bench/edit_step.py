@@ -1,5 +1,5 @@
 """Benchmark: the ways an edit step applies its pixel batch's sparse matrix (``EditConfig.batch_composite``)
-on the edit benchmark's 1M-Gaussian 1280x720 scene (:func:`edit.million_scene`), in one command.
+on the edit benchmark's 1M-Gaussian 1280x720 scene (``bench/common/scenes.py`` ``million_scene``), in one command.
 
 Per kind (``--variants``, default every kind of :data:`virgi_ns.edit.pixels.COMPOSITES`):
 
@@ -17,15 +17,13 @@ A kind that fails is a row with its error; the others go on. The fastest kind th
 named (by warm edit time), and, when the fastest forward and backward kinds differ, their pair
 ``FWD/BWD`` is measured too (``--no-combo``: not). ``--cpu-smoke`` runs a tiny scene on the CPU (tests).
 
-    PYTHONPATH=. python bench/edit_step.py --out bench_out/edit_step
+    python bench/edit_step.py --out bench_out/edit_step
 """
 
 from __future__ import annotations
 
-import json
 import math
 import statistics
-import sys
 import time
 import traceback
 import warnings
@@ -38,12 +36,12 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from edit import _commit, _source, million_scene, parse_variant  # noqa: E402  (bench/edit.py)
-
-from virgi_ns.edit.engine import EditConfig, EditEngine  # noqa: E402
-from virgi_ns.edit.pixels import COMPOSITES, parse_composite  # noqa: E402
-from virgi_ns.errors import InputError, atomic_path, cli_entry  # noqa: E402
+from common.results import provenance, write_json
+from common.scenes import million_scene
+from common.settings import edit_settings
+from virgi_ns.edit.engine import EditConfig, EditEngine
+from virgi_ns.edit.pixels import COMPOSITES, parse_composite
+from virgi_ns.errors import InputError, cli_entry
 
 console = Console(width=220)
 
@@ -121,7 +119,7 @@ class Bench:
         """``KIND[,FIELD=VALUE...]``: the composite kind and any other EditConfig settings (parsed as
         bench/edit.py's --variants are; its ``rule`` and ``source`` keys mean nothing here)."""
         kind, _, rest = variant.partition(",")
-        settings = parse_variant(rest) if rest else {}
+        settings = edit_settings(rest) if rest else {}
         for key in ("rule", "source"):
             if key in settings:
                 raise InputError(f"--variants: EditConfig has no field {key!r}")
@@ -296,7 +294,7 @@ def main(args: Args) -> dict:
     device = torch.cuda.get_device_name(0) if b.dev.type == "cuda" else "cpu"
     kinds = ["csr"] + [v for v in args.variants if v != "csr"]
     rows: List[dict] = []
-    result: dict = {"device": device, "commit": _commit(), "source_digest": _source(), "gaussians": args.gaussians,
+    result: dict = {"device": device, **provenance(), "gaussians": args.gaussians,
                     "image": f"{args.width}x{args.height}", "tol": args.tol, "rows": rows}
     for k in kinds:
         rows.append(b.row(k))
@@ -316,11 +314,7 @@ def main(args: Args) -> dict:
     result["fastest"] = best
     result["wall_s"] = time.perf_counter() - t0
     print_table(rows, device, args, best)
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "results.json"
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(result, indent=1, default=float))
-    console.print(f"wrote {path} ({result['wall_s']:.0f} s)")
+    write_json(args.out / "results.json", result, console)
     return result
 
 

@@ -29,12 +29,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+from virgi_ns.errors import InputError, atomic_path, cli_entry
+from virgi_ns.raster.contract import Cameras, Request, composite, composite_plain
 
-from virgi_ns.errors import InputError, atomic_path, cli_entry  # noqa: E402
-from virgi_ns.raster.contract import Cameras, Request, composite, composite_plain  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 
 @dataclass

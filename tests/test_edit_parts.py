@@ -1,4 +1,4 @@
-"""Edits on the failure modes of the evaluation set, on tiny CPU scenes made by virgi_ns.bench.synthetic:
+"""Edits on the failure modes of the evaluation set, on tiny CPU scenes made by bench/common/synthetic.py:
 a small object recoloured from one photo, and an object with a part of another colour inside it.
 
 The colour field is fitted directly to every Gaussian's true diffuse colour (albedo x shading, no
@@ -14,13 +14,18 @@ import math
 import pytest
 import torch
 
-from virgi_ns.bench.synthetic import Part, SceneSpec, gaussians_of, scene_cameras, surface_points
 from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
 from virgi_ns.edit.engine import EditConfig, EditEngine
 from virgi_ns.edit.recolor import RecolorRule, recolor
 from virgi_ns.edit.scene import FrozenScene, render_view
 from virgi_ns.edit.stack import EditStack
 from virgi_ns.raster import Request, composite
+
+from script_module import bench_module
+
+_synthetic = bench_module("synthetic")
+Part, SceneSpec, gaussians_of = _synthetic.Part, _synthetic.SceneSpec, _synthetic.gaussians_of
+scene_cameras, surface_points = _synthetic.scene_cameras, _synthetic.surface_points
 
 YELLOW, RED, BLUE, WHITE = (0.88, 0.76, 0.10), (0.80, 0.10, 0.08), (0.15, 0.30, 0.70), (0.90, 0.90, 0.88)
 PARTS = SceneSpec(
