@@ -243,8 +243,7 @@ class Bench:
                       "total_s": med([t.total_s for t in times]), "steps": cfg.steps,
                       "pixel_batches": cfg.pixel_batches, "final_l1": times[-1].final_loss,
                       "fit_l1": engine.fit_loss(),
-                      "start": edit.info.get("start"), "changed_fraction": edit.info.get("changed_fraction"),
-                      "map_explained": edit.info.get("map_explained")}
+                      "start": edit.info.get("start"), "changed_fraction": edit.info.get("changed_fraction")}
 
     def _per_gaussian_rule(self, i: int, rule: RecolorRule, truth: torch.Tensor, mask: torch.Tensor) -> dict:
         """Propagation figures of an object-level reference edit for held-out view ``i``: the rule

@@ -8,7 +8,7 @@ edit (whose recorded CUDA graphs must not share the device with another thread's
 
 The warm-up draws its scene from its own generator, and builds its colour field with the global
 random state forked, under the lock the engine holds while it seeds its segmentation head
-(:data:`~virgi_ns.edit.engine.GLOBAL_RNG_LOCK`): it changes nothing a caller's seeds decide. A
+(:data:`~virgi_ns.edit.heads.GLOBAL_RNG_LOCK`): it changes nothing a caller's seeds decide. A
 warm-up that fails only leaves the first edit slow: its error is kept (:data:`last_error`), never
 raised.
 """
@@ -39,7 +39,7 @@ def _scene(device: torch.device, n: int, width: int, height: int):
     """(scene, camera, generator): ``n`` random Gaussians in front of one camera of ``width`` x
     ``height``, a colour field of the default size, all drawn from one seeded generator."""
     from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
-    from virgi_ns.edit.engine import GLOBAL_RNG_LOCK
+    from virgi_ns.edit.heads import GLOBAL_RNG_LOCK
     from virgi_ns.edit.scene import FrozenScene
     from virgi_ns.raster import Cameras
 
