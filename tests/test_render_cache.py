@@ -452,7 +452,7 @@ def _splat_by_contributions(model, passes: list):
     def splat(view, colours, backgrounds, mode, projection=None):
         passes.append((colours.shape[-1], mode, projection is not None))
         cams = Cameras(view.K, view.viewmat, [view.width], [view.height])
-        contrib = model._raster(cams, Request(torch.zeros(1, dtype=torch.long), 0, 0, view.width, view.height))
+        contrib = model.contributions(cams, Request(torch.zeros(1, dtype=torch.long), 0, 0, view.width, view.height))
         pg = contrib.pair_gaussian
         chans, bg = [colours[pg]], backgrounds[0]
         if mode == "RGB+ED":

@@ -195,7 +195,7 @@ class ViewerRender(RenderPath):
         self.diffuse_cache = torch.zeros(0, 3, device=self.device)
         self.edit_stack = self.live_edit = self.segmentation_edit = None
 
-    def _raster(self, cams, request):
+    def contributions(self, cams, request):
         return self.scene.contributions(cams, request)
 
     def frame(self, camera) -> dict:

@@ -19,11 +19,11 @@ def _cached_model_class():
     class CachedVirgiModel(VirgiModel):
         contrib_cache = None
 
-        def _raster(self, cams, request, geometry_grad: bool = False):
+        def contributions(self, cams, request, geometry_grad: bool = False):
             cache = self.contrib_cache
             if cache is not None and self.geometry_frozen and cache.matches(cams):
                 return cache.contributions(request, self.means.detach())
-            return super()._raster(cams, request, geometry_grad)
+            return super().contributions(cams, request, geometry_grad)
 
     return CachedVirgiModel
 

@@ -265,7 +265,7 @@ class ColourStage:
 
     # ----------------------------------------------------------- tile batches
     def _tile_outputs(self, batch: TileBatch) -> Dict[str, Union[Tensor, List]]:
-        contrib = self._raster(batch.cameras, batch.request)
+        contrib = self.contributions(batch.cameras, batch.request)
         cols = self.pair_colours(contrib, batch.cameras)
         bg = self.background_color.to(self.device)
         rgb = composite(cols["rgb"], contrib, bg)

@@ -143,7 +143,7 @@ class GeometryStage:
         cams = raster_cameras(camera[0:1] if len(camera.shape) else camera.reshape((1,)))
         camera.rescale_output_resolution(d)
         req = Request.whole_images(cams)
-        contrib = self._raster(cams, req, geometry_grad=self.training)
+        contrib = self.contributions(cams, req, geometry_grad=self.training)
         colours = (SH_C0 * self.features_dc + 0.5).clamp_min(0.0)
         bg = self._get_background_color() if self.training else self.background_color.to(self.device)
         rgb = composite(contrib.gather(colours), contrib, bg)[0].clamp(0, 1)

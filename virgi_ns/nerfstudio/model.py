@@ -179,7 +179,10 @@ class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
     def _scene_aabb(self) -> Tensor:
         return self.scene_box.aabb.detach().float().cpu().clone()
 
-    def _raster(self, cams: Cameras, request: Request, geometry_grad: bool = False) -> Contributions:
+    def contributions(self, cams: Cameras, request: Request, geometry_grad: bool = False) -> Contributions:
+        """The contribution lists of ``request`` on ``cams`` (:func:`virgi_ns.raster.rasterize`): with the
+        configured backend on frozen geometry, the reference (differentiable) before; ``geometry_grad``: the
+        lists keep the geometry's gradient (the geometry stage's own rasterization)."""
         means, quats, scales, opac = self.means, self.quats, torch.exp(self.scales), torch.sigmoid(self.opacities)
         with torch.set_grad_enabled(geometry_grad and torch.is_grad_enabled()):
             return rasterize(means, quats, scales, opac.reshape(-1), cams.to(self.device), request,

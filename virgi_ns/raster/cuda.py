@@ -34,7 +34,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import torch
 from torch import Tensor
@@ -47,7 +47,7 @@ CSRC = Path(__file__).resolve().parents[2] / "csrc"
 SOURCES = ("extension.cpp", "raster_kernels.cu", "composite_kernels.cu", "edit_kernels.cu", "edit_heads.cu")
 EXTENSION_NAME = "virgi_ns_raster"
 
-TILE_BACKWARD_MIN_PIXELS = 1 << 20  # measured on an H200: per-entry atomics win below ~1 Mpix
+TILE_BACKWARD_MIN_PIXELS = 1 << 20  # per-entry atomics are the faster backward below ~1 Mpix
 # Size of the compact visible-pair arrays to try first; None: the extension estimates it (tests
 # set a small value to exercise the overflow and its retry).
 VISIBLE_CAPACITY: int | None = None
@@ -244,23 +244,43 @@ class CudaContributions(Contributions):
         return out.reshape(t, h, w, d)
 
 
+class DeferredLists(NamedTuple):
+    """What the count pass of a deferred request keeps (``csrc/raster_kernels.cu``): the request's tile
+    ``plan``, ``meta`` and each tile's list ``ranges``, the lists' pairs (``list_pair``), each pixel's entry
+    count (``px_count``), the lists' sorted depth keys (``sorted_vals``), the records of the pass
+    (``rec0``, ``rec1``), each pair's ``rank``, and per tile the list elements that matter to some pixel
+    (``keep``, ranged by ``keep_end``)."""
+
+    plan: Tensor
+    meta: Tensor
+    ranges: Tensor
+    list_pair: Tensor
+    px_count: Tensor
+    sorted_vals: Tensor
+    rec0: Tensor
+    rec1: Tensor
+    rank: Tensor
+    keep: Tensor
+    keep_end: Tensor
+
+
 class DeferredCudaContributions(CudaContributions):
     """Contributions whose entries are built on first access (``pixel``, ``pair``, ``weight``,
-    ``pixel_offsets``); :meth:`composite` works from the tile lists without them."""
+    ``pixel_offsets``) from the count pass's :class:`DeferredLists`; :meth:`composite` works from the tile
+    lists without them."""
 
     _LAZY = ("pixel", "pair", "weight", "pixel_offsets")
 
-    def __init__(self, state: tuple, **kw) -> None:
-        # plan, meta, ranges, list_pair, px_count, sorted_vals, rec0, rec1, rank, keep_list, keep_end
-        self._state = state
+    def __init__(self, lists: DeferredLists, **kw) -> None:
+        self.deferred = lists
         self._lists: dict | None = None
         super().__init__(pixel=None, pair=None, weight=None, pixel_offsets=None, **kw)
 
     def _materialize(self) -> dict:
         if self._lists is None:
-            plan, meta, ranges, _list_pair, px_count, sorted_vals, rec0, rec1, rank = self._state[:9]
-            pixel, pair, weight, offsets = _load().materialize_lists(plan, meta, ranges, sorted_vals, rec0,
-                                                                    rec1, px_count, rank)
+            d = self.deferred
+            pixel, pair, weight, offsets = _load().materialize_lists(d.plan, d.meta, d.ranges, d.sorted_vals, d.rec0,
+                                                                    d.rec1, d.px_count, d.rank)
             self._lists = {"pixel": pixel, "pair": pair, "weight": weight, "pixel_offsets": offsets}
         return self._lists
 
@@ -268,7 +288,7 @@ class DeferredCudaContributions(CudaContributions):
     def num_entries(self) -> int:
         if self._lists is not None:
             return int(self._lists["weight"].numel())
-        return int(self._state[4].sum())
+        return int(self.deferred.px_count.sum())
 
     def composite(self, colors: Tensor, background: Tensor | float | None = None) -> Tensor:
         if not (colors.is_cuda and colors.dtype == torch.float32 and colors.dim() == 2
@@ -326,7 +346,7 @@ def rasterize(
     if deferred:
         plan, meta, ranges, list_pair = out[9:13]
         return DeferredCudaContributions(
-            tuple(out[9:]),
+            DeferredLists(*out[9:]),
             request=request, num_gaussians=int(n), pair_view=pair_view, pair_gaussian=pair_gaussian,
             pair_depth=pair_depth, transmittance=transmittance, valid=valid,
             tile_lists=(plan, meta, ranges, list_pair))
@@ -375,11 +395,11 @@ class _DeferredComposite(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, colors: Tensor, background: Tensor | None, contrib: DeferredCudaContributions) -> Tensor:
-        plan, meta, ranges, list_pair, _px_count, sorted_vals, rec0, rec1, _rank, keep, keep_end = contrib._state
+        d = contrib.deferred
         bg = background if background is not None else torch.empty(0, device=colors.device)
-        out = _load().deferred_composite_forward(colors.contiguous(), bg.contiguous(), plan, meta, ranges,
-                                                 sorted_vals, list_pair, rec0, rec1, contrib.transmittance,
-                                                 keep, keep_end)
+        out = _load().deferred_composite_forward(colors.contiguous(), bg.contiguous(), d.plan, d.meta, d.ranges,
+                                                 d.sorted_vals, d.list_pair, d.rec0, d.rec1, contrib.transmittance,
+                                                 d.keep, d.keep_end)
         ctx.contrib = contrib
         ctx.has_bg = background is not None
         ctx.num_pairs = colors.shape[0]
@@ -388,11 +408,12 @@ class _DeferredComposite(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad: Tensor):
         c: DeferredCudaContributions = ctx.contrib
-        plan, meta, ranges, list_pair, _px_count, sorted_vals, rec0, rec1, _rank, keep, keep_end = c._state
+        d = c.deferred
         g_colors = g_bg = None
         if ctx.needs_input_grad[0]:
-            g_colors = _load().deferred_composite_backward(grad.contiguous(), ctx.num_pairs, plan, meta, ranges,
-                                                           sorted_vals, list_pair, rec0, rec1, keep, keep_end)
+            g_colors = _load().deferred_composite_backward(grad.contiguous(), ctx.num_pairs, d.plan, d.meta, d.ranges,
+                                                           d.sorted_vals, d.list_pair, d.rec0, d.rec1, d.keep,
+                                                           d.keep_end)
         if ctx.has_bg and ctx.needs_input_grad[1]:
             g_bg = (c.transmittance[:, None] * grad).sum(0)
         return g_colors, g_bg, None
