@@ -50,7 +50,7 @@ class DemoConfig:
     hash_log2: int = 17
     """log2 of the hash table size (the paper's 19 is for GPUs and large scenes)."""
     edit_steps: Optional[int] = None
-    """Edit steps; default: the edit engine's (its measured knee; longer fits leak the recolour)."""
+    """Edit steps; default: the edit engine's."""
     edit_source: Literal["photo", "render"] = "photo"
     """The image the rule recolours for the edit: the view's photo (as the benchmark does) or the
     model's own render of it (no reconstruction error in the edit's target)."""
