@@ -14,7 +14,7 @@ import math
 import pytest
 import torch
 
-from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
+from virgi_ns.colour.field import ColourFieldConfig, DecoupledColourField
 from virgi_ns.edit.engine import EditConfig, EditEngine
 from virgi_ns.edit.recolor import RecolorRule, recolor
 from virgi_ns.edit.scene import FrozenScene, render_view
@@ -55,7 +55,7 @@ def _scene(spec: SceneSpec):
     diffuse = pts.albedo[keep].float() * (0.45 + 0.55 * (normals @ light).clamp_min(0.0))[:, None]
     lo, hi = g.means.min(0).values - 0.1, g.means.max(0).values + 0.1
     torch.manual_seed(0)
-    field = DecoupledColorField(ColorFieldConfig(levels=8, log2_hashmap_size=14, base_res=16, growth=1.6),
+    field = DecoupledColourField(ColourFieldConfig(levels=8, log2_hashmap_size=14, base_res=16, growth=1.6),
                                 torch.stack([lo, hi]))
     target = torch.logit(diffuse.clamp(0.02, 0.98))
     opt = torch.optim.Adam(field.parameters(), lr=3e-2)

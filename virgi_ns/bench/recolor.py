@@ -45,8 +45,8 @@ class RuleArgs:
     h1: float = 250.0
     shift: float = 150.0
     s_min: float = 0.1
-    """0.1 takes beercan's can whole (its pale blue back too) and nothing of the grey-white floor;
-    with 0.35 the rule split the can's print into shifted and unshifted patches."""
+    """Pixels less saturated than this are left alone: 0.1 takes beercan's can whole (its pale blue back
+    too) and nothing of its grey-white floor."""
     v_min: float = 0.15
     sat_scale: float = 1.0
 
@@ -58,13 +58,11 @@ class RuleArgs:
 
 
 @dataclass
-class Recolor:
-    """Edit one training view with the rule; measure the held-out views."""
+class _EditedView:
+    """What both commands read: the run, the rule and the training view it recolours."""
 
     load_config: Path
     """The run's config.yml."""
-    out: Path = Path("bench_out/recolor/results.json")
-    """JSON results; pictures are written beside it."""
     rule: RuleArgs = field(default_factory=RuleArgs)
     edit_view: int = 0
     """Training image to edit."""
@@ -73,6 +71,14 @@ class Recolor:
     whole_photo: bool = False
     """Fit the whole edited photo (also the pixels the rule left alone) instead of only the
     recoloured pixels, as when the unedited photo is not known."""
+
+
+@dataclass
+class Recolor(_EditedView):
+    """Edit one training view with the rule; measure the held-out views."""
+
+    out: Path = Path("bench_out/recolor/results.json")
+    """JSON results; pictures are written beside it."""
     steps: Optional[int] = None
     """Edit steps (default: the engine's)."""
     pixel_batches: Optional[int] = None
@@ -88,16 +94,11 @@ class Recolor:
 
 
 @dataclass
-class AccuracyTime:
+class AccuracyTime(_EditedView):
     """Sweep edit steps (and pixel subsampling): recolour PSNR against wall time."""
 
-    load_config: Path
     out: Path = Path("bench_out/accuracy_time/accuracy_time.json")
     """JSON results; the PNG plot is written beside it (same stem)."""
-    rule: RuleArgs = field(default_factory=RuleArgs)
-    edit_view: int = 0
-    edit_source: str = "photo"
-    whole_photo: bool = False
     steps: tuple[int, ...] = (10, 25, 50, 75, 100, 150, 200, 300, 500)
     pixel_batches: tuple[int, ...] = (1, 4)
     repeats: int = 3

@@ -26,6 +26,7 @@ recorded CUDA graphs). The result is an :class:`~virgi_ns.edit.stack.Edit` for t
 from __future__ import annotations
 
 import copy
+import warnings
 from typing import Callable, Optional
 
 import torch
@@ -33,8 +34,9 @@ from jaxtyping import Float
 from torch import Tensor
 
 from virgi_ns.edit.config import EditConfig
-from virgi_ns.edit.fitting import (EditTiming, GraphedSteps, classify_gaussians, gaussian_labels, heads_optimizer,
-                                   segmentation_rate, sync, timed)
+from virgi_ns.edit.fitting import (EditTiming, GraphedSteps, Stopwatch, capture, classifier_samples,
+                                   constant_segmentation, gaussian_labels, heads_optimizer, segmentation_rate,
+                                   train_classifier)
 from virgi_ns.edit.heads import FusedHeads, HeadsInputs, fresh_segmentation
 from virgi_ns.edit.optim import EditAdam
 from virgi_ns.edit.pixels import PixelBatch, pixel_batches, resolve_composite
@@ -95,13 +97,11 @@ class EditEngine:
         self.opt: Optional[EditAdam] = None
         self._graphs: Optional[GraphedSteps] = None  # the recorded steps (_fit_graphed)
         self._heads: Optional[FusedHeads] = None  # the written-out heads (_set_heads), else autograd
-
-        def setup() -> None:
+        with Stopwatch(scene.device) as watch:
             self._setup_view()
             if edited is not None:
                 self._set_target(*self._on_device(edited, original, changed), warm=False)
-
-        self.setup_s = timed(scene.device, setup)
+        self.setup_s = watch.seconds
 
     # ------------------------------------------------------------------ what the fit reads
     @property
@@ -212,17 +212,8 @@ class EditEngine:
         """``staged``: the segmentation classified from the changed pixels (kept when they are the same),
         its alpha fixed; back on the joint recipe, the head trains again."""
         if staged and not (same and self.alpha_fixed is not None):
-            c, dev = self.contrib, self.h_diff.device
-            label, trust = gaussian_labels(c.pair.to(dev).long(), c.weight.detach().to(dev).float(),
-                                           target.flat[c.pixel.to(dev).long()], self.gaussians.numel())
-
-            def scene_inputs(idx: Tensor) -> Tensor:
-                f, _, h2 = self.scene.gaussian_features(idx)
-                return self.seg.inputs(f, h2)
-
-            alpha = classify_gaussians(self.seg, self.seg_input, label, trust, scene_inputs,
-                                       self.scene.means.shape[0], self.cfg, warm=warm and self.alpha_fixed is not None,
-                                       steps=self.cfg.seg_steps if seg_steps is None else seg_steps)
+            alpha = self._classify(target, warm=warm and self.alpha_fixed is not None,
+                                   steps=self.cfg.seg_steps if seg_steps is None else seg_steps)
             if self.alpha_fixed is None:
                 self.alpha_fixed = alpha
                 self._graphs = None
@@ -233,6 +224,26 @@ class EditEngine:
             self._graphs = None
             for p in self.seg.parameters():
                 p.requires_grad_(True)
+
+    def _classify(self, target: Target, warm: bool, steps: int) -> Tensor:
+        """The ``staged`` recipe's segmentation: each of the view's Gaussians labelled by where its pixel
+        weight lands (:func:`~virgi_ns.edit.fitting.gaussian_labels`), the head trained as their classifier
+        with unlabelled Gaussians of the whole scene as weak negatives; returns its alpha [U, 1]."""
+        c, dev = self.contrib, self.h_diff.device
+        label, trust = gaussian_labels(c.pair.to(dev).long(), c.weight.detach().to(dev).float(),
+                                       target.flat[c.pixel.to(dev).long()], self.gaussians.numel())
+        for p in self.seg.parameters():
+            p.requires_grad_(False)
+        drawn = classifier_samples(label, trust, self.cfg, self.scene.means.shape[0])
+        if drawn is None:  # one class: a constant alpha
+            return constant_segmentation(self.seg, self.seg_input, positive=bool(float((trust * label).sum()) > 0.0))
+        idx, anywhere = drawn
+        x, y = self.seg_input[idx], label[idx].float()[:, None]
+        if anywhere.numel() > 0:
+            f, _, h2 = self.scene.gaussian_features(anywhere)
+            x = torch.cat([x, self.seg.inputs(f, h2)])
+            y = torch.cat([y, torch.zeros(anywhere.numel(), 1, device=dev)])
+        return train_classifier(self.seg, x, y, self.seg_input, self.cfg, warm=warm, steps=steps)
 
     def _set_heads(self) -> None:
         """The written-out heads (:attr:`EditConfig.fused_heads`) where they run: the joint recipe's step
@@ -271,8 +282,9 @@ class EditEngine:
         colour for the same selection); Adam starts afresh. :meth:`fit` then runs the steps."""
         W, H = int(self.camera.widths[0]), int(self.camera.heights[0])
         _check_images(edited, original, changed, W, H)
-        self.setup_s = timed(self.scene.device, lambda: self._set_target(
-            *self._on_device(edited, original, changed), warm=True, seg_steps=seg_steps))
+        with Stopwatch(self.scene.device) as watch:
+            self._set_target(*self._on_device(edited, original, changed), warm=True, seg_steps=seg_steps)
+        self.setup_s = watch.seconds
 
     # ------------------------------------------------------------------ steps
     def colours(self) -> tuple[Tensor, Tensor]:
@@ -302,10 +314,8 @@ class EditEngine:
         total)`` is called every 10 steps (it never forces a GPU sync)."""
         n = self.cfg.steps if steps is None else int(steps)
         dev = self.scene.device
-        loss = torch.zeros((), device=dev)
-
-        def run() -> None:
-            nonlocal loss
+        with Stopwatch(dev) as watch:
+            loss = torch.zeros((), device=dev)
             sets = self.batches[0].sets
             if sets is not None:  # the fused kind picks its set on the device: step 0 takes the first
                 sets.restart()
@@ -318,9 +328,7 @@ class EditEngine:
                     loss = self.step(i)
                     if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
                         progress(i + 1, n)
-
-        steps_s = timed(dev, run)
-        timing = EditTiming(self.setup_s, steps_s, n, float(loss))
+        timing = EditTiming(self.setup_s, watch.seconds, n, float(loss))
         return self.edit(timing), timing
 
     @torch.no_grad()
@@ -340,11 +348,25 @@ class EditEngine:
         start = 0
         if self._graphs is None:
             count = 1 if self.batches[0].sets is not None else len(self.batches)
-            self._graphs, loss = GraphedSteps.record(self.step, count, self.scene.device)
-            if self._graphs is None:
+            # one eager step on a side stream: it creates Adam's state and warms the libraries up
+            side = torch.cuda.Stream(self.scene.device)
+            side.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(side):
+                loss = self.step(0)
+            torch.cuda.current_stream().wait_stream(side)
+            graphs: list = []
+            losses: list[Tensor] = []
+            try:
+                for b in range(count):
+                    graph = torch.cuda.CUDAGraph()
+                    with capture(graph, side, graphs[0].pool() if graphs else None):
+                        losses.append(self.step(b))
+                    graphs.append(graph)
+            except RuntimeError as e:  # a kernel that cannot be recorded (a library's host sync)
+                warnings.warn(f"edit steps run without CUDA graphs: {str(e).splitlines()[0]}")
                 self.cfg.cuda_graphs = False
                 return 1, loss
-            start = 1
+            self._graphs, start = GraphedSteps(graphs, losses), 1
         return n, self._graphs.replay(start, n, progress)
 
     def edit(self, timing: Optional[EditTiming] = None) -> Edit:

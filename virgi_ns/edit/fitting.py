@@ -4,18 +4,18 @@ recorded CUDA graphs the steps replay.
 - :func:`heads_optimizer`: Adam over the trained tensors, at ``lr`` for the first :data:`LR_HOLD` of
   the steps and then by half a cosine to 0, the segmentation head at its own multiple of the rate
   (:func:`segmentation_rate`).
-- :func:`classify_gaussians`: the ``staged`` recipe's first stage, the segmentation head trained as a
-  classifier of the view's Gaussians.
-- :class:`GraphedSteps`: a fit's steps recorded once as CUDA graphs and replayed.
-- :class:`EditTiming`: what a fit took.
+- :func:`gaussian_labels`, :func:`classifier_samples`, :func:`train_classifier`: the ``staged`` recipe's first
+  stage, the segmentation head trained as a classifier of the view's Gaussians.
+- :func:`capture`, :class:`GraphedSteps`: a fit's steps recorded once as CUDA graphs and replayed.
+- :class:`EditTiming`, :class:`Stopwatch`: what a fit took.
 """
 
 from __future__ import annotations
 
 import time
-import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, Iterator, Optional
 
 import torch
 from torch import Tensor
@@ -97,38 +97,45 @@ def gaussian_labels(pair: Tensor, weight: Tensor, on_changed: Tensor, count: int
     return share > 0.5, mass * (2.0 * share - 1.0).abs()
 
 
-def classify_gaussians(seg: SegmentationHead, seg_input: Tensor, label: Tensor, trust: Tensor,
-                       scene_samples: Callable[[Tensor], Tensor], scene_size: int, cfg: EditConfig,
-                       warm: bool = False, steps: Optional[int] = None) -> Tensor:
-    """The ``staged`` recipe's first stage: ``seg`` trained (in place) as a classifier of the view's
-    Gaussians; returns its alpha [U, 1] on them, fixed for the layer's steps. ``cfg.seg_samples``
-    Gaussians are drawn by ``trust`` (half from each class of ``label``), and :data:`SEG_PRIOR_SHARE` of
-    the negatives from the whole scene (``scene_samples(indices)``: their head inputs, ``scene_size``
-    Gaussians to draw from); ``steps`` (default ``cfg.seg_steps``) Adam steps of binary cross-entropy
-    at :data:`SEG_LR`. ``warm``: on from the head's state instead of its fresh output bias. One class
-    alone gives a constant alpha.
+def classifier_samples(label: Tensor, trust: Tensor, cfg: EditConfig, scene_size: int
+                       ) -> Optional[tuple[Tensor, Tensor]]:
+    """What the ``staged`` recipe's classifier trains on: (indices [S] of the view's Gaussians, drawn by
+    ``trust``, half from each class of ``label``; indices [R] of unlabelled Gaussians of the whole scene, of
+    ``scene_size``, the :data:`SEG_PRIOR_SHARE` of the negatives that are weak negatives), ``cfg.seg_samples``
+    in all, from a generator seeded with ``cfg.seed``; None where one class is empty (a constant alpha,
+    :func:`constant_segmentation`).
 
     Args:
-        seg_input: [U, F+H] the view's Gaussians' head inputs.
         label, trust: [U] from :func:`gaussian_labels`."""
-    dev = seg_input.device
     pos_w, neg_w = trust * label, trust * ~label
-    for p in seg.parameters():
-        p.requires_grad_(False)
-    if float(pos_w.sum()) <= 0.0 or float(neg_w.sum()) <= 0.0:  # one class: a constant alpha
-        torch.nn.init.zeros_(seg.l2.weight)
-        torch.nn.init.constant_(seg.l2.bias, 8.0 if float(pos_w.sum()) > 0.0 else -8.0)
-        return torch.sigmoid(seg.logits_of(seg_input))
+    if float(pos_w.sum()) <= 0.0 or float(neg_w.sum()) <= 0.0:
+        return None
     half = cfg.seg_samples // 2
     n_prior = int(round(half * SEG_PRIOR_SHARE))
-    g = torch.Generator(device=dev).manual_seed(cfg.seed)
+    g = torch.Generator(device=trust.device).manual_seed(cfg.seed)
     idx = torch.cat([torch.multinomial(pos_w, half, replacement=True, generator=g),
                      torch.multinomial(neg_w, half - n_prior, replacement=True, generator=g)])
-    x, y = seg_input[idx], label[idx].float()[:, None]
-    if n_prior > 0:  # unlabelled Gaussians of the whole scene, as weak negatives
-        anywhere = torch.randint(0, scene_size, (n_prior,), device=dev, generator=g)
-        x = torch.cat([x, scene_samples(anywhere)])
-        y = torch.cat([y, torch.zeros(n_prior, 1, device=dev)])
+    anywhere = torch.randint(0, scene_size, (n_prior,), device=trust.device, generator=g)
+    return idx, anywhere
+
+
+def constant_segmentation(seg: SegmentationHead, seg_input: Tensor, positive: bool) -> Tensor:
+    """``seg`` set (in place) to a constant alpha, near 1 (``positive``) or near 0, frozen; returns it on the
+    view's Gaussians ([U, 1]; ``seg_input`` [U, F+H])."""
+    for p in seg.parameters():
+        p.requires_grad_(False)
+    torch.nn.init.zeros_(seg.l2.weight)
+    torch.nn.init.constant_(seg.l2.bias, 8.0 if positive else -8.0)
+    return torch.sigmoid(seg.logits_of(seg_input))
+
+
+def train_classifier(seg: SegmentationHead, x: Tensor, y: Tensor, seg_input: Tensor, cfg: EditConfig,
+                     warm: bool = False, steps: Optional[int] = None) -> Tensor:
+    """The ``staged`` recipe's first stage: ``seg`` trained (in place) as a classifier of the inputs ``x``
+    [S, F+H] with labels ``y`` [S, 1] (binary cross-entropy, Adam at :data:`SEG_LR`, ``steps`` steps, default
+    ``cfg.seg_steps``, on all of them every step), then frozen; returns its alpha [U, 1] on the view's
+    Gaussians (``seg_input``), fixed for the layer's steps. ``warm``: on from the head's state instead of
+    its fresh output bias."""
     if not warm:
         torch.nn.init.constant_(seg.l2.bias, 0.0)
     params = list(seg.parameters())
@@ -145,20 +152,18 @@ def classify_gaussians(seg: SegmentationHead, seg_input: Tensor, label: Tensor, 
     return torch.sigmoid(seg.logits_of(seg_input))
 
 
-def _record(step: Callable[[], Tensor], stream: torch.cuda.Stream, pool: Optional[tuple] = None
-            ) -> tuple[torch.cuda.CUDAGraph, Tensor]:
-    """``step`` recorded as a CUDA graph on ``stream`` (sharing ``pool``); returns the graph and the
-    loss tensor it writes. ``torch.cuda.graph`` would also wait for the GPU and empty the allocator's
-    caches first, which costs every fresh edit milliseconds and sends the next edit's allocations back
-    to the driver; the eager step run before on ``stream`` has already warmed its libraries up."""
-    graph = torch.cuda.CUDAGraph()
+@contextmanager
+def capture(graph: torch.cuda.CUDAGraph, stream: torch.cuda.Stream, pool: Optional[tuple] = None) -> Iterator[None]:
+    """Record the work of the ``with`` body into ``graph`` on ``stream`` (sharing ``pool``).
+    ``torch.cuda.graph`` would also wait for the GPU and empty the allocator's caches first, which costs every
+    fresh edit milliseconds and sends the next edit's allocations back to the driver; an eager step run
+    before on ``stream`` warms the libraries up instead."""
     with torch.cuda.stream(stream):
         graph.capture_begin(pool=pool)
         try:
-            loss = step()
+            yield
         finally:
             graph.capture_end()
-    return graph, loss
 
 
 class GraphedSteps:
@@ -168,30 +173,6 @@ class GraphedSteps:
 
     def __init__(self, graphs: list, losses: list[Tensor]) -> None:
         self.graphs, self.losses = graphs, losses
-
-    @staticmethod
-    def record(step: Callable[[int], Tensor], count: int, device: torch.device
-               ) -> tuple[Optional["GraphedSteps"], Tensor]:
-        """(the recorded steps, the first step's loss): ``step(0)`` runs once eagerly on a side stream
-        (it creates Adam's state and warms the libraries up), then ``step(i)`` is recorded for each of
-        ``count`` graphs. Where a step cannot be recorded (a library's host sync) it warns and returns
-        None: the caller runs the remaining steps eagerly."""
-        side = torch.cuda.Stream(device)
-        side.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(side):
-            loss = step(0)
-        torch.cuda.current_stream().wait_stream(side)
-        graphs: list = []
-        losses: list[Tensor] = []
-        try:
-            for b in range(count):
-                g, loss_b = _record(lambda b=b: step(b), side, graphs[0].pool() if graphs else None)
-                graphs.append(g)
-                losses.append(loss_b)
-        except RuntimeError as e:
-            warnings.warn(f"edit steps run without CUDA graphs: {str(e).splitlines()[0]}")
-            return None, loss
-        return GraphedSteps(graphs, losses), loss
 
     def replay(self, start: int, n: int, progress: Optional[Callable[[int, int], None]] = None) -> Tensor:
         """Steps ``start`` to ``n - 1`` replayed in order (``progress(done, n)`` every 10 steps and at the
@@ -204,14 +185,24 @@ class GraphedSteps:
         return self.losses[(n - 1) % count].clone()
 
 
-def timed(dev: torch.device, work: Callable[[], None]) -> float:
-    """Seconds ``work`` takes on ``dev`` (its queue waited for before and after)."""
-    sync(dev)
-    t0 = time.perf_counter()
-    work()
-    sync(dev)
-    return time.perf_counter() - t0
+class Stopwatch:
+    """Seconds of the ``with`` body's work on ``device`` (its queue waited for before and after):
+    ``with Stopwatch(dev) as watch: ...``, then ``watch.seconds``."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.device = device
+        self.seconds = 0.0
+
+    def __enter__(self) -> "Stopwatch":
+        sync(self.device)
+        self._t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        sync(self.device)
+        self.seconds = time.perf_counter() - self._t0
 
 
-__all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps",
-           "classify_gaussians", "gaussian_labels", "heads_optimizer", "segmentation_rate", "sync", "timed"]
+__all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Stopwatch",
+           "capture", "classifier_samples", "constant_segmentation", "gaussian_labels", "heads_optimizer",
+           "segmentation_rate", "sync", "train_classifier"]

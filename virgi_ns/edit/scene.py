@@ -7,36 +7,16 @@ model, including each pixel's segmentation, for tests, benchmarks and the demo.
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
-from typing import Callable, Iterable, Optional
+from typing import Callable, Optional
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from virgi_ns.colour.field import DecoupledColorField, view_directions
+from virgi_ns.colour.field import DecoupledColourField, view_directions
 from virgi_ns.edit.stack import EditStack
+from virgi_ns.fingerprint import field_fingerprint
 from virgi_ns.raster import Cameras, Contributions, Request, composite, rasterize
-
-
-def run_fingerprint(tensors: Iterable[Tensor], samples: int = 1 << 16) -> str:
-    """A short hash of a base run: shapes, dtypes and a strided sample of every tensor (the frozen
-    geometry and the colour field's state). Equal runs give equal fingerprints on any device."""
-    h = hashlib.sha256()
-    for t in tensors:
-        t = t.detach()
-        h.update(f"{tuple(t.shape)}|{str(t.dtype)}|".encode())
-        flat = t.reshape(-1)
-        stride = max(1, flat.numel() // samples)
-        sample = flat[::stride][:samples].to("cpu", torch.float64)
-        h.update(sample.numpy().tobytes())
-    return h.hexdigest()[:16]
-
-
-def field_fingerprint(means: Tensor, field_module: nn.Module, extra: Iterable[Tensor] = ()) -> str:
-    """Fingerprint of frozen means + every tensor of the colour field's state dict (+ ``extra``)."""
-    sd = field_module.state_dict()
-    return run_fingerprint([means, *extra, *(sd[k] for k in sorted(sd))])
 
 
 @dataclass
@@ -63,7 +43,7 @@ class FrozenScene:
     quats: Tensor
     scales: Tensor
     opacities: Tensor
-    field: DecoupledColorField
+    field: DecoupledColourField
     background: Tensor
     backend: str = "auto"
     features: Optional[tuple[Tensor, Tensor, Tensor]] = None
@@ -163,4 +143,4 @@ def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional
 
 
 
-__all__ = ["FrozenScene", "SceneView", "field_fingerprint", "render_view", "run_fingerprint"]
+__all__ = ["FrozenScene", "SceneView", "render_view"]

@@ -7,7 +7,7 @@ So :class:`RenderCache` keeps, each level rebuilt when what it was computed from
   scales, sigmoid opacities);
 - **gate** (:class:`GateCache`): for each Gaussian the specular gate keeps, its mean and the
   direction-independent parts of MLP_spec's three pre-activations
-  (:meth:`~virgi_ns.colour.field.DecoupledColorField.specular_parts`), and MLP_spec's per-view
+  (:meth:`~virgi_ns.colour.field.DecoupledColourField.specular_parts`), and MLP_spec's per-view
   weights with the SH direction encoding folded into a weight on direction monomials;
 - **edits** (:class:`EditCache`): every Gaussian's edited diffuse colour ``sigmoid(c_d'')``
   (through the edit stack and the live edit), and for gated Gaussians ``c_d'' + k p3`` and

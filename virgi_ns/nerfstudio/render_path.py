@@ -77,7 +77,7 @@ class RenderPath:
 
     def fingerprint(self) -> str:
         """The base run's fingerprint that every edit of it carries."""
-        from virgi_ns.edit.scene import field_fingerprint
+        from virgi_ns.fingerprint import field_fingerprint
 
         return field_fingerprint(self.means.detach(), self.field,
                                  [self.quats.detach(), torch.exp(self.scales.detach()),
