@@ -422,9 +422,11 @@ def test_changed_pixels_target_the_edited_pixels_and_refuse_other_targets(world)
     with pytest.raises(ValueError, match="changed_target"):
         EditConfig(changed_target="change")  # type: ignore[arg-type]
     cfg = EditConfig()
-    cfg.changed_target = "photo"  # type: ignore[assignment]  # set after construction: the engine checks too
-    with pytest.raises(ValueError, match="changed_target"):
-        EditEngine(S.scene, cam, edited, cfg=cfg, original=photo)
+    with pytest.raises(ValueError, match="changed_target"):  # set after construction: checked too
+        cfg.changed_target = "photo"  # type: ignore[assignment]
+    assert cfg.changed_target == "affine"
+    cfg.steps = 7  # a valid value is taken
+    assert cfg.steps == 7
 
 
 def _checkered_photo(world):

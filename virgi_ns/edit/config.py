@@ -18,8 +18,8 @@ COMPOSITE_KINDS = ("auto", "csr", "fused")
 
 @dataclass
 class EditConfig:
-    """Settings of one edit. Values no edit can run with raise ``ValueError`` at construction and
-    again when an engine starts (fields may be set in between)."""
+    """Settings of one edit. Values no edit can run with raise ``ValueError``, at construction and when a
+    field is set (the field then keeps its value): an ``EditConfig`` is always one an edit can run with."""
 
     steps: int = 100
     """Adam steps of a fit. The learning rate stays at ``lr`` for the first half of them, then falls
@@ -88,6 +88,19 @@ class EditConfig:
 
     def __post_init__(self) -> None:
         self.check()
+        object.__setattr__(self, "_checked", True)
+
+    def __setattr__(self, name: str, value) -> None:
+        if not self.__dict__.get("_checked"):  # during construction: __post_init__ checks
+            object.__setattr__(self, name, value)
+            return
+        before = self.__dict__.get(name)
+        object.__setattr__(self, name, value)
+        try:
+            self.check()
+        except ValueError:
+            object.__setattr__(self, name, before)
+            raise
 
     def check(self) -> None:
         """Refuse values no edit can run with."""

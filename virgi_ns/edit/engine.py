@@ -35,7 +35,7 @@ from torch import Tensor
 
 from virgi_ns.edit.config import EditConfig
 from virgi_ns.edit.fitting import (EditTiming, GraphedSteps, Stopwatch, capture, classifier_samples,
-                                   constant_segmentation, gaussian_labels, heads_optimizer, segmentation_rate,
+                                   constant_segmentation, gaussian_labels, schedule, segmentation_rate,
                                    train_classifier)
 from virgi_ns.edit.heads import FusedHeads, HeadsInputs, fresh_segmentation
 from virgi_ns.edit.optim import EditAdam
@@ -84,7 +84,6 @@ class EditEngine:
         W, H = int(camera.widths[0]), int(camera.heights[0])
         if edited is not None:
             _check_images(edited, original, changed, W, H)
-        self.cfg.check()
         self.camera = camera
         self.source = source or EditSource("", camera.Ks[0], camera.viewmats[0], W, H, "")
         self.fingerprint = stack.fingerprint if stack is not None else scene.fingerprint()
@@ -268,7 +267,8 @@ class EditEngine:
                 and self.opt.scales == scales):
             self.opt.restart()  # the same tensors, which recorded steps read and write
         else:
-            self.opt = heads_optimizer(self.cfg, trainable, scales)
+            hold, decay = schedule(self.cfg)
+            self.opt = EditAdam(trainable, lr=self.cfg.lr, decay_steps=decay, hold_steps=hold, scales=scales)
             self._graphs = None
 
     def retarget(self, edited: Float[Tensor, "H W 3"], changed: Optional[Tensor] = None,

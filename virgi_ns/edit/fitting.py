@@ -1,9 +1,8 @@
 """How an edit's steps run: the optimizer and its schedule, the staged recipe's classifier, and the
 recorded CUDA graphs the steps replay.
 
-- :func:`heads_optimizer`: Adam over the trained tensors, at ``lr`` for the first :data:`LR_HOLD` of
-  the steps and then by half a cosine to 0, the segmentation head at its own multiple of the rate
-  (:func:`segmentation_rate`).
+- :func:`schedule`: the learning rate, ``lr`` for the first :data:`LR_HOLD` of the steps and then half a
+  cosine to 0; :func:`segmentation_rate`: the segmentation head's multiple of it.
 - :func:`gaussian_labels`, :func:`classifier_samples`, :func:`train_classifier`: the ``staged`` recipe's first
   stage, the segmentation head trained as a classifier of the view's Gaussians.
 - :func:`capture`, :class:`GraphedSteps`: a fit's steps recorded once as CUDA graphs and replayed.
@@ -74,13 +73,13 @@ def segmentation_rate(cfg: EditConfig, changed_fraction: Optional[float]) -> flo
     return 1.0
 
 
-def heads_optimizer(cfg: EditConfig, trainable: list[Tensor], scales: list[float]) -> EditAdam:
-    """Adam over ``trainable`` (each at its ``scales`` multiple of ``cfg.lr``) with the edit's
-    schedule: ``lr`` for :data:`LR_HOLD` of ``cfg.steps``, at least two steps left to the half cosine
-    (its first step is still at ``lr``, so the last step's rate is lower)."""
+def schedule(cfg: EditConfig) -> tuple[int, int]:
+    """(hold, decay): the edit's learning rate stays at ``cfg.lr`` for ``hold`` steps, :data:`LR_HOLD` of
+    ``cfg.steps`` with at least two steps left to the half cosine (its first step is still at ``lr``, so the
+    last step's rate is lower), then falls to 0 over ``decay`` steps (:class:`~virgi_ns.edit.optim.EditAdam`'s
+    ``hold_steps`` and ``decay_steps``)."""
     hold = min(int(LR_HOLD * cfg.steps), max(cfg.steps - 2, 0))
-    decay = max(cfg.steps - hold, 1)
-    return EditAdam(trainable, lr=cfg.lr, decay_steps=decay, hold_steps=hold, scales=scales)
+    return hold, max(cfg.steps - hold, 1)
 
 
 def gaussian_labels(pair: Tensor, weight: Tensor, on_changed: Tensor, count: int) -> tuple[Tensor, Tensor]:
@@ -204,5 +203,5 @@ class Stopwatch:
 
 
 __all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Stopwatch",
-           "capture", "classifier_samples", "constant_segmentation", "gaussian_labels", "heads_optimizer",
+           "capture", "classifier_samples", "constant_segmentation", "gaussian_labels", "schedule",
            "segmentation_rate", "sync", "train_classifier"]
