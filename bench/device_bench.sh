@@ -1,13 +1,13 @@
 #!/bin/bash
-# The GPU benchmarks (train / export / edit / demo geometry) in calls on the GPU machine.
+# The GPU benchmarks (raster / train / several GPUs / export / edit / demo geometry) in calls on the GPU machine.
 # Run from the repo root with .whl (../shared/device/wheels.sh) and .data/beercan carried;
-# STAGE picks the work: "train" (builds, then bench/train.py), "rest" (export, edit, demo geometry),
-# or any single one of export|edit|demo. Runs go under /tmp/runs (kept while the machine is warm);
+# STAGE picks the work: "raster" (the rasterizer's GPU tests, then bench/raster.py), "train" (bench/train.py),
+# "multi" (bench/multi_gpu.py), "rest" (export, edit, demo geometry), or any single one of export|edit|demo. Runs go under /tmp/runs (kept while the machine is warm);
 # tables, JSON, pictures and logs are packed into $OUT. Environment knobs: STEPS, COLOUR_STEPS,
 # DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE, EDIT_SCENES (rows of the evaluation set), SEED (one
 # run set, or several side by side: "69 70"),
 # EDIT_TIMEOUT, EDIT_COLOUR_STEPS, EDIT_ARGS (more bench/edit.py flags, e.g. --variants), TRAIN_ARGS (more bench/train.py
-# flags), TRAIN_TIMEOUT. With several GPUs the edit rows run side by side, one process per GPU (a log each); the
+# flags), TRAIN_TIMEOUT, RASTER_TESTS, PYTEST_ARGS, RASTER_ARGS (more bench/raster.py flags). With several GPUs the edit rows run side by side, one process per GPU (a log each); the
 # edit results come back as edit_results_s<SEED>.tgz, their logs as edit_logs.tgz.
 set -o pipefail
 export TORCH_EXTENSIONS_DIR=/tmp/torch_ext TORCH_CUDA_ARCH_LIST=9.0 MAX_JOBS=$(nproc) PYTHONUNBUFFERED=1
@@ -42,14 +42,25 @@ if [ ! -f $TORCH_EXTENSIONS_DIR/.built ] || [ -n "${REBUILD_OURS:-}" ]; then
   fi
 fi
 
-stage() { case " $STAGE " in *" $1 "*) return 0;; esac; [ "$STAGE" = rest ] && [ "$1" != train ] && [ "$1" != multi ]; }
+stage() { case " $STAGE " in *" $1 "*) return 0;; esac; [ "$STAGE" = rest ] && [ "$1" != train ] && [ "$1" != multi ] \
+  && [ "$1" != raster ]; }
+
+if stage raster; then
+  # the rasterizer against its reference and gsplat (the GPU tests), then its benchmark
+  python3 -m pytest ${RASTER_TESTS:-tests/test_raster_cuda.py tests/test_raster_reference.py} -q -rf --tb=short \
+    -p no:cacheprovider ${PYTEST_ARGS:-} > $OUT/raster_tests.log 2>&1
+  el "raster tests rc=$?"; grep -E "passed|failed|error" $OUT/raster_tests.log | tail -5
+  python3 bench/raster.py --out $RUNS/raster ${RASTER_ARGS:-} > $OUT/raster.log 2>&1; el "raster bench rc=$?"
+  tail -n 30 $OUT/raster.log
+  cp $RUNS/raster/*.json $OUT/ 2>/dev/null
+fi
 
 if stage multi; then
   # ns-train virgi on N GPUs against one (bench/multi_gpu.py): WORLDS (default "1 2"), SEED (default 42)
   # a usual install keeps compiled bytecode; this machine's interpreter writes none, so a cache stands in
   # for it (filled here, unmeasured), or every process of every run would compile what it imports
   export PYTHONPYCACHEPREFIX=/tmp/pycache; unset PYTHONDONTWRITEBYTECODE
-  python3 -c "import sys; sys.path.insert(0, 'bench'); import multi_gpu, train, nerfstudio.scripts.train, gsplat
+  PYTHONPATH=bench:$PYTHONPATH python3 -c "import multi_gpu, train, common.training, nerfstudio.scripts.train, gsplat
 import method_configs.virgi, virgi_ns.nerfstudio.model, virgi_ns.raster.cuda"; el "bytecode cache filled"
   el "multi-GPU bench: worlds ${WORLDS:-1 2}, seeds ${SEED:-42}, $STEPS + ${MULTI_COLOUR_STEPS:-1000} steps"
   timeout ${MULTI_TIMEOUT:-$(( ${CALL_BUDGET:-585} - $(date +%s) + t0 ))} python3 bench/multi_gpu.py --data $PWD/.data --out $RUNS/multi --steps $STEPS \
@@ -70,7 +81,7 @@ if stage edit; then
   # the evaluation set (bench/edit.py): EDIT_SCENES picks rows (default all), SEED a run set, EDIT_ARGS more flags.
   # SEED may name several run sets ("69 70"): they run side by side, each on its share of the GPUs.
   # A run set's rows run side by side over its GPUs, one process per GPU (the rows of one capture together,
-  # virgi_ns.bench.evalset.split_for_devices), and their results are merged into one table per run set.
+  # bench/common/evalset.py split_for_devices), and their results are merged into one table per run set.
   SEEDS=(${SEED:-42}); NS=${#SEEDS[@]}
   [ "$NS" -ge 1 ] || SEEDS=(42) NS=1
   [ "$(printf '%s\n' "${SEEDS[@]}" | sort -u | wc -l)" -eq "$NS" ] || { echo "SEED names a run set twice: ${SEEDS[*]}"; exit 2; }
@@ -94,7 +105,7 @@ if stage edit; then
       g=$(( j * G + i )); echo "GPU $g: run set $seed: ${rows:-all rows}"
       edit_rows $g $seed $RUNS/edit_s${seed}_gpu$i $rows > $LOGS/edit_s${seed}_gpu$i.log 2>&1 < /dev/null &
       pids+=($!); names+=("run set $seed, GPU $g"); i=$((i + 1))
-    done < <(python3 -c "import sys; from virgi_ns.bench.evalset import split_for_devices as s
+    done < <(PYTHONPATH=bench:$PYTHONPATH python3 -c "import sys; from common.evalset import split_for_devices as s
 for p in s(sys.argv[2:], int(sys.argv[1])): print(' '.join(p))" $G ${EDIT_SCENES:-})
   done
   for k in "${!pids[@]}"; do  # a process cut short or failed is said, and its rows are missing below
@@ -105,13 +116,11 @@ for p in s(sys.argv[2:], int(sys.argv[1])): print(' '.join(p))" $G ${EDIT_SCENES
     ls $RUNS/edit_s${seed}_gpu*/results.json > /dev/null 2>&1 || { echo "run set $seed: no results"; continue; }
     python3 bench/edit.py --merge $RUNS/edit_s${seed}_gpu*/results.json --out $RUNS/edit_s$seed > $LOGS/edit_s$seed.log 2>&1
     el "merge run set $seed rc=$?"; tail -n 60 $LOGS/edit_s$seed.log
-    cp $RUNS/edit_s${seed}_gpu*/*.png $RUNS/edit_s${seed}_gpu*/*.npz $RUNS/edit_s$seed/ 2>/dev/null
+    cp $RUNS/edit_s${seed}_gpu*/*.png $RUNS/edit_s$seed/ 2>/dev/null
     # pictures as JPEG (the README's form): a run set's PNGs can pass the 16 MiB a file that comes back
     (cd $RUNS/edit_s$seed && python3 -c "import sys, cv2
 for f in sys.argv[1:]: cv2.imwrite(f[:-4] + '.jpg', cv2.imread(f), [cv2.IMWRITE_JPEG_QUALITY, 90])" *.png 2>/dev/null \
       && tar czf $OUT/edit_results_s$seed.tgz *.json *.jpg || tar czf $OUT/edit_results_s$seed.tgz *.json *.png) 2>/dev/null
-    # --dump-targets arrays, apart (they would take the results archive over the size that comes back)
-    (cd $RUNS/edit_s$seed && ls *.npz > /dev/null 2>&1 && tar cf $OUT/edit_targets_s$seed.tar *.npz)
   done
   (cd $LOGS && tar czf $OUT/edit_logs.tgz *.log)
 fi

@@ -1,10 +1,10 @@
 """Benchmark: the edit engine on the whole evaluation set, in one command, one table.
 
-For every scene of :mod:`virgi_ns.bench.evalset` (real captures and synthetic scenes with a known
+For every scene of the evaluation set (``bench/common/evalset.py``: real captures and synthetic scenes with a known
 truth): train VIRGi as a user would (geometry then colour, ``--geometry-steps`` + ``--colour-steps``;
 a run already under ``--train-out`` is reused), recolour the photo of the training view the rule
 recolours most with the scene's rule, fit the edit, and measure the held-out views
-(:mod:`virgi_ns.bench.recolor`):
+(:mod:`virgi_ns.bench.recolor`, ``virgi-bench``'s):
 
   propagation / miss / leak   edited render vs the rule on the unedited render (all / inside the rule's
                               mask / outside it): the edit apart from reconstruction error
@@ -14,7 +14,7 @@ recolours most with the scene's rule, fit the edit, and measure the held-out vie
   edit ms                     setup + steps, median of --repeats after a warm-up, with the scene's
                               features cached (as a viewer session keeps them); cold beside it
 
-Targets (issue 16): propagation >= 35 dB, miss and leak >= 30, recolour within 0.5 dB of unedited,
+Targets: propagation >= 35 dB, miss and leak >= 30, recolour within 0.5 dB of unedited,
 truth >= 35 dB on the synthetic scenes, edit <= 0.25 s warm. The last row is the set's worst case. Beside
 each missed target, its ceiling on that run (:data:`CEILINGS`): "cannot" where even that misses the target
 (the rule's or the reconstruction's limit, not the edit's), "short of" where the edit falls short of it.
@@ -22,17 +22,17 @@ A second table gives the diagnostics that tell the suspects apart: how closely t
 reaches the edited photo on the changed pixels, the segmentation's mean alpha inside and outside the
 rule's mask, and (synthetic) on each object's pixels.
 
-``--variants`` measures other EditConfig settings on the same trained runs (e.g. the paper's recipe,
-``recipe=paper``); ``--merge`` joins the results of several calls (other scenes, other seeds) into one table.
+``--variants`` measures other EditConfig settings on the same trained runs (e.g. the staged recipe,
+``recipe=staged``); ``--merge`` joins the results of several calls (other scenes, other seeds) into one table.
 
-``--pick`` (issue 17) adds, on the same runs, one click per scene on the rule's object with the rule's
-colour (the click and colour by a rule fixed in :mod:`virgi_ns.bench.pick`), measured as the rule edit
+``--pick`` adds, on the same runs, one click per scene on the rule's object with the rule's
+colour (the click and colour by the rule of ``bench/common/clicks.py``), measured as the rule edit
 is: a third table of its propagation against the rule edit's (pass: within 1 dB), its selection's
 share of the view and IoU with the rule's mask, its fit time (features cached, as the rule edit's
 warm time); and the viewer's pick latency on the synthetic 1M-Gaussian scene at 1280x720 (drag to
 frame, release to frame; target <= 100 ms), in results.json as ``pick`` per row and ``pick_latency``.
 
-    python bench/edit.py --data ../shared/data --out bench_out/edit --variants recipe=paper
+    python bench/edit.py --data ../shared/data --out bench_out/edit --variants recipe=staged
     python bench/edit.py --data ../shared/data --out bench_out/edit --pick
 """
 
@@ -40,9 +40,7 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import statistics
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,13 +51,13 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
-from virgi_ns.bench.evalset import COLOUR_STEPS, GEOMETRY_STEPS, SYNTHETIC_SIZE, EvalScene, capture_folder, \
-    dataparser_config, edit_view, find
-from virgi_ns.bench.pick import parse_pick_variant
-from virgi_ns.edit.pick import check_criterion
-from virgi_ns.bench.recolor import Bench, RuleArgs, _save_png
-from virgi_ns.bench.settings import split_settings, typed_like
-from virgi_ns.errors import InputError, atomic_path, cli_entry
+from common.evalset import COLOUR_STEPS, GEOMETRY_STEPS, SYNTHETIC_SIZE, EvalScene, capture_folder, edit_view, find
+from common.results import provenance, safe_name, write_json
+from common.scenes import million_scene
+from common.settings import edit_settings
+from common.training import evalset_run, sync
+from virgi_ns.bench.recolor import Bench, _save_png
+from virgi_ns.errors import InputError, cli_entry
 
 console = Console(width=220)
 TARGETS = {"propagation": 35.0, "miss": 30.0, "leak": 30.0, "recolour_gap": -0.5, "truth": 35.0, "edit_s": 0.25}
@@ -93,33 +91,20 @@ class Args:
     '_' written as '_'): where a variant may become the default, its pictures come from
     the run that decides it."""
     variants: List[str] = field(default_factory=list)
-    """More rows on the same runs, each a comma-separated list of EditConfig fields, e.g.
-    'recipe=paper' or 'steps=200,seg_init_bias=-2'; an entry that starts with 'SCENE:' is measured on
+    """More rows on the same runs, each a comma-separated list of EditConfig fields (and ``rule``, ``source``:
+    :func:`common.settings.edit_settings`), e.g. 'recipe=staged' or 'steps=200,seg_init_bias=-2'; an entry that starts with 'SCENE:' is measured on
     that scene only."""
     million: bool = False
     """Also time the engine on a synthetic 1M-Gaussian scene at 1280x720."""
     pick: bool = False
     """Also a pick on every scene (one click on the rule's object with the rule's colour, measured as
-    the rule edit is, :mod:`virgi_ns.bench.pick`) and the viewer's pick latency on the synthetic
+    the rule edit is, ``bench/common/clicks.py``) and the viewer's pick latency on the synthetic
     1M-Gaussian scene at 1280x720 (drag to frame, release to frame)."""
-    pick_criteria: List[str] = field(default_factory=list)
-    """With ``--pick``: also the same click with each of these selection criteria
-    (:data:`virgi_ns.edit.pick.CRITERIA`), as ``pick_by_criterion`` per row and one table, to choose
-    between them; the row's ``pick`` is the product's default criterion's."""
-    pick_variants: List[str] = field(default_factory=list)
-    """With ``--pick``: also the same click with these settings, each a comma-separated list of
-    ``key=value`` (:data:`virgi_ns.bench.pick.PICK_OPTIONS`, e.g. ``reference=click`` or
-    ``recolour=rule,recipe=joint``), as ``pick_variants`` per row and one table: to measure apart
-    what separates a pick from the rule edit."""
     edit_seeds: int = 1
     """Fit every row's edit with this many seeds (``EditConfig.seed`` 0..N-1: the segmentation head's
     start and the pixel sets) and report each figure's median over them, with the seeds' figures in
     ``per_seed``; the timings and pictures are seed 0's. One fit of a small object can move its miss
-    by several dB (bench/RESULTS.md, "Edit"): a decision between variants should not rest on one."""
-    dump_targets: bool = False
-    """Also write, per scene, the edit view's photo, render, rule-edited photo and rule-edited render
-    (the exact target) to ``SCENE_targets.npz`` (float16), so target builders can be compared offline
-    against the exact target on real renders."""
+    by several dB: a decision between variants should not rest on one."""
     merge: List[Path] = field(default_factory=list)
     """Print one table of these results.json files (no training, no GPU) and write it to --out."""
     synthetic_size: tuple[int, int, int, float] = SYNTHETIC_SIZE
@@ -145,81 +130,12 @@ def check_variant(text: str, scenes: List[str]) -> None:
     only, rest = variant_scene(text)
     if only is not None and only not in scenes:
         raise InputError(f"--variants: '{text}' names '{only}', which is not among the scenes ({', '.join(scenes)})")
-    parse_variant(rest)
-
-
-def parse_variant(text: str) -> dict:
-    """'steps=200,seg_init_bias=-2' -> EditConfig fields, typed as the fields' defaults are, checked
-    as EditConfig checks them; 'rule=h0/h1/shift/s_min/v_min' -> another rule (key ``rule``);
-    'source=render' -> the rule applied to the edit view's render instead of its photo (key
-    ``source``): the edit with an exact target, which tells the target's error from the fit's;
-    'source=render+original' -> the same with the render given as the original, so the engine
-    fits only the changed pixels as it does for a photo edit (with ``changed_target=edited``: the
-    rule on the render itself, exactly)."""
-    from virgi_ns.edit.engine import EditConfig
-
-    defaults = EditConfig()
-    out: dict = {}
-    for key, value in split_settings(text, "--variants"):
-        key = key.replace("-", "_")
-        if key == "rule":
-            try:
-                h0, h1, shift, s_min, v_min = (float(x) for x in value.split("/"))
-            except ValueError:
-                raise InputError(f"--variants: rule takes h0/h1/shift/s_min/v_min, got '{value}'") from None
-            out["rule"] = RuleArgs(h0=h0, h1=h1, shift=shift, s_min=s_min, v_min=v_min).rule()
-            continue
-        if key == "source":
-            if value not in ("photo", "render", "render+original"):
-                raise InputError(f"--variants: source takes photo, render or render+original, got '{value}'")
-            out["source"] = value
-            continue
-        if not hasattr(defaults, key):
-            raise InputError(f"--variants: '{key}' is not an EditConfig field")
-        out[key] = typed_like(getattr(defaults, key), value, key, "--variants")
-    try:
-        EditConfig(**{k: v for k, v in out.items() if k not in ("rule", "source")})
-    except ValueError as e:
-        raise InputError(f"--variants: {e}") from None
-    return out
+    edit_settings(rest)
 
 
 # ------------------------------------------------------------------------------ runs
-def run_config(args: Args, scene: EvalScene, folder: Path) -> Path:
-    """The trained run of the scene's capture: given (--runs), found under --train-out, or trained now."""
-    if scene.capture in args.runs:
-        return args.runs[scene.capture]
-    name = f"{scene.capture.replace('/', '_')}-s{args.seed}" + (f"-{_safe(args.train_settings)}" if args.train_settings else "")
-    cfg_path = args.train_out / "runs" / name / "virgi" / "run" / "config.yml"
-    if any((cfg_path.parent / "nerfstudio_models").glob("step-*.ckpt")):  # a run cut short has no checkpoint
-        return cfg_path
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from train import apply_settings, quiet, train  # bench/train.py
-
-    from method_configs.virgi import virgi_trainer_config
-
-    known = folder / "geometry.ply" if scene.synthetic else None  # a synthetic scene's own Gaussians
-    c = virgi_trainer_config("virgi", geometry_steps=0 if known else args.geometry_steps, colour_steps=args.colour_steps)
-    c.pipeline.datamanager.dataparser = dataparser_config(folder)
-    c.pipeline.model.geometry_from = known
-    c.machine.seed = args.seed
-    if args.train_settings:
-        apply_settings(c, args.train_settings)
-    if not torch.cuda.is_available():  # a CPU (tests): the reference rasterizer trains the geometry too
-        c.machine.device_type = "cpu"
-    quiet(c, args.train_out, name)
-    console.log(f"training {scene.capture} (seed {args.seed}, "
-                f"{'its known geometry' if known else f'{args.geometry_steps} geometry steps'} + {args.colour_steps} steps)")
-    trainer, secs, _, _ = train(c)
-    console.log(f"trained {scene.capture} in {secs:.0f} s")
-    del trainer
-    torch.cuda.empty_cache()
-    return Path(c.get_base_dir()) / "config.yml"
-
-
 def engine_defaults() -> dict:
-    """The EditConfig defaults of this call: what "engine defaults" meant when the row was measured
-    (a merged table may join calls made before and after a default changed)."""
+    """The EditConfig defaults of this call, recorded beside its rows."""
     from dataclasses import asdict
 
     from virgi_ns.edit.engine import EditConfig
@@ -227,58 +143,8 @@ def engine_defaults() -> dict:
     return asdict(EditConfig())
 
 
-REPEAT = re.compile(r" \((?:repeat: (?P<asked>.*)|repeat of defaults)\)$")
-"""The label's suffix of a variant that changed nothing in its own call (a refit: ``seed=0``), holding
-what it asked for (an older suffix, ``(repeat of defaults)``, held it in front)."""
-BEFORE_IT_EXISTED = {"lr_schedule": "constant", "lr_hold": 0.0, "seg_rate_scale": 1.0, "changed_share_floor": False,
-                     "map_seg_rate_scale": 1.0, "large_edit_seg_rate_scale": 1.0}
-"""The EditConfig fields added after calls were recorded, each with the value that gives the engine those calls
-ran: a call that recorded no such field ran with this."""
-
-
-def label_against_today(row: dict) -> str:
-    """The row's variant named against today's EditConfig defaults, from the defaults its call
-    recorded (``engine_defaults``): a row whose settings are today's defaults is "engine defaults",
-    any other is named by the fields that differ (and its rule or source); a field the call did not
-    record counts as :data:`BEFORE_IT_EXISTED` has it. Rows of calls that recorded no defaults keep
-    their label."""
-    recorded = row.get("engine_defaults")
-    if recorded is None:
-        return row["variant"]
-    variant = row["variant"]
-    repeat = REPEAT.search(variant)
-    if repeat:  # a merge of a merge: what the repeat asked for, named against today again
-        variant = repeat.group("asked") or variant[: repeat.start()]
-    today = engine_defaults()
-    recorded = {**{k: v for k, v in BEFORE_IT_EXISTED.items() if k in today}, **recorded}
-    settings = dict(recorded)
-    extra = []
-    if variant != "engine defaults":
-        for key, value in split_settings(variant, "variant"):
-            key = key.replace("-", "_")
-            if key in ("rule", "source") or key not in today:
-                extra.append(f"{key}={value}")
-            else:
-                settings[key] = typed_like(today[key], value, key, "variant")
-    differ = [f"{k}={settings[k]}" for k in today if k in settings and today[k] != settings[k]]
-    label = ",".join(differ + extra) or "engine defaults"
-    if variant != "engine defaults" and not extra and settings == recorded:
-        # a variant that changed nothing in its own call (seed=0, a refit): a label of its own, apart from the defaults
-        return f"{label} (repeat: {variant})"
-    return label
-
-
-def _safe(text: str) -> str:
-    return "".join(ch if ch.isalnum() or ch in "._" else "_" for ch in text)
-
-
-def _sync() -> None:
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
-
-
 def targets(m: dict, edit_s: float, synthetic: bool) -> Dict[str, bool]:
-    """Issue 16's targets. The recolour figure is judged against the truth where it is known (the
+    """The set's targets. The recolour figure is judged against the truth where it is known (the
     synthetic scenes, whose reconstruction is far above a real capture's, so that a rule on a photo
     is no longer the measure) and against the unedited PSNR on the real captures."""
     out = {
@@ -346,11 +212,11 @@ def scene_bench(args: Args, scene: EvalScene, loaded: dict) -> tuple[Bench, int,
     """The scene's :class:`Bench` on its edit view (the training photo its rule recolours most), that
     view's index and the config of its run, trained here when absent; ``loaded`` keeps the last loaded run, so that two rules
     on one capture share it."""
-    from virgi_ns.cli.edit import load_run
+    from virgi_ns.nerfstudio.runs import load_run
 
     folder = capture_folder(scene, args.data, args.train_out / "captures",
                             "cuda" if torch.cuda.is_available() else "cpu", console, args.synthetic_size)
-    cfg = run_config(args, scene, folder)
+    cfg = evalset_run(args, scene, folder)
     if loaded.get("config") != cfg:
         loaded.clear()
         _, pipeline = load_run(cfg)
@@ -367,14 +233,12 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
     b, view, cfg = scene_bench(args, scene, loaded)
     edited = b.edited_image(scene.rule, "photo")
     original = b.original("photo")
-    if args.dump_targets:
-        dump_targets(args.out / f"{scene.name}_targets.npz", b, scene, edited)
     b.scene.features = None
     edit, cold = b.fit(edited, args.steps, None, 1, original)
-    _sync()
+    sync()
     t0 = time.perf_counter()
     b.scene.precompute_features()
-    _sync()
+    sync()
     cache_s = time.perf_counter() - t0
     edit, warm = b.fit(edited, args.steps, None, args.repeats, original)
     res, pics = b.measure(edit, scene.rule, lpips=False, keep=args.pictures, edited=edited)
@@ -393,18 +257,11 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
     rows[0]["limits"] = limits(rows[0])
     if args.pick:
         rows[0]["pick"] = bench_pick(args, scene, b, res["mean"]["propagation_psnr"])
-        if args.pick_criteria:
-            rows[0]["pick_by_criterion"] = {c: rows[0]["pick"] if c == rows[0]["pick"].get("criterion") else
-                                            bench_pick(args, scene, b, res["mean"]["propagation_psnr"], c)
-                                            for c in args.pick_criteria}
-        if args.pick_variants:
-            rows[0]["pick_variants"] = {v: bench_pick(args, scene, b, res["mean"]["propagation_psnr"],
-                                                      **parse_pick_variant(v)) for v in args.pick_variants}
     for v in args.variants:
         only, text = variant_scene(v)
         if only is not None and only != scene.name:
             continue
-        v_cfg = parse_variant(text)
+        v_cfg = edit_settings(text)
         v_rule = v_cfg.pop("rule", scene.rule)
         v_source = v_cfg.pop("source", "photo")
         v_edited = b.edited_image(v_rule, v_source)
@@ -413,7 +270,7 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
         v_res, v_pics = b.measure(v_edit, v_rule, lpips=False, keep=args.pictures if args.variant_pictures else 0,
                                   edited=v_edited)
         for i, p in enumerate(v_pics):
-            _save_png(args.out / f"{scene.name}__{_safe(v)}_view{i}.png", p)  # 'cup:x' apart from 'x'
+            _save_png(args.out / f"{scene.name}__{safe_name(v)}_view{i}.png", p)  # 'cup:x' apart from 'x'
         v_res["mean"] = median_over_seeds(args, b, fit, v_cfg, v_rule, v_edited, v_res["mean"], v_t)
         rows.append({**base, "variant": text, "rule": v_rule.to_dict(), **v_res["mean"], "timing_warm": v_t,
                      "targets": targets(v_res["mean"], v_t["total_s"], scene.synthetic is not None)})
@@ -421,17 +278,6 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
     del b
     torch.cuda.empty_cache()
     return rows
-
-
-def dump_targets(path: Path, b: Bench, scene: EvalScene, edited: torch.Tensor) -> None:
-    """The edit view's photo, render, ``edited`` (the scene's rule on the photo, as the bench fits it)
-    and the rule on the render (float16 arrays, H x W x 3)."""
-    import numpy as np
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    arrays = {"photo": b.edit_photo, "render": b.edit_base, "edited": edited,
-              "exact": b.edited_image(scene.rule, "render")}
-    np.savez_compressed(path, **{k: v.detach().cpu().numpy().astype(np.float16) for k, v in arrays.items()})
 
 
 SEED_FIGURES = ("propagation_psnr", "miss_psnr", "leak_psnr", "recolour_psnr", "unedited_psnr", "truth_psnr",
@@ -463,51 +309,21 @@ def median_over_seeds(args: Args, b: Bench, fit: tuple, config: dict, rule, edit
     return {**first, **median, "per_seed": per_seed}
 
 
-def bench_pick(args: Args, scene: EvalScene, b: Bench, rule_propagation: float, criterion: Optional[str] = None,
-               **options: str) -> dict:
-    """The scene's pick (:func:`virgi_ns.bench.pick.measure_pick`) on the run the rule edit used, by
-    ``criterion`` (default: the product's) and ``options`` (a pick variant's); its pictures beside the
-    rule edit's (another criterion's or variant's: its selection strip only). A pick refused (no pixel
-    to click, an empty selection) is a failed row with the reason, not the end of the call."""
-    from virgi_ns.bench.pick import measure_pick
+def bench_pick(args: Args, scene: EvalScene, b: Bench, rule_propagation: float) -> dict:
+    """The scene's pick (``bench/common/clicks.py`` ``measure_pick``) on the run the rule edit used, its pictures
+    beside the rule edit's. A pick refused (no pixel to click, an empty selection) is a failed row with the
+    reason, not the end of the call."""
+    from common.clicks import measure_pick
 
-    named = {**({"criterion": criterion} if criterion else {}), **options}
     try:
-        p, pics, picture = measure_pick(b, scene.rule, rule_propagation, keep=0 if named else args.pictures,
-                                        criterion=criterion, **options)
+        p, pics, picture = measure_pick(b, scene.rule, rule_propagation, keep=args.pictures)
     except InputError as e:
         console.log(f"{scene.name}: the pick failed: {e}")
-        return {"error": str(e), "rule_propagation_psnr": rule_propagation, "pass": False, **named}
+        return {"error": str(e), "rule_propagation_psnr": rule_propagation, "pass": False}
     for i, pic in enumerate(pics):
         _save_png(args.out / f"{scene.name}_pick_view{i}.png", pic)
-    suffix = "".join(f"_{v}" for v in named.values())
-    _save_png(args.out / f"{scene.name}_pick{suffix}.png", picture)
+    _save_png(args.out / f"{scene.name}_pick.png", picture)
     return p
-
-
-@torch.no_grad()
-def million_scene(n: int = 1_000_000, width: int = 1280, height: int = 720, device: str = "cuda") -> tuple:
-    """(scene, one-view cameras): ``n`` random Gaussians (seeded) filling a ``width`` x ``height`` view,
-    with a random colour field (its specular head too)."""
-    from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
-    from virgi_ns.edit.scene import FrozenScene
-    from virgi_ns.raster import Cameras
-
-    dev = torch.device(device)
-    g = torch.Generator(device=dev).manual_seed(0)
-    f = 0.9 * width
-    z = 2.0 + 6.0 * torch.rand(n, generator=g, device=dev)
-    x = (torch.rand(n, generator=g, device=dev) - 0.5) * z * width / f * 1.1
-    y = (torch.rand(n, generator=g, device=dev) - 0.5) * z * height / f * 1.1
-    means = torch.stack([x, y, z], -1)
-    scales = torch.exp(math.log(0.004) + math.log(8.0) * torch.rand(n, 3, generator=g, device=dev))
-    quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=g, device=dev), dim=-1)
-    opac = 0.3 + 0.7 * torch.rand(n, generator=g, device=dev)
-    field_ = DecoupledColorField(ColorFieldConfig(log2_hashmap_size=19 if n > 100_000 else 12),
-                                 torch.tensor([[-6.0, -4.0, 1.5], [6.0, 4.0, 8.5]])).to(dev)
-    torch.nn.init.normal_(field_.spec_l3.weight, std=0.1)
-    cams = Cameras.from_params(f, f, width / 2, height / 2, torch.eye(4, device=dev)[None], width, height)
-    return FrozenScene(means, quats, scales, opac, field_, torch.zeros(3, device=dev)), cams
 
 
 @torch.no_grad()
@@ -540,9 +356,9 @@ def bench_million(repeats: int, steps: Optional[int], n: int = 1_000_000, width:
 
 
 def pick_latency(repeats: int, n: int = 1_000_000, width: int = 1280, height: int = 720, device: str = "cuda") -> dict:
-    """The viewer's pick latency (:func:`virgi_ns.bench.pick.viewer_latency`) on :func:`million_scene`,
+    """The viewer's pick latency (``bench/common/clicks.py`` ``viewer_latency``) on ``million_scene``,
     without the features cache (the viewer's pick sets up its scene afresh: ``FrozenScene.from_model``)."""
-    from virgi_ns.bench.pick import viewer_latency
+    from common.clicks import viewer_latency
 
     scene, cams = million_scene(n, width, height, device)
     return viewer_latency(scene, cams, repeats)
@@ -608,8 +424,8 @@ def print_tables(rows: List[dict], device: str) -> None:
 
 
 def print_pick(rows: List[dict], latencies: List[dict]) -> None:
-    """The pick table (issue 17): each scene's pick against its rule edit; then the latency lines."""
-    from virgi_ns.bench.pick import WITHIN_DB
+    """The pick table: each scene's pick against its rule edit; then the latency lines."""
+    from common.clicks import WITHIN_DB
 
     picked = [r for r in rows if "pick" in r]
     if picked:
@@ -632,37 +448,8 @@ def print_pick(rows: List[dict], latencies: List[dict]) -> None:
         t.add_row("worst case", "", "", "", "", "", "", "", _f(w["pick_difference_db"], "+.2f"), "",
                   f"{w['pick_passed']}/{w['pick_rows']} pass")
         console.print(t)
-    for key, what in (("pick_by_criterion", "by each selection criterion"), ("pick_variants", "with each variant")):
-        by = [r for r in rows if key in r]
-        if not by:
-            continue
-        t = Table(title=f"the same click {what} (difference: pick - rule edit propagation, dB)")
-        summary = criteria_summary(by, key)
-        t.add_column("scene")
-        for c in summary:
-            t.add_column(f"{c}: selected / IoU / difference")
-        for r in by:
-            t.add_row(r["scene"], *["-" if p is None else ("FAIL: " + p["error"]) if "error" in p else
-                                   f"{_f(p['selected'], '.1%')} / {_f(p['iou'], '.3f')} / {_f(p['difference_db'], '+.2f')}"
-                                   f" {'PASS' if p['pass'] else 'FAIL'}"
-                                   for p in (r[key].get(c) for c in summary)])
-        t.add_row("passed / worst", *[f"{v['passed']}/{v['rows']} / {_f(v['worst_db'], '+.2f')}" for v in summary.values()])
-        console.print(t)
     for lat in latencies:
         console.print(latency_line(lat))
-
-
-def criteria_summary(rows: List[dict], key: str = "pick_by_criterion") -> dict:
-    """Per selection criterion (or pick variant, ``key="pick_variants"``), in the order the rows first name
-    them, over the rows that measured it (merged calls may differ): picks passed, rows, and the worst
-    difference (a refused pick counts as failed, at -inf)."""
-    names = list(dict.fromkeys(c for r in rows for c in r.get(key, {})))
-    out = {}
-    for c in names:
-        picks = [r[key][c] for r in rows if c in r.get(key, {})]
-        out[c] = {"passed": sum(bool(p["pass"]) for p in picks), "rows": len(picks),
-                  "worst_db": min(p.get("difference_db", -math.inf) for p in picks)}
-    return out
 
 
 def latency_line(lat: dict) -> str:
@@ -679,32 +466,8 @@ def latency_line(lat: dict) -> str:
             f"{1e3 * r['render_s']:.0f}) {ok(r['total_s'])} (target <= {1e3 * lat['target_s']:.0f} ms)")
 
 
-def _commit() -> Optional[str]:
-    """The checkout's git commit (None outside a git checkout): which code made the figures. On the GPU
-    machine it is the session's first HEAD, whatever the tree sent: :func:`_source` says more."""
-    import subprocess
-
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10,
-                             cwd=Path(__file__).resolve().parent)
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip() or None
-
-
-def _source() -> str:
-    """The digest of the source files that ran (bench/source_digest.py)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from source_digest import source_digest
-
-    return source_digest()
-
-
 def _write(path: Path, result: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(result, indent=1, default=float))
-    console.print(f"wrote {path}")
+    write_json(path, result, console)
 
 
 def read_result(path: Path, flag: str) -> dict:
@@ -719,9 +482,9 @@ def read_result(path: Path, flag: str) -> dict:
 
 
 def merged(paths: List[Path]) -> dict:
-    """One result of several calls' results.json (rows concatenated; devices and commits listed;
-    variants named against today's defaults, :func:`label_against_today`)."""
-    from virgi_ns.bench.pick import pick_passes
+    """One result of several calls' results.json (rows concatenated, judged again by today's targets;
+    devices and commits listed)."""
+    from common.clicks import pick_passes
 
     rows, devices, commits, sources, latencies = [], [], [], [], []
     for p in paths:
@@ -729,13 +492,9 @@ def merged(paths: List[Path]) -> dict:
         for row in r["scenes"]:  # judged again: the targets may have been refined since the call
             row["targets"] = targets(row, row["timing_warm"]["total_s"], row["synthetic"])
             row["limits"] = limits(row)
-            row["variant"] = label_against_today(row)  # a default may have changed since the call
-            if "engine_defaults" in row:  # the label is today's now: a merge of this merge keeps it
-                row["engine_defaults"] = engine_defaults()
-            for p in [row.get("pick", {}), *row.get("pick_by_criterion", {}).values(),
-                      *row.get("pick_variants", {}).values()]:
-                if "difference_db" in p:  # the pass mark as today's WITHIN_DB has it
-                    p["pass"] = pick_passes(p)
+            p = row.get("pick", {})
+            if "difference_db" in p:  # the pass mark as today's WITHIN_DB has it
+                p["pass"] = pick_passes(p)
         rows += r["scenes"]
         if "pick_latency" in r:
             latencies.append({"device": r.get("device"), **r["pick_latency"]})
@@ -762,14 +521,10 @@ def main(args: Args) -> None:
         only = variant_scene(v)[0]
         if only is not None and only not in this_call:
             console.print(f"--variants '{v}': {only} is not among this call's rows, so it is not measured here")
-    for v in args.pick_variants:  # and a bad --pick-variants or --pick-criteria
-        parse_pick_variant(v)
-    for c in args.pick_criteria:
-        check_criterion(c)
     device = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"
     rows: List[dict] = []
     loaded: dict = {}
-    result: dict = {"device": device, "commit": _commit(), "source_digest": _source(), "scenes": rows}
+    result: dict = {"device": device, **provenance(), "scenes": rows}
     for s in scenes:
         rows += bench_scene(args, s, loaded)
         result["worst_case"] = worst_case(rows)

@@ -1,7 +1,11 @@
-"""Benchmark: the ways an edit step applies its pixel batch's sparse matrix (``EditConfig.batch_composite``)
-on the edit benchmark's 1M-Gaussian 1280x720 scene (:func:`edit.million_scene`), in one command.
+"""Benchmark: the ways an edit step can apply its pixel batch's sparse matrix, on the edit benchmark's
+1M-Gaussian 1280x720 scene (``bench/common/scenes.py`` ``million_scene``), in one command.
 
-Per kind (``--variants``, default every kind of :data:`virgi_ns.edit.pixels.COMPOSITES`):
+The kinds: the library's two (``EditConfig.batch_composite``: ``csr``, the reference, and ``fused``, the GPU's),
+``fused_scattered`` (the fused kind with its gradient scattered by one atomic per entry, its fallback where the
+entries sorted by Gaussian cannot be built), and the contestants defined here (:data:`CONTESTANTS`), each a
+sparse product by another kernel put in the place of each pixel set's csr operator (or ``FWD/BWD``: one kind
+for each pass). Per kind (``--variants``, default every kind):
 
   check          the first pixel batch's ``A @ C`` and ``A^T @ g`` against the ``csr`` kind's on the same
                  batch (max abs difference, and relative to the largest csr value; pass: <= --tol)
@@ -17,43 +21,189 @@ A kind that fails is a row with its error; the others go on. The fastest kind th
 named (by warm edit time), and, when the fastest forward and backward kinds differ, their pair
 ``FWD/BWD`` is measured too (``--no-combo``: not). ``--cpu-smoke`` runs a tiny scene on the CPU (tests).
 
-    PYTHONPATH=. python bench/edit_step.py --out bench_out/edit_step
+    python bench/edit_step.py --out bench_out/edit_step
 """
 
 from __future__ import annotations
 
-import json
 import math
 import statistics
-import sys
 import time
 import traceback
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, List, Optional
+from typing import Callable, List, NamedTuple, Optional
 
 import torch
 import tyro
+from torch import Tensor
 from rich.console import Console
 from rich.table import Table
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from edit import _commit, _source, million_scene, parse_variant  # noqa: E402  (bench/edit.py)
-
-from virgi_ns.edit.engine import EditConfig, EditEngine  # noqa: E402
-from virgi_ns.edit.pixels import COMPOSITES, parse_composite  # noqa: E402
-from virgi_ns.errors import InputError, atomic_path, cli_entry  # noqa: E402
+from common.results import provenance, write_json
+from common.scenes import million_scene
+from common.settings import edit_settings
+from virgi_ns.edit.engine import EditConfig, EditEngine
+from virgi_ns.edit.fitting import sync
+from virgi_ns.edit.pixels import CompositeOp, csr_matrix, row_offsets
+from virgi_ns.errors import InputError, cli_entry
 
 console = Console(width=220)
+
+CONTESTANTS = {
+    "csr32": "as csr with int32 indices (half the index traffic)",
+    "csr4": "as csr32 with the dense operand padded to 4 columns (16-byte rows)",
+    "csr_cm": "as csr32 with the dense operand column-major",
+    "segment": "gather x[cols] * vals, then torch.segment_reduce over each row's entries (A^T: by Gaussian)",
+    "index_add": "gather x[cols] * vals, then index_add_ by row (atomics; A^T: the same entries, by Gaussian)",
+    "embedding_bag": "torch.embedding_bag, mode sum with per-sample weights: gather, weight and sum in one kernel",
+}
+"""The sparse products measured against the library's kinds (``csr`` may stand for one pass of a pair)."""
+LIBRARY = ("csr", "fused", "auto")
+SCATTERED = "fused_scattered"
+_CSR_KINDS = ("csr", "csr32", "csr4", "csr_cm")
+
+
+def parse_pair(name: str) -> tuple[str, str]:
+    """``'segment'`` -> ``('segment', 'segment')``; ``'embedding_bag/index_add'`` -> the forward and the backward
+    kind. Raises ValueError for a kind that is neither a contestant nor ``csr``."""
+    parts = str(name).split("/")
+    if len(parts) == 1:
+        parts = parts * 2
+    known = ("csr", *CONTESTANTS)
+    if len(parts) != 2 or any(p not in known for p in parts):
+        raise ValueError(f"unknown batch_composite kind {name!r}: one of {', '.join((*LIBRARY, SCATTERED, *CONTESTANTS))} "
+                         "(or 'FWD/BWD' of csr and the contestants)")
+    return parts[0], parts[1]
+
+
+class _Side(NamedTuple):
+    """One ordering of a sparse map's entries, out[target[j]] += vals[j] * x[gather[j]], out [n, k]."""
+
+    n: int
+    gather: Tensor  # [nnz] rows of x
+    vals: Tensor  # [nnz]
+    target: Optional[Tensor] = None  # [nnz] rows of out, sorted (segment, embedding_bag) or any (index_add)
+    offsets: Optional[Tensor] = None  # [n+1] where each row of out starts (entries sorted by target)
+    csr: Optional[Tensor] = None  # the map as a CSR matrix [n, len(x)]
+
+
+def _apply(kind: str, side: _Side, x: Tensor) -> Tensor:
+    """``out = M @ x`` for the map ``side`` by ``kind`` (no host sync, shapes fixed by ``side``)."""
+    if kind in ("csr", "csr32"):
+        return side.csr @ x
+    if kind == "csr4":
+        return (side.csr @ torch.nn.functional.pad(x, (0, 1)))[:, : x.shape[1]]
+    if kind == "csr_cm":
+        return side.csr @ x.t().contiguous().t()
+    if side.gather.numel() == 0:  # no entry: nothing to gather (segment_reduce refuses empty data on some builds)
+        return x.new_zeros(side.n, x.shape[1])
+    if kind == "embedding_bag":
+        return torch.embedding_bag(x, side.gather, side.offsets, False, 0, False, side.vals, True, None)[0]
+    terms = x.index_select(0, side.gather) * side.vals[:, None]
+    if kind == "segment":
+        return torch.segment_reduce(terms, "sum", offsets=side.offsets, unsafe=True)
+    return x.new_zeros(side.n, x.shape[1]).index_add_(0, side.target, terms)  # index_add
+
+
+class _Product(torch.autograd.Function):
+    """``A @ C`` by the operator's forward kind; the backward pass ``A^T @ grad`` by its backward kind."""
+
+    @staticmethod
+    def forward(ctx, colours: Tensor, op: "ContestantOp") -> Tensor:  # type: ignore[override]
+        ctx.op = op
+        return _apply(op.fwd, op.forward_side, colours)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):  # type: ignore[override]
+        op = ctx.op
+        return _apply(op.bwd, op.backward_side, grad.contiguous()), None
+
+
+class _Transpose:
+    """``op.transpose @ g``: the backward pass alone, as a pixel batch's ``render_transpose`` asks it."""
+
+    def __init__(self, op: "ContestantOp") -> None:
+        self.op = op
+
+    def __matmul__(self, grad: Tensor) -> Tensor:
+        return _apply(self.op.bwd, self.op.backward_side, grad)
+
+
+class ContestantOp:
+    """A pixel set's ``A`` [p, U] applied by the kinds ``kind`` names (:func:`parse_pair`), with every index
+    array the two passes need built here, once; it takes the place of the set's :class:`CompositeOp`.
+    ``rows``, ``cols``, ``vals``: the entries, sorted by row (pixel)."""
+
+    def __init__(self, kind: str, rows: Tensor, cols: Tensor, vals: Tensor, p: int, U: int) -> None:
+        self.kind = kind
+        self.fwd, self.bwd = parse_pair(kind)
+        nnz = rows.numel()
+        small = max(nnz, p, U) < 2**31 - 1
+        idx = torch.int64 if "csr" in (self.fwd, self.bwd) or not small else torch.int32
+        rows, cols = rows.to(idx), cols.to(idx)
+        crow = row_offsets(rows, p, idx)
+        if self.fwd == "index_add":
+            self.forward_side = _Side(p, cols, vals, target=rows)
+        else:
+            self.forward_side = _Side(p, cols, vals, rows, crow,
+                                      csr_matrix(crow, cols, vals, (p, U)) if self.fwd in _CSR_KINDS else None)
+        if self.bwd == "index_add":  # the same entries, the roles of rows and columns swapped
+            self.backward_side = _Side(U, rows, vals, target=cols)
+        else:  # the entries sorted by Gaussian (pixels ascending within one: rows are sorted already)
+            t_order = torch.argsort(cols, stable=True)
+            rows_t, cols_t, vals_t = rows[t_order], cols[t_order], vals[t_order]
+            ccol = row_offsets(cols_t, U, idx)
+            self.backward_side = _Side(U, rows_t, vals_t, cols_t, ccol,
+                                       csr_matrix(ccol, rows_t, vals_t, (U, p)) if self.bwd in _CSR_KINDS else None)
+        self.transpose = _Transpose(self)
+
+    @staticmethod
+    def replacing(kind: str, op: CompositeOp) -> "ContestantOp":
+        """The contestant ``kind`` for the entries of a csr operator."""
+        m = op.matrix
+        crow, cols, vals = m.crow_indices(), m.col_indices(), m.values()
+        rows = torch.repeat_interleave(torch.arange(op.shape[0], device=crow.device), crow[1:] - crow[:-1])
+        return ContestantOp(kind, rows, cols, vals, *op.shape)
+
+    def __call__(self, colours: Tensor) -> Tensor:
+        return _Product.apply(colours, self)
+
+
+def engine(scene, cams, edited: Tensor, variant: str, steps: Optional[int]) -> EditEngine:
+    """A fresh engine on ``edited`` whose steps apply their pixel sets' matrices by ``variant``
+    (``KIND[,FIELD=VALUE...]``: the kind, then any other EditConfig settings, parsed as ``bench/edit.py``'s
+    ``--variants`` are); a contestant's operators, built in the place of csr's, count in its set-up."""
+    kind, _, rest = variant.partition(",")
+    settings = edit_settings(rest) if rest else {}
+    for key in ("rule", "source"):
+        if key in settings:
+            raise InputError(f"--variants: EditConfig has no field {key!r}")
+    if kind not in LIBRARY and kind != SCATTERED:
+        parse_pair(kind)
+    library = kind if kind in LIBRARY else ("fused" if kind == SCATTERED else "csr")
+    cfg = EditConfig(**{"batch_composite": library, **({} if steps is None else {"steps": steps}), **settings})
+    eng = EditEngine(scene, cams, edited, cfg=cfg)
+    if kind == SCATTERED:
+        eng.batches[0].sets.by_gaussian = None
+    elif library != kind:
+        dev = scene.device
+        sync(dev)
+        t0 = time.perf_counter()
+        for b in eng.batches:
+            b.op = ContestantOp.replacing(kind, b.op)
+        sync(dev)
+        eng.setup_s += time.perf_counter() - t0
+    return eng
 
 
 @dataclass
 class Args:
     out: Path = Path("bench_out/edit_step")
-    variants: List[str] = field(default_factory=lambda: list(COMPOSITES))
-    """EditConfig.batch_composite values to measure ('csr' is always measured first: the reference), each
-    optionally with other EditConfig settings after a comma (``fused,fused_heads=false``)."""
+    variants: List[str] = field(default_factory=lambda: [*CONTESTANTS, "fused", SCATTERED])
+    """The kinds to measure ('csr' is always measured first: the reference), each optionally with other
+    EditConfig settings after a comma (``fused,fused_heads=false``)."""
     gaussians: int = 1_000_000
     width: int = 1280
     height: int = 720
@@ -94,11 +244,6 @@ def _timer(dev: torch.device, fn: Callable[[], object], repeats: int, warmup: in
     return float(statistics.median(times))
 
 
-def _sync(dev: torch.device) -> None:
-    if dev.type == "cuda":
-        torch.cuda.synchronize(dev)
-
-
 class Bench:
     """The scene, its edited image and the csr kind's reference on the first pixel batch."""
 
@@ -117,16 +262,9 @@ class Bench:
         self.ref: dict = {}
         self.t0 = time.perf_counter()
 
-    def cfg(self, variant: str) -> EditConfig:
-        """``KIND[,FIELD=VALUE...]``: the composite kind and any other EditConfig settings (parsed as
-        bench/edit.py's --variants are; its ``rule`` and ``source`` keys mean nothing here)."""
-        kind, _, rest = variant.partition(",")
-        settings = parse_variant(rest) if rest else {}
-        for key in ("rule", "source"):
-            if key in settings:
-                raise InputError(f"--variants: EditConfig has no field {key!r}")
-        steps = {} if self.args.steps is None else {"steps": self.args.steps}
-        return EditConfig(**{"batch_composite": kind, **steps, **settings})
+    def engine(self, variant: str) -> EditEngine:
+        with torch.enable_grad():
+            return engine(self.scene, self.cams, self.edited, variant, self.args.steps)
 
     @torch.no_grad()
     def check(self, kind: str, eng: EditEngine) -> dict:
@@ -186,14 +324,13 @@ class Bench:
         times, graphed, notes = [], [], []
         eng = None
         for i in range(1 + max(1, self.args.repeats)):
-            cfg = self.cfg(kind)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
+                eng = self.engine(kind)
                 with torch.enable_grad():
-                    eng = EditEngine(self.scene, self.cams, self.edited, cfg=cfg)
                     _, t = eng.fit()
             notes += [str(w.message).splitlines()[0] for w in caught if "CUDA graphs" in str(w.message)]
-            graphed.append(cfg.cuda_graphs)
+            graphed.append(eng.cfg.cuda_graphs)
             if i > 0:
                 times.append(t)
         med = lambda v: float(statistics.median(v))  # noqa: E731
@@ -211,12 +348,12 @@ class Bench:
     def row(self, kind: str) -> dict:
         row: dict = {"variant": kind}
         try:
-            with torch.enable_grad():
-                eng = EditEngine(self.scene, self.cams, self.edited, cfg=self.cfg(kind))
+            eng = self.engine(kind)
             b0 = eng.batches[0]
             row["batch_pixels"] = int(b0.target.shape[0])
             row["batch_entries"] = int(b0.sets.pixel_offsets[b0.pixels + 1].sum() - b0.sets.pixel_offsets[b0.pixels].sum()
-                                       if b0.sets is not None else b0.op.forward_side.gather.numel())
+                                       if b0.sets is not None else b0.op.forward_side.gather.numel()
+                                       if isinstance(b0.op, ContestantOp) else b0.op.matrix.values().numel())
             row.update(self.check(kind, eng))
             row.update(self.op_times(eng))
             del eng
@@ -296,7 +433,7 @@ def main(args: Args) -> dict:
     device = torch.cuda.get_device_name(0) if b.dev.type == "cuda" else "cpu"
     kinds = ["csr"] + [v for v in args.variants if v != "csr"]
     rows: List[dict] = []
-    result: dict = {"device": device, "commit": _commit(), "source_digest": _source(), "gaussians": args.gaussians,
+    result: dict = {"device": device, **provenance(), "gaussians": args.gaussians,
                     "image": f"{args.width}x{args.height}", "tol": args.tol, "rows": rows}
     for k in kinds:
         rows.append(b.row(k))
@@ -308,7 +445,7 @@ def main(args: Args) -> dict:
         pair = f"{best['fwd']}/{best['bwd']}"
         if pair not in kinds:
             try:
-                parse_composite(pair)
+                parse_pair(pair)
                 rows.append(b.row(pair))
             except ValueError:
                 pass
@@ -316,11 +453,7 @@ def main(args: Args) -> dict:
     result["fastest"] = best
     result["wall_s"] = time.perf_counter() - t0
     print_table(rows, device, args, best)
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "results.json"
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(result, indent=1, default=float))
-    console.print(f"wrote {path} ({result['wall_s']:.0f} s)")
+    write_json(args.out / "results.json", result, console)
     return result
 
 

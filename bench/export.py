@@ -35,6 +35,7 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from common.training import dataparser_for, quiet, sync, train
 from virgi_ns.errors import InputError, atomic_path, cli_entry
 from virgi_ns.metrics import offline_splatfacto_lpips
 
@@ -59,11 +60,6 @@ class Args:
     """Also render the exported files with gsplat (needs CUDA)."""
 
 
-def _sync() -> None:
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
-
-
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     mse = float(((a.clamp(0, 1) - b.clamp(0, 1)) ** 2).mean())
     return -10.0 * math.log10(max(mse, 1e-12))
@@ -71,20 +67,14 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
 
 def train_run(args: Args) -> Path:
     """Train virgi (geometry with gsplat, then colour) on ``args.scene``; returns its config.yml."""
-    import importlib.util
-
     from method_configs.virgi import virgi_trainer_config
 
-    spec = importlib.util.spec_from_file_location("bench_train", Path(__file__).with_name("train.py"))
-    bt = importlib.util.module_from_spec(spec)
-    assert spec.loader is not None
-    spec.loader.exec_module(bt)
     cfg = virgi_trainer_config("virgi", geometry_steps=args.geometry_steps, colour_steps=args.colour_steps)
-    cfg.pipeline.datamanager.dataparser = bt.dataparser_for(args.scene, args.data)
-    bt.quiet(cfg, args.out, f"{args.scene}-virgi")
+    cfg.pipeline.datamanager.dataparser = dataparser_for(args.scene, args.data)
+    quiet(cfg, args.out, f"{args.scene}-virgi")
     cfg.save_config()
     offline_splatfacto_lpips()
-    trainer, secs, _ = bt.train(cfg)
+    trainer, secs, _, _ = train(cfg)
     console.log(f"trained {args.scene} in {secs:.0f} s")
     del trainer
     torch.cuda.empty_cache()
@@ -149,7 +139,7 @@ class _Scaled:
 
 def main(args: Args) -> None:
     warnings.filterwarnings("ignore", category=FutureWarning)
-    from virgi_ns.cli.export import load_run
+    from virgi_ns.nerfstudio.runs import load_run
     from virgi_ns.cli.render import render_image
     from virgi_ns.edit.engine import EditConfig, EditEngine
     from virgi_ns.edit.recolor import RecolorRule, recolor
@@ -216,10 +206,10 @@ def main(args: Args) -> None:
         if st is not None:
             st.set_specular_strength(k)
         model.set_edit_stack(st)
-        _sync()
+        sync()
         t0 = time.perf_counter()
         g = bake_pipeline(pipeline, st, k, frame)
-        _sync()
+        sync()
         bake_s = time.perf_counter() - t0
         path = args.out / f"{args.scene}_{name.replace(', ', '_').replace('=', '')}.ply"
         t0 = time.perf_counter()
@@ -255,10 +245,10 @@ def main(args: Args) -> None:
     timing_rows = []
     for label, use_gate in (("gated", True), ("all fitted", False)):
         bake(big, stack, 1.0, frame, train_cams, BakeConfig(use_gate=use_gate))  # warm-up (kernels, allocator)
-        _sync()
+        sync()
         t0 = time.perf_counter()
         g = bake(big, stack, 1.0, frame, train_cams, BakeConfig(use_gate=use_gate))
-        _sync()
+        sync()
         bake_s = time.perf_counter() - t0
         with tempfile.TemporaryDirectory(dir=args.out) as tmp:
             t0 = time.perf_counter()

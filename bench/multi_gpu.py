@@ -41,10 +41,9 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from train import apply_settings, dataparser_for, evaluate, train  # noqa: E402  (bench/train.py)
-
-from virgi_ns.errors import InputError, atomic_path, cli_entry  # noqa: E402
+from common.settings import apply_settings
+from common.training import dataparser_for, evaluate, train
+from virgi_ns.errors import InputError, atomic_path, cli_entry
 
 # NVLink multicast stays off (the GPU machines' rule: it can take the host's GPUs out of service)
 for _name, _value in (("NCCL_NVLS_ENABLE", "0"), ("TORCH_SYMM_MEM_DISABLE_MULTICAST", "1"),
@@ -93,7 +92,7 @@ def run_config(args: Args, world: int, seed: int):
     cfg.timestamp = "run"
     cfg.viewer.quit_on_train_completion = True
     if args.settings:
-        apply_settings(cfg, args.settings)
+        apply_settings(cfg, args.settings, "--settings")
     return cfg
 
 

@@ -29,12 +29,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-if str(REPO) not in sys.path:
-    sys.path.insert(0, str(REPO))
+from virgi_ns.errors import InputError, atomic_path, cli_entry
+from virgi_ns.raster.contract import Cameras, Request, composite, composite_plain
 
-from virgi_ns.errors import InputError, atomic_path, cli_entry  # noqa: E402
-from virgi_ns.raster.contract import Cameras, Request, composite, composite_plain  # noqa: E402
+REPO = Path(__file__).resolve().parents[1]
 
 
 @dataclass
@@ -70,7 +68,7 @@ class Scene:
     quats: torch.Tensor
     scales: torch.Tensor
     opacities: torch.Tensor
-    colors: torch.Tensor  # [N, 3]
+    colours: torch.Tensor  # [N, 3]
     cameras: Cameras
 
 
@@ -122,9 +120,9 @@ def random_scene(n: int, args: Args, dev) -> Scene:
     lo, hi = math.log(0.001), math.log(0.01)
     scales = torch.exp(lo + (hi - lo) * torch.rand(n, 3, device=dev, generator=g))
     opac = torch.rand(n, device=dev, generator=g) * 0.9 + 0.05
-    colors = torch.rand(n, 3, device=dev, generator=g)
+    colours = torch.rand(n, 3, device=dev, generator=g)
     cams = ring_cameras((0, 0, 0), 3.2, args.views, args.width, args.height, 0.8 * args.width, dev)
-    return Scene(f"random {n / 1e6:g}M", means, quats, scales, opac, colors, cams)
+    return Scene(f"random {n / 1e6:g}M", means, quats, scales, opac, colours, cams)
 
 
 def splat_scene(path: Path, args: Args, dev) -> Scene:
@@ -135,10 +133,10 @@ def splat_scene(path: Path, args: Args, dev) -> Scene:
     center = means.median(0).values
     dist = (means - center).norm(dim=1)
     radius = float(dist.quantile(0.9)) * 2.2
-    colors = (0.2820948 * g.sh[:, 0].float() + 0.5).clamp_min(0).to(dev)
+    colours = (0.2820948 * g.sh[:, 0].float() + 0.5).clamp_min(0).to(dev)
     cams = ring_cameras(center.cpu().numpy(), radius, args.views, args.width, args.height, 0.8 * args.width, dev)
     return Scene(f"{path.name.split('.')[0]} {len(g) / 1e6:.2f}M", means, g.quats.float().to(dev),
-                 g.scales.float().exp().to(dev), torch.sigmoid(g.opacities.float()).to(dev), colors, cams)
+                 g.scales.float().exp().to(dev), torch.sigmoid(g.opacities.float()).to(dev), colours, cams)
 
 
 # ----------------------------------------------------------------------------- the tile batch
@@ -203,7 +201,7 @@ def run_scene(sc: Scene, args: Args, tiles, req: Request, gsplat, rows: list[Row
 
     dev = sc.means.device
     n = sc.means.shape[0]
-    colors = sc.colors.clone().requires_grad_(True)
+    colours = sc.colours.clone().requires_grad_(True)
     whole = Request.whole_images(sc.cameras)
     mp_tiles = sum(s * s for *_, s in tiles) / 1e6
     mp_whole = whole.num_pixels / 1e6
@@ -211,9 +209,9 @@ def run_scene(sc: Scene, args: Args, tiles, req: Request, gsplat, rows: list[Row
 
     def ours(request: Request, fused: bool):
         def step():
-            colors.grad = None
+            colours.grad = None
             c = cuda.rasterize(*geo, sc.cameras, request)
-            cols = c.gather(colors)
+            cols = c.gather(colours)
             img = (composite if fused else composite_plain)(cols, c, None)
             img.sum().backward()
             return c, img
@@ -275,10 +273,10 @@ def run_scene(sc: Scene, args: Args, tiles, req: Request, gsplat, rows: list[Row
         cams32, cams64 = per_tile_cams(32), per_tile_cams(64)
 
         def gs_tiles():
-            colors.grad = None
+            colours.grad = None
             loss, outs = 0, []
             for (vm, K), size in ((cams32, 32), (cams64, 64)):
-                img, _, _ = gsplat.rasterization(*geo, colors, vm, K, size, size, packed=True,
+                img, _, _ = gsplat.rasterization(*geo, colours, vm, K, size, size, packed=True,
                                                  rasterize_mode="classic", sh_degree=None)
                 loss = loss + img.sum()
                 outs.append(img)
@@ -286,8 +284,8 @@ def run_scene(sc: Scene, args: Args, tiles, req: Request, gsplat, rows: list[Row
             return outs
 
         def gs_whole():
-            colors.grad = None
-            img, _, _ = gsplat.rasterization(*geo, colors, vms, Ks, args.width, args.height, packed=True,
+            colours.grad = None
+            img, _, _ = gsplat.rasterization(*geo, colours, vms, Ks, args.width, args.height, packed=True,
                                              rasterize_mode="classic", sh_degree=None)
             img.sum().backward()
             return img
@@ -314,7 +312,7 @@ def run_scene(sc: Scene, args: Args, tiles, req: Request, gsplat, rows: list[Row
     pictures[sc.name + " ours tiles"] = torch.cat(
         [t for t in assemble_tiles(results[("tiles", True)], tiles)[:16] if t.shape[0] == 32], 1
     ).clamp(0, 1).cpu()
-    del colors
+    del colours
     torch.cuda.empty_cache()
 
 

@@ -63,12 +63,10 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from edit import Args as EditArgs  # noqa: E402  (bench/edit.py: the same trained runs)
-from edit import _sync, _write, run_config  # noqa: E402
-
-from virgi_ns.bench.evalset import COLOUR_STEPS, GEOMETRY_STEPS, capture_folder, edit_view, find  # noqa: E402
-from virgi_ns.errors import cli_entry  # noqa: E402
+from common.evalset import COLOUR_STEPS, GEOMETRY_STEPS, capture_folder, edit_view, find
+from common.results import write_json
+from common.training import evalset_run, sync
+from virgi_ns.errors import cli_entry
 
 console = Console(width=200)
 THRESHOLDS = (0.0, 1 / 1024, 1 / 512, 1 / 255, 2 / 255, 4 / 255, 8 / 255)
@@ -95,10 +93,10 @@ def _fps(fn, repeats: int) -> float:
     fn()
     times = []
     for _ in range(repeats):
-        _sync()
+        sync()
         t = time.perf_counter()
         fn()
-        _sync()
+        sync()
         times.append(time.perf_counter() - t)
     return 1.0 / statistics.median(times)
 
@@ -241,7 +239,7 @@ def stage_ms(model, cams, gated: bool, repeats: int) -> Dict[str, float]:
 
 
 def bench_scene(args: Args, scene, cfg_path: Path) -> dict:
-    from virgi_ns.cli.export import load_run
+    from virgi_ns.nerfstudio.runs import load_run
 
     _, pipeline = load_run(cfg_path)
     model = pipeline.model
@@ -346,7 +344,7 @@ def bench_cli(scene, cfg_path: Path, data: Path, out: Path) -> dict:
     """Fresh-process walls of the CLIs on one trained run."""
     from PIL import Image
 
-    from virgi_ns.cli.export import load_run
+    from virgi_ns.nerfstudio.runs import load_run
     from virgi_ns.edit.recolor import recolor
     from virgi_ns.io.camera_json import CameraSpec, write_camera_json
 
@@ -518,17 +516,16 @@ def plot(rows: List[dict], path: Path) -> None:
 def main(args: Args) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     device = torch.cuda.get_device_name() if torch.cuda.is_available() else "cpu"
-    edit_args = EditArgs(data=args.data, train_out=args.train_out, seed=args.seed,
-                         geometry_steps=args.geometry_steps, colour_steps=args.colour_steps)
     rows, cli = [], None
     for scene in find(args.scenes):
         folder = capture_folder(scene, args.data, args.train_out / "synthetic", "cuda" if torch.cuda.is_available()
                                 else "cpu", console)
-        cfg_path = run_config(edit_args, scene, folder)
+        cfg_path = evalset_run(args, scene, folder)  # the edit benchmark's runs
         rows.append(bench_scene(args, scene, cfg_path))
         if args.cli and cli is None:
             cli = bench_cli(scene, cfg_path, args.data, args.out)
-        _write(args.out / "results.json", {"device": device, "args": _jsonable(vars(args)), "rows": rows, "cli": cli})
+        write_json(args.out / "results.json", {"device": device, "args": _jsonable(vars(args)), "rows": rows, "cli": cli},
+                   console)
     print_tables(rows, cli, device)
     if rows:
         plot(rows, args.out / "gate_sweep.png")

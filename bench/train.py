@@ -21,12 +21,10 @@ from __future__ import annotations
 
 import copy
 import json
-import math
-import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List
 
 import numpy as np
 import torch
@@ -34,15 +32,13 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
-from virgi_ns.bench.settings import split_settings, typed_like
+from common.results import safe_name
+from common.settings import apply_settings, split_settings, typed_like
+from common.training import dataparser_for, evaluate, quiet, train
 from virgi_ns.errors import InputError, atomic_path, cli_entry
 from virgi_ns.metrics import offline_splatfacto_lpips
 
 console = Console()
-BRIGHT = 0.95
-"""Photo pixels with a channel at or above this count as near-saturated in the error split."""
-WARMUP_STEPS = 20
-"""Geometry steps left out of ``geometry_step_ms`` (the first ones compile and allocate)."""
 
 
 @dataclass
@@ -75,190 +71,6 @@ class Args:
     print the tables and the summary over all of them, and write them to --out/results.json."""
 
 
-def dataparser_for(scene: str, root: Path):
-    path = root / scene
-    if not path.is_dir():
-        raise InputError(f"scene folder not found: {path}")
-    if (path / "sparse" / "0").is_dir():
-        from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParserConfig
-
-        return ColmapDataParserConfig(data=path, colmap_path=Path("sparse/0"), images_path=Path("images"),
-                                      eval_mode="interval", eval_interval=8, load_3D_points=True,
-                                      downscale_factor=1)
-    from virgi_ns.data.llff import LLFFDataParserConfig
-
-    if (path / "transforms.json").is_file():  # nerfstudio's own format (e.g. tests/virgi_scene.py's capture)
-        from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
-
-        return NerfstudioDataParserConfig(data=path, eval_mode="interval", eval_interval=8, load_3D_points=False)
-    images = "images_8" if (path / "images_8").is_dir() else "images"
-    return LLFFDataParserConfig(data=path, images_dir=images, llffhold=8)
-
-
-def quiet(cfg, out: Path, name: str) -> None:
-    cfg.vis = "tensorboard"
-    cfg.output_dir = out / "runs"
-    cfg.experiment_name = name
-    cfg.timestamp = "run"
-    cfg.steps_per_eval_image = 10**9
-    cfg.steps_per_eval_batch = 10**9
-    cfg.steps_per_eval_all_images = 10**9
-    cfg.steps_per_save = 10**9
-    cfg.viewer.quit_on_train_completion = True
-
-
-def _sync() -> None:
-    if torch.cuda.is_available():
-        torch.cuda.synchronize()
-
-
-def train(cfg, local_rank: int = 0, world_size: int = 1) -> tuple[object, float, Path, Dict[str, float]]:
-    """Train (as process ``local_rank`` of ``world_size``); returns (trainer, seconds, checkpoint
-    folder, breakdown). The breakdown sums the wall time of nerfstudio's train iterations by stage
-    without extra synchronisation (the CPU runs at most a few steps ahead of the GPU, and every
-    10th step logs a loss, which synchronises), and names the time spent outside the iterations
-    (checkpoint writing, the trainer's own set-up)."""
-    if local_rank == 0:  # config.yml beside the checkpoint, so bench/export.py and bench/edit.py can load the run
-        cfg.save_config()
-    trainer = cfg.setup(local_rank=local_rank, world_size=world_size)
-    trainer.setup()
-    steps: List[tuple[int, float]] = []
-    inner = trainer.train_iteration
-
-    def timed_iteration(step: int):
-        t = time.perf_counter()
-        out = inner(step)
-        steps.append((step, time.perf_counter() - t))
-        return out
-
-    trainer.train_iteration = timed_iteration  # type: ignore[method-assign]
-    _sync()
-    t0 = time.perf_counter()
-    trainer.train()
-    _sync()
-    total = time.perf_counter() - t0
-    return trainer, total, Path(cfg.get_base_dir()) / "nerfstudio_models", breakdown(trainer, steps, total)
-
-
-def breakdown(trainer, steps: List[tuple[int, float]], total: float) -> Dict[str, float]:
-    """Seconds by stage: geometry steps, the colour stage's first step (warm start included), the
-    other colour steps, the last step (the specular gate's measurement), outside the iterations."""
-    from virgi_ns.nerfstudio.model import VirgiModel
-
-    model = trainer.pipeline.model
-    res: Dict[str, float] = {"iterations_s": sum(s for _, s in steps)}
-    res["outside_iterations_s"] = total - res["iterations_s"]
-    if isinstance(model, VirgiModel) and steps:
-        c0, last = model.colour_start, steps[-1][0]
-        geo = [s for i, s in steps if i < c0]
-        col = [s for i, s in steps if c0 < i < last]
-        res["geometry_steps_s"] = sum(geo)
-        settled = geo[WARMUP_STEPS:] or geo  # past the first steps' compilation and allocations
-        res["geometry_step_ms"] = 1e3 * sum(settled) / max(len(settled), 1)
-        res["first_colour_step_s"] = sum(s for i, s in steps if i == c0)
-        res["colour_steps_s"] = sum(col)
-        res["colour_step_ms"] = 1e3 * sum(col) / max(len(col), 1)
-        res["last_step_s"] = sum(s for i, s in steps if i == last and i != c0)
-        res.update({k: float(v) for k, v in model.stage_seconds.items()})
-    elif steps:
-        res["step_ms"] = 1e3 * res["iterations_s"] / len(steps)
-    return res
-
-
-@torch.no_grad()
-def evaluate(pipeline, repeats: int, picture: Optional[Path]) -> Dict[str, float]:
-    from virgi_ns.metrics import image_metrics
-    from virgi_ns.nerfstudio.model import VirgiModel
-
-    model = pipeline.model
-    model.eval()
-    dm = pipeline.datamanager
-    n = len(dm.eval_dataset)
-    scores: Dict[str, List[float]] = {"psnr": [], "ssim": [], "lpips": []}
-    render_s = 0.0
-    frames = 0
-    is_virgi = isinstance(model, VirgiModel)
-    gated_psnr, full_s, gated_s = [], 0.0, 0.0
-    se_sum = se_bright = px = px_bright = 0.0
-    for i in range(n):
-        gt = dm.cached_eval[i]["image"].to(model.device)  # first: caching undistorts and fixes the cameras
-        cam = dm.eval_dataset.cameras[i : i + 1].to(model.device)
-        gt = (gt.float() / 255.0 if gt.dtype == torch.uint8 else gt)[..., :3]
-        out = model.get_outputs_for_camera(cam)
-        for k, v in image_metrics(out["rgb"], gt).items():
-            scores[k].append(v)
-        # where the error sits: near-saturated photo pixels (highlights) against the rest
-        se = ((out["rgb"][..., :3].float().clamp(0, 1) - gt) ** 2).sum(-1)
-        bright = gt.amax(-1) >= BRIGHT
-        se_sum += float(se.sum())
-        se_bright += float(se[bright].sum())
-        px += se.numel()
-        px_bright += float(bright.sum())
-        for _ in range(repeats):
-            _sync()
-            t = time.perf_counter()
-            model.get_outputs_for_camera(cam)
-            _sync()
-            render_s += time.perf_counter() - t
-            frames += 1
-        if is_virgi and model.gate_ready():
-            _sync()
-            t = time.perf_counter()
-            full = model.render_camera(cam, gated=False)
-            _sync()
-            t2 = time.perf_counter()
-            gated = model.render_camera(cam, gated=True)
-            _sync()
-            full_s += t2 - t
-            gated_s += time.perf_counter() - t2
-            mse = float(((full["rgb"] - gated["rgb"]) ** 2).mean())
-            gated_psnr.append(-10 * math.log10(max(mse, 1e-12)))
-        if i == 0 and picture is not None:
-            save_picture(picture, gt, out)
-    res = {k: float(np.nanmean(v)) if v else float("nan") for k, v in scores.items()}
-    res["fps"] = frames / max(render_s, 1e-9)
-    res["bright_px_share"] = px_bright / max(px, 1.0)
-    res["bright_se_share"] = se_bright / max(se_sum, 1e-12)
-    res["gaussians"] = int(model.num_points)
-    if is_virgi and gated_psnr:
-        res["gate_kept"] = float(model.spec_gate.float().mean())
-        res["gate_speedup"] = full_s / max(gated_s, 1e-9)
-        res["gate_psnr_vs_full"] = float(np.mean(gated_psnr))
-    return res
-
-
-def save_picture(path: Path, gt: torch.Tensor, out: Dict[str, torch.Tensor]) -> None:
-    from PIL import Image
-
-    panels = [gt, out["rgb"]]
-    if "diffuse" in out:
-        panels += [out["diffuse"], (2 * out["specular"].abs()).clamp(0, 1)]
-    img = torch.cat([p[..., :3].float().clamp(0, 1).cpu() for p in panels], dim=1)
-    with atomic_path(path) as tmp:
-        Image.fromarray((img.numpy() * 255 + 0.5).astype(np.uint8)).save(tmp, format="PNG")
-
-
-def apply_settings(cfg, text: str) -> None:
-    """Set 'a.b.c=value,...' on a TrainerConfig (dict keys and attributes alike), typed as the
-    value already there; refuses unknown paths."""
-    flag = "--colour-variants"
-    for path, value in split_settings(text, flag):
-        *parents, leaf = path.split(".")
-        node = cfg
-        for name in parents:
-            node = node.get(name) if isinstance(node, dict) else getattr(node, name, None)
-            if node is None:
-                raise InputError(f"{flag}: no '{path}' in the trainer config")
-        if not (leaf in node if isinstance(node, dict) else hasattr(node, leaf)):
-            raise InputError(f"{flag}: no '{path}' in the trainer config")
-        old = node[leaf] if isinstance(node, dict) else getattr(node, leaf)
-        new = typed_like(old, value, path, flag)
-        if isinstance(node, dict):
-            node[leaf] = new
-        else:
-            setattr(node, leaf, new)
-
-
 def colour_variant_config(args: Args, scene: str, text: str):
     """virgi on imported geometry with the settings of one --colour-variants entry ('colour_steps'
     sets the colour stage's length, every other key is a dotted TrainerConfig path)."""
@@ -272,17 +84,13 @@ def colour_variant_config(args: Args, scene: str, text: str):
             rest.append(f"{key}={value}")
     cfg = virgi_trainer_config("virgi", geometry_steps=0, colour_steps=steps)
     cfg.pipeline.datamanager.dataparser = dataparser_for(scene, args.data)
-    apply_settings(cfg, ",".join(rest))
+    apply_settings(cfg, ",".join(rest), "--colour-variants")
     return cfg
 
 
 def _seed_suffix(seed: int, sep: str = "-") -> str:
     """Run and picture names: nothing for the first seed (42), '-seed43' etc. after it."""
     return "" if seed == 42 else f"{sep}seed{seed}"
-
-
-def _safe(name: str) -> str:
-    return "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
 
 
 def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]:
@@ -294,7 +102,7 @@ def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]
     out = args.out
 
     def record(name: str, pipeline, seconds: float, parts: Dict[str, float]) -> None:
-        res = evaluate(pipeline, args.fps_repeats, out / f"{scene}_{_safe(name)}{_seed_suffix(seed, '_')}.png")
+        res = evaluate(pipeline, args.fps_repeats, out / f"{scene}_{safe_name(name, '-_.')}{_seed_suffix(seed, '_')}.png")
         row = {"scene": scene, "method": name, "seed": seed, "train_s": seconds, **res, "train_breakdown": parts}
         console.log(row)
         rows.append(row)
@@ -342,7 +150,7 @@ def run_scene(args: Args, scene: str, seed: int = 42) -> List[Dict[str, object]]
     for name, cfg in configs:
         cfg.pipeline.model.geometry_from = ckpt
         cfg.machine.seed = seed
-        quiet(cfg, out, f"{scene}-{_safe(name)}{_seed_suffix(seed)}")
+        quiet(cfg, out, f"{scene}-{safe_name(name, '-_.')}{_seed_suffix(seed)}")
         trainer, secs, _, parts = train(cfg)
         record(name, trainer.pipeline, secs, parts)
         del trainer

@@ -15,7 +15,7 @@ from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
-from virgi_ns.colour.field import ColorFieldConfig
+from virgi_ns.colour.field import ColourFieldConfig
 from virgi_ns.nerfstudio import compat  # noqa: F401  (checkpoint-loading work-arounds for torch >= 2.6)
 from virgi_ns.nerfstudio.datamanager import VirgiDataManagerConfig
 from virgi_ns.nerfstudio.model import VirgiModelConfig
@@ -56,7 +56,7 @@ def virgi_trainer_config(
             model=VirgiModelConfig(
                 geometry_steps=geometry_steps,
                 colour_steps=colour_steps,
-                color_field=ColorFieldConfig(decoupled=decoupled),
+                color_field=ColourFieldConfig(decoupled=decoupled),
             ),
         ),
         optimizers={

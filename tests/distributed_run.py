@@ -13,7 +13,7 @@ import torch
 import torch.distributed as dist
 
 from method_configs.virgi import virgi_trainer_config
-from virgi_ns.colour.field import ColorFieldConfig
+from virgi_ns.colour.field import ColourFieldConfig
 from virgi_ns.nerfstudio import distributed
 from virgi_ns.nerfstudio.geometry_stage import strategy_step
 from virgi_ns.nerfstudio.pipeline import train_step, training_state
@@ -42,7 +42,7 @@ def tiny_config(root: Path, how: str = "keep", geometry_steps: int = 3, colour_s
     m.random_scale = 1.0
     m.num_downscales = 0
     m.background_color = "black"
-    m.color_field = ColorFieldConfig(log2_hashmap_size=12, levels=8, decoupled=batch_mode == "multiview")
+    m.color_field = ColourFieldConfig(log2_hashmap_size=12, levels=8, decoupled=batch_mode == "multiview")
     m.raster_backend = "reference"
     m.colour_init_steps = 20
     m.geometry_views_per_step = views

@@ -16,7 +16,7 @@ from typing import Iterator
 
 import torch
 
-from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField, view_directions
+from virgi_ns.colour.field import ColourFieldConfig, DecoupledColourField, view_directions
 from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.raster import Cameras
 
@@ -82,9 +82,9 @@ def build(seed: int = 0, per_object: int = 400, fit_steps: int = 150) -> EditSce
     opac = torch.full((n,), 0.9)
     cams = ring_cameras()
 
-    cfg = ColorFieldConfig(levels=6, log2_hashmap_size=12, base_res=8, growth=1.7, sh_dir_degree=4)
+    cfg = ColourFieldConfig(levels=6, log2_hashmap_size=12, base_res=8, growth=1.7, sh_dir_degree=4)
     torch.manual_seed(seed)
-    field = DecoupledColorField(cfg, torch.tensor([[-2.0, -2.0, -1.0], [2.0, 2.0, 1.0]]))
+    field = DecoupledColourField(cfg, torch.tensor([[-2.0, -2.0, -1.0], [2.0, 2.0, 1.0]]))
     c_d_true = torch.logit(ALBEDO[labels])
     centres = cams.camera_centers()
     spec_true = torch.stack([specular_logit(means, normals, labels, c) for c in centres])  # [V,N]

@@ -1,7 +1,9 @@
-"""Import a script of the repository (``bench/*.py``, ``scripts/*.py``) as a module, for tests."""
+"""Import a script of the repository (``bench/*.py``, ``scripts/*.py``) as a module, and the benchmarks'
+shared helpers (``bench/common``), for tests."""
 
 from __future__ import annotations
 
+import importlib
 import importlib.util
 import sys
 from contextlib import contextmanager
@@ -29,3 +31,12 @@ def script_module(relative: str, name: str) -> Iterator[ModuleType]:
     finally:
         sys.modules.pop(name, None)
         sys.path.remove(folder)
+
+
+def bench_module(name: str) -> ModuleType:
+    """``bench/common/<name>.py`` imported as ``common.<name>``, as a benchmark script imports it: ``bench/``
+    goes on ``sys.path`` (and stays, so the helpers' own imports of each other resolve)."""
+    bench = str(ROOT / "bench")
+    if bench not in sys.path:
+        sys.path.append(bench)
+    return importlib.import_module(f"common.{name}")

@@ -12,7 +12,7 @@ import torch
 from nerfstudio.engine.callbacks import TrainingCallbackLocation
 
 from method_configs.virgi import virgi_trainer_config
-from virgi_ns.colour.field import ColorFieldConfig
+from virgi_ns.colour.field import ColourFieldConfig
 from virgi_ns.gaussians import SH_C0
 from virgi_ns.io import save_ply
 from virgi_ns.nerfstudio.pipeline import train_step, training_state
@@ -45,7 +45,7 @@ def _config(scene: Scene, colour_init: str, geometry_steps: int = 0, decoupled: 
     use_scene(cfg, scene, pixel_budget=5 * 256)
     m = cfg.pipeline.model
     m.background_color = "black"
-    m.color_field = ColorFieldConfig(log2_hashmap_size=12, levels=8, decoupled=decoupled)
+    m.color_field = ColourFieldConfig(log2_hashmap_size=12, levels=8, decoupled=decoupled)
     m.raster_backend = "reference"
     m.colour_init = colour_init  # type: ignore[assignment]
     m.colour_init_steps = 200
@@ -140,7 +140,7 @@ def test_sh_warm_start_fits_the_view_dependent_colours(scene, random_ply, tmp_pa
     leaves to the photometric steps. The .ply is in the capture's frame with its SH coefficients
     there: in the rotated capture the run's directions must be turned back before evaluating them.
     The single-MLP baseline's view-dependent colour fits the same SH colours."""
-    from virgi_ns.colour.sh import sh_colors
+    from virgi_ns.colour.sh import sh_colours
 
     sc = rotated_copy(scene, tmp_path / "rotated", axis_angle((1.0, 2.0, 0.5), 70.0)) if rotated else scene
     _, colours = random_ply
@@ -180,7 +180,7 @@ def test_sh_warm_start_fits_the_view_dependent_colours(scene, random_ply, tmp_pa
                 dc_err = float((torch.sigmoid(c_d) - colours).abs().mean())
             for c in cams.camera_centers():  # every camera of the ring sees the whole scene
                 d = torch.nn.functional.normalize(means - c, dim=-1)
-                truth = sh_colors(sh, d @ R).clamp(0, 1)
+                truth = sh_colours(sh, d @ R).clamp(0, 1)
                 if decoupled:
                     pred = torch.sigmoid(c_d + fld.specular(f, d, h1, h2))
                 else:

@@ -89,7 +89,7 @@ def test_demo_pipeline_on_a_tiny_capture(tmp_path):
     torch.testing.assert_close(g.means, src.means, atol=1e-4, rtol=1e-4)
     # the trained run: a nerfstudio run directory that the virgi commands (and ns-viewer) load,
     # and the printed pick lands on the object the rule recoloured
-    from virgi_ns.cli.edit import load_run
+    from virgi_ns.nerfstudio.runs import load_run
     from virgi_ns.demo.run import next_commands
 
     run_cfg = out / "run" / "config.yml"

@@ -13,7 +13,7 @@ from rich.console import Console
 from virgi_ns.bench.recolor import AccuracyTime, Recolor, RuleArgs, psnr, run_accuracy_time, run_recolor, summary
 from virgi_ns.errors import InputError
 
-from script_module import script_module
+from script_module import bench_module, script_module
 from viewer_run import train_tiny
 from virgi_scene import make_scene
 
@@ -89,29 +89,29 @@ def bench_edit():
 def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench_edit, tmp_path, monkeypatch):
     """``bench/edit.py``: a scene of the set, run as a user would edit it (the photo the rule
     recolours most), then one row per --variants entry on the same loaded run (CPU, tiny scene)."""
-    from virgi_ns.bench.evalset import EvalScene, edit_view
+    EvalScene, edit_view = bench_module("evalset").EvalScene, bench_module("evalset").edit_view
+    settings, results = bench_module("settings"), bench_module("results")
 
-    import virgi_ns.cli.edit as cli_edit
+    import virgi_ns.nerfstudio.runs as runs
 
     loads = []
-    monkeypatch.setattr(cli_edit, "load_run", lambda cfg: loads.append(cfg) or (None, pipeline))
+    monkeypatch.setattr(runs, "load_run", lambda cfg: loads.append(cfg) or (None, pipeline))
     (tmp_path / "data" / "tiny").mkdir(parents=True)
     cfg = tmp_path / "config.yml"
     cfg.write_text("unused")
     scene = EvalScene("tiny", "tiny", BROAD.rule(), "every saturated pixel")
     args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": cfg}, out=tmp_path / "out", steps=20, repeats=1,
-                           pictures=1, variant_pictures=True, pick=True, dump_targets=True,
-                           pick_variants=["recolour=rule,recipe=joint,reference=click", "seed=1"],
+                           pictures=1, variant_pictures=True, pick=True,
                            variants=["pixel_batches=2", "steps=10,lr=0.05,rule=0/360/60/0.2/0.05", "other:steps=5",
                                      "tiny:recipe=staged,seg_samples=512,seg_steps=20", "steps=15,source=render",
                                      "steps=15,source=render+original,changed_target=edited"])
-    assert bench_edit.parse_variant("steps=20,pixel_batches=2") == {"steps": 20, "pixel_batches": 2}
-    assert bench_edit.parse_variant("source=render") == {"source": "render"}
-    assert bench_edit.parse_variant("rule=10/20/30/0.1/0.2")["rule"] == RuleArgs(10, 20, 30, 0.1, 0.2).rule()
+    assert settings.edit_settings("steps=20,pixel_batches=2") == {"steps": 20, "pixel_batches": 2}
+    assert settings.edit_settings("source=render") == {"source": "render"}
+    assert settings.edit_settings("rule=10/20/30/0.1/0.2")["rule"] == RuleArgs(10, 20, 30, 0.1, 0.2).rule()
     for bad in ("steps", "colour=3", "steps=many", "rule=1/2/3", "changed_target=chnage", "whole_image=ture",
                 "recipe=both", "source=paint"):
         with pytest.raises(InputError, match="--variants"):
-            bench_edit.parse_variant(bad)
+            settings.edit_settings(bad)
     assert bench_edit.variant_scene("fern:rule=1/2/3/0.1/0.1") == ("fern", "rule=1/2/3/0.1/0.1")
     assert bench_edit.variant_scene("steps=3") == (None, "steps=3")
     bench_edit.check_variant("tiny:steps=3", ["tiny"])
@@ -132,16 +132,8 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
 
     counts = [int(rule_mask(p, scene.rule).sum()) for p in photos]
     assert counts[rows[0]["edit_view"]] == max(counts)
-    # --dump-targets: the edit view's photo and render, and the rule on each (float16)
     import numpy as np
-    from virgi_ns.edit.recolor import recolor
 
-    dumped = np.load(tmp_path / "out" / "tiny_targets.npz")
-    photo = photos[rows[0]["edit_view"]].numpy()
-    assert np.abs(dumped["photo"] - photo).max() < 1e-3
-    for source, result in (("photo", "edited"), ("render", "exact")):
-        expect = recolor(torch.from_numpy(dumped[source].astype(np.float32)), scene.rule)[0].numpy()
-        assert np.abs(dumped[result] - expect).max() < 2e-3 and np.abs(dumped[result] - dumped[source]).max() > 0.05
     # 'other:' entries belong to another scene; 'tiny:' ones to this one, named without the prefix
     assert [r["variant"] for r in rows] == ["engine defaults", "pixel_batches=2",
                                             "steps=10,lr=0.05,rule=0/360/60/0.2/0.05",
@@ -151,7 +143,7 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     assert [r["timing_warm"]["steps"] for r in rows] == [20, 20, 10, 20, 15, 15]
     # source=render: the rule on the edit view's render is the edited image, an exact target; no
     # original, so the engine finds the changed pixels against its render
-    assert rows[4]["timing_warm"]["map_explained"] is None and rows[4]["timing_warm"]["changed_fraction"] < 1.0
+    assert rows[4]["timing_warm"]["changed_fraction"] < 1.0
     # source=render+original: the render as the original, so the changed pixels are the rule's mask there
     assert abs(rows[5]["timing_warm"]["changed_fraction"] - rows[0]["mask_fraction"]) < 0.5
     for r in rows:  # the diffuse-only ceiling: a per-Gaussian recolour of the diffuse part alone
@@ -173,11 +165,11 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     # --variant-pictures: each variant's own picture, named by its settings, showing its own fit
     from PIL import Image
 
-    assert bench_edit._safe("steps=10,lr=0.05,rule=0/360/60/0.2/0.05") == "steps_10_lr_0.05_rule_0_360_60_0.2_0.05"
+    assert results.safe_name("steps=10,lr=0.05,rule=0/360/60/0.2/0.05") == "steps_10_lr_0.05_rule_0_360_60_0.2_0.05"
     variant_pics = sorted(p.name for p in args.out.glob("tiny__*_view0.png"))
     entries = [v for v in args.variants if not v.startswith("other:")]  # named by the entry, prefix and all
-    assert variant_pics == sorted(f"tiny__{bench_edit._safe(v)}_view0.png" for v in entries)
-    assert bench_edit._safe("tiny:steps=3") != bench_edit._safe("steps=3")
+    assert variant_pics == sorted(f"tiny__{results.safe_name(v)}_view0.png" for v in entries)
+    assert results.safe_name("tiny:steps=3") != results.safe_name("steps=3")
     base_pic = np.asarray(Image.open(args.out / "tiny_view0.png"), dtype=float)
     other = np.asarray(Image.open(args.out / "tiny__pixel_batches_2_view0.png"), dtype=float)  # the same rule
     assert base_pic.shape == other.shape and abs(base_pic - other).max() > 0
@@ -187,43 +179,26 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     bench_edit.print_tables(rows, "cpu")
     _check_pick(rows, pipeline, scene.rule, args.out / "tiny_pick.png")
     assert "pick" not in rows[1]  # the pick is measured once, beside the engine defaults
-    # seed=1: the same click and selection, fitted from another start and other pixel sets
-    again = rows[0]["pick_variants"]["seed=1"]
-    assert (again["seed"], rows[0]["pick"]["seed"]) == (1, 0)
-    assert (again["pixel"], again["selected"]) == (rows[0]["pick"]["pixel"], rows[0]["pick"]["selected"])
-    assert again["propagation_psnr"] != rows[0]["pick"]["propagation_psnr"]
     # a refused pick is a failed row with its reason
     failed = {**rows[0], "pick": {"error": "no pixel to click", "rule_propagation_psnr": 30.0, "pass": False}}
     w = bench_edit.worst_case([rows[0], failed])
     assert (w["pick_rows"], w["pick_passed"]) == (2, int(rows[0]["pick"]["pass"]))
     assert w["pick_difference_db"] == rows[0]["pick"]["difference_db"]
     bench_edit.print_pick([rows[0], failed], [])
-    # --pick-criteria: passes and the worst difference per criterion; a refused pick fails at -inf
-    pick = lambda d: {"selected": 0.1, "iou": 0.8, "difference_db": d, "pass": d >= -1.0}  # noqa: E731
-    by = [{"scene": "a", "pick_by_criterion": {"x": pick(-0.2), "y": pick(-3.0)}},
-          {"scene": "b", "pick_by_criterion": {"x": pick(-1.5), "y": {"error": "no pixel", "pass": False}}}]
-    assert bench_edit.criteria_summary(by) == {"x": {"passed": 1, "rows": 2, "worst_db": -1.5},
-                                               "y": {"passed": 0, "rows": 2, "worst_db": -math.inf}}
-    # merged calls may have measured other criteria: each is summed over the rows that have it
-    by.append({"scene": "c", "pick_by_criterion": {"z": pick(-0.5)}})
-    assert bench_edit.criteria_summary(by)["z"] == {"passed": 1, "rows": 1, "worst_db": -0.5}
-    assert bench_edit.criteria_summary(by)["x"]["rows"] == 2
-    bench_edit.print_pick(by, [])
     # --merge: two calls' results as one table, picks re-judged, the latency lines kept
     latency = {"gaussians": 10, "image": "4x3", "renderer": "contributions", "gate_kept": 1.0, "pixel": [1, 1],
                "selected": 0.5, "live_steps": 20, "steps": 100, "repeats": 1, "target_s": 0.1,
                "drag": {"fit_s": 0.02, "render_s": 0.01, "total_s": 0.03},
                "release": {"fit_s": 0.05, "commit_s": 0.02, "render_s": 0.01, "total_s": 0.08}}
-    stale = json.loads(json.dumps(rows, default=float))  # pass marks as another WITHIN_DB would have set them
-    for p in stale[0]["pick_variants"].values():
-        p["pass"] = not p["pass"]
+    stale = json.loads(json.dumps(rows, default=float))  # a pass mark as another WITHIN_DB would have set it
+    stale[0]["pick"]["pass"] = not stale[0]["pick"]["pass"]
     for name in ("a", "b"):
         (tmp_path / f"{name}.json").write_text(json.dumps({"device": "cpu", "commit": f"commit-{name}", "scenes": stale,
                                                            **({"pick_latency": latency} if name == "a" else {})},
                                                           default=float))
     m = bench_edit.merged([tmp_path / "a.json", tmp_path / "b.json"])
-    for p in m["scenes"][0]["pick_variants"].values():  # judged again on merging
-        assert p["pass"] == (p["difference_db"] >= -1.0)
+    p = m["scenes"][0]["pick"]  # judged again on merging
+    assert p["pass"] == (p["difference_db"] >= -1.0)
     assert len(m["scenes"]) == 2 * len(rows) and m["worst_case"]["rows"] == 2
     w = m["worst_case"]
     assert w["pick_rows"] == 2 and w["pick_difference_db"] == rows[0]["pick"]["difference_db"]
@@ -237,42 +212,6 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     assert mm["source_digests"] == [None, None, None]  # these calls recorded none; a merge keeps one per call
     with pytest.raises(InputError, match="--merge"):
         bench_edit.merged([tmp_path / "missing.json"])
-    # a call made while another default held: its rows are named against today's defaults
-    today = EditConfig().changed_target
-    then = {**rows[0]["engine_defaults"], "changed_target": "map" if today == "affine" else "affine"}
-    old = [{**rows[0], "engine_defaults": then}, {**rows[1], "engine_defaults": then, "variant": f"changed_target={today}"},
-           {**rows[4], "engine_defaults": then}]
-    (tmp_path / "c.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": old}, default=float))
-    m = bench_edit.merged([tmp_path / "c.json"])
-    labels = [f"changed_target={then['changed_target']}", "engine defaults",
-              f"steps=15,changed_target={then['changed_target']},source=render"]
-    assert [r["variant"] for r in m["scenes"]] == labels
-    # a merge of that merge keeps the labels
-    (tmp_path / "m.json").write_text(json.dumps(m, default=float))
-    assert [r["variant"] for r in bench_edit.merged([tmp_path / "m.json"])["scenes"]] == labels
-    # a variant that changed nothing in its call (a refit, seed=0) keeps a label apart from the defaults, merged twice
-    seed = EditConfig().seed
-    (tmp_path / "r.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": [
-        rows[0], {**rows[0], "variant": f"seed={seed}"}]}, default=float))
-    twice = bench_edit.merged([tmp_path / "r.json"])
-    (tmp_path / "r2.json").write_text(json.dumps(twice, default=float))
-    assert [r["variant"] for r in bench_edit.merged([tmp_path / "r2.json"])["scenes"]] == [
-        "engine defaults", f"engine defaults (repeat: seed={seed})"]
-    # ... and once the defaults change, the repeat is named by what it ran, as its defaults row is
-    then = {**rows[0]["engine_defaults"], "changed_target": "map" if today == "affine" else "affine"}
-    for label in (f"engine defaults (repeat: seed={seed})", f"seed={seed} (repeat of defaults)"):  # an older suffix
-        (tmp_path / "r3.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": [
-            {**rows[0], "engine_defaults": then}, {**rows[0], "engine_defaults": then, "variant": label}]}, default=float))
-        assert [r["variant"] for r in bench_edit.merged([tmp_path / "r3.json"])["scenes"]] == [
-            f"changed_target={then['changed_target']}", f"changed_target={then['changed_target']} (repeat: seed={seed})"]
-    # a call made before a field existed ran with the value that field was added with (BEFORE_IT_EXISTED)
-    ancient = {k: v for k, v in rows[0]["engine_defaults"].items() if k not in bench_edit.BEFORE_IT_EXISTED}
-    (tmp_path / "old.json").write_text(json.dumps({"device": "cpu", "commit": None, "scenes": [
-        {**rows[0], "engine_defaults": ancient}, {**rows[0], "engine_defaults": ancient, "variant": "lr_schedule=cosine"}]},
-        default=float))
-    # (written out: a field missing from BEFORE_IT_EXISTED would name an old call's rows by today's defaults)
-    assert [r["variant"] for r in bench_edit.merged([tmp_path / "old.json"])["scenes"]] == [
-        "lr_schedule=constant,lr_hold=0.0,large_edit_seg_rate_scale=1.0", "lr_hold=0.0,large_edit_seg_rate_scale=1.0"]
 
 
 def test_a_variant_for_a_scene_another_process_runs_is_skipped_not_refused(bench_edit, tmp_path, monkeypatch):
@@ -296,11 +235,11 @@ def test_edit_bench_takes_each_figure_as_the_median_over_edit_seeds(pipeline, be
     the medians; a variant's row too."""
     import statistics
 
-    from virgi_ns.bench.evalset import EvalScene
+    EvalScene = bench_module("evalset").EvalScene
 
-    import virgi_ns.cli.edit as cli_edit
+    import virgi_ns.nerfstudio.runs as runs
 
-    monkeypatch.setattr(cli_edit, "load_run", lambda cfg: (None, pipeline))
+    monkeypatch.setattr(runs, "load_run", lambda cfg: (None, pipeline))
     (tmp_path / "data" / "tiny").mkdir(parents=True)
     scene = EvalScene("tiny", "tiny", BROAD.rule(), "every saturated pixel")
     args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": tmp_path / "config.yml"}, out=tmp_path / "out",
@@ -357,20 +296,6 @@ def _check_pick(rows, pipeline, rule, picture_png):
     assert p["pass"] == (p["difference_db"] >= -1.0)
     assert p["contiguous"] is True  # the product's selection: connected to the click
     assert len(p["per_view_propagation"]) == len(rows[0]["per_view"])
-    # the pick variants: the same click with their settings recorded; recolour=rule gives the
-    # selection the rule's colours on the render and keeps the render elsewhere
-    from virgi_ns.edit.recolor import recolor
-
-    pv = rows[0]["pick_variants"]
-    assert list(pv) == ["recolour=rule,recipe=joint,reference=click", "seed=1"]
-    ruled = pv["recolour=rule,recipe=joint,reference=click"]
-    assert (ruled["recolour"], ruled["recipe"], ruled["reference"]) == ("rule", "joint", "click")
-    assert ruled["pixel"] == p["pixel"] and ruled["selected"] == p["selected"]
-    strip = np.asarray(Image.open(picture_png.with_name("tiny_pick_rule_joint_click.png"))).astype(np.float64) / 255.0
-    edited, sel = strip[:, W : 2 * W], strip[:, 2 * W : 3 * W, 0] > 0.5
-    want = np.where(sel[..., None], recolor(render, rule)[0].numpy(), render.numpy())
-    assert np.abs(edited - want).max() <= 1.0 / 255.0 + 1e-6
-    assert ruled["propagation_psnr"] != p["propagation_psnr"]  # another fit
 
 
 def test_a_missed_target_is_judged_against_its_ceiling_on_the_same_run(bench_edit):
@@ -403,27 +328,18 @@ def test_a_missed_target_is_judged_against_its_ceiling_on_the_same_run(bench_edi
     assert (w["rows"], w["passed"], w["cannot"]) == (4, 1, 3)
 
 
-def test_pick_variants_name_known_options_only():
-    from virgi_ns.bench.pick import parse_pick_variant
-
-    assert parse_pick_variant("contiguous=false,recipe=joint") == {"contiguous": "false", "recipe": "joint"}
-    assert parse_pick_variant("seed=2,mode=shift") == {"seed": "2", "mode": "shift"}
-    for bad in ("contiguous=no", "connected=false", "recipe=paper", "seed=x", "mode=tint"):
-        with pytest.raises(InputError, match="is not one of"):
-            parse_pick_variant(bad)
-
-
 def test_pick_tolerance_is_the_tools_default():
     import dataclasses
 
-    from virgi_ns.bench.pick import TOLERANCE
     from virgi_ns.cli.edit import Pick
+
+    TOLERANCE = bench_module("clicks").TOLERANCE
 
     assert TOLERANCE == {f.name: f.default for f in dataclasses.fields(Pick)}["tolerance"]
 
 
 def test_benchmark_settings_are_split_and_typed_strictly():
-    from virgi_ns.bench.settings import split_settings, typed_like
+    split_settings, typed_like = bench_module("settings").split_settings, bench_module("settings").typed_like
 
     assert split_settings("a=1, b.c = x,", "--f") == [("a", "1"), ("b.c", "x")]
     assert typed_like(3, "7", "a", "--f") == 7 and typed_like(0.5, "2e-2", "a", "--f") == 0.02
@@ -460,7 +376,7 @@ def _components_by_flood(mask):
 
 
 def _click_by_brute_force(mask):
-    """The click rule of virgi_ns.bench.pick computed directly: the largest component (the first
+    """The click rule of bench/common/clicks.py computed directly: the largest component (the first
     among equals), each pixel's city-block distance to every pixel outside it (a ring beyond the
     image included), the deepest, nearest the component's centroid, first in raster order."""
     import numpy as np
@@ -480,7 +396,7 @@ def _click_by_brute_force(mask):
 
 
 def test_click_pixel_rule_on_hand_made_masks():
-    from virgi_ns.bench.pick import click_pixel
+    click_pixel = bench_module("clicks").click_pixel
 
     # a 9x9 square and a 3x41 bar touching it only at a corner: 4-connected they are two components
     # and the bar is the larger (123 > 81), though the square is deeper (depth 5 at its centre);
@@ -506,7 +422,9 @@ def test_pick_latency_times_the_viewer_frames_on_a_tiny_random_scene(bench_edit)
     """The latency protocol on a small random scene (CPU, a short pick config): its figures, and the
     frames it times are the renders of the live edit and of the committed stack (compared with
     render_view, which renders without the viewer's render path)."""
-    from virgi_ns.bench.pick import TOLERANCE, ViewerRender, drag_frame, release_frame, top_up_frame, viewer_latency
+    clicks = bench_module("clicks")
+    TOLERANCE, ViewerRender, viewer_latency = clicks.TOLERANCE, clicks.ViewerRender, clicks.viewer_latency
+    drag_frame, release_frame, top_up_frame = clicks.drag_frame, clicks.release_frame, clicks.top_up_frame
     from virgi_ns.edit.engine import EditConfig
     from virgi_ns.edit.pick import PickSession
     from virgi_ns.edit.scene import render_view
@@ -560,7 +478,7 @@ def test_pick_latency_times_the_viewer_frames_on_a_tiny_random_scene(bench_edit)
 def test_the_render_cache_reads_the_latency_hosts_gaussians(bench_edit):
     """The viewer stand-in of the latency protocol holds its Gaussians where the render cache (the GPU
     frames' path) reads a model's: the cache's geometry is the stand-in's."""
-    from virgi_ns.bench.pick import ViewerRender
+    ViewerRender = bench_module("clicks").ViewerRender
     from virgi_ns.nerfstudio.render_cache import RenderCache
 
     scene, _ = bench_edit.million_scene(300, 16, 9, "cpu")
@@ -571,7 +489,8 @@ def test_the_render_cache_reads_the_latency_hosts_gaussians(bench_edit):
 
 
 def test_rows_split_over_gpus_keep_each_capture_together_and_balance_the_work():
-    from virgi_ns.bench.evalset import EVAL_SET, REAL_CAPTURE_COST, split_for_devices
+    evalset = bench_module("evalset")
+    EVAL_SET, REAL_CAPTURE_COST, split_for_devices = evalset.EVAL_SET, evalset.REAL_CAPTURE_COST, evalset.split_for_devices
 
     order = [s.name for s in EVAL_SET]
     capture = {s.name: s.capture for s in EVAL_SET}

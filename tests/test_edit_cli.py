@@ -206,23 +206,15 @@ def test_original_image_limits_the_fit_to_changed_pixels(saved, tmp_path):
         assert abs(fr[0] - float(mask.float().mean())) < 0.03 and fr[0] < 0.9, fr
         assert fr[1] == 1.0
         run(Reset(saved["config"]), _quiet(), pl)  # the next edit starts from the unedited render again
-        msg = run(_apply(saved, original=orig, changed_target="map", map_fallback="edited"), _quiet(), pl)
-        assert msg.count("colour map of the change)") == 1 and "else render" not in msg, msg
-        run(Reset(saved["config"]), _quiet(), pl)
-        msg = run(_apply(saved, original=orig, changed_target="change"), _quiet(), pl)
-        assert "render + change)" in msg, msg
+        msg = run(_apply(saved, original=orig, changed_target="edited"), _quiet(), pl)
+        assert "(original given, edited image)" in msg, msg
         st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
-        assert st.entries[0].edit.info["fit"].endswith("render + change)")
+        assert st.entries[0].edit.info["fit"].endswith("edited image)")
         assert st.entries[0].edit.info["changed_fraction"] >= 0.2  # a large edit: the map start
         assert st.entries[0].edit.info["start"] == "colour map"
-        run(Reset(saved["config"]), _quiet(), pl)
-        run(_apply(saved, original=orig, map_init=False), _quiet(), pl)
-        st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
-        assert st.entries[0].edit.info["start"] == "unedited layer"
         assert st.entries[0].edit.info["recipe"] == "joint"
         run(Reset(saved["config"]), _quiet(), pl)
-        msg = run(_apply(saved, original=orig, recipe="staged", changed_target="transfer"), _quiet(), pl)
-        assert "render + logit change)" in msg, msg
+        run(_apply(saved, original=orig, recipe="staged"), _quiet(), pl)
         st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
         assert st.entries[0].edit.info["recipe"] == "staged" and st.entries[0].edit.info["start"] == "colour map"
         small = tmp_path / "small.png"

@@ -1,4 +1,4 @@
-"""DecoupledColorField: shapes, the one-way residual links, the baseline switch, the box mapping."""
+"""DecoupledColourField: shapes, the one-way residual links, the baseline switch, the box mapping."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from virgi_ns.colour.field import (
-    ColorFieldConfig,
-    DecoupledColorField,
+    ColourFieldConfig,
+    DecoupledColourField,
     direction_monomials,
     monomial_degree,
     sh_monomial_matrix,
@@ -19,8 +19,8 @@ from virgi_ns.colour.field import (
 AABB = torch.tensor([[-1.0, -2.0, 0.0], [1.0, 2.0, 4.0]])
 
 
-def small(**kw) -> ColorFieldConfig:
-    return ColorFieldConfig(log2_hashmap_size=12, **kw)
+def small(**kw) -> ColourFieldConfig:
+    return ColourFieldConfig(log2_hashmap_size=12, **kw)
 
 
 def rand_inputs(n: int = 64, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
@@ -31,22 +31,27 @@ def rand_inputs(n: int = 64, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]
 
 
 def test_default_config_matches_compact3dgs_grid():
-    cfg = ColorFieldConfig()
+    cfg = ColourFieldConfig()
     assert (cfg.levels, cfg.features_per_level, cfg.log2_hashmap_size, cfg.base_res) == (16, 2, 19, 16)
     assert cfg.max_res == round(16 * 1.447**15)
-    field = DecoupledColorField(cfg, AABB)
+    field = DecoupledColourField(cfg, AABB)
     assert field.hash.hash_table.shape == (16 * 2**19, 2)
     # the finest level's resolution follows from the growth factor
     assert abs(float(field.hash.scalings[-1]) - 16 * 1.447**15) <= 2.0
     assert field.feature_dim == 32 and field.dir_dim == 16
 
 
-def test_shapes_and_colour_formula():
-    torch.manual_seed(0)
-    field = DecoupledColorField(small(), AABB)
+def glossy(seed: int):
+    """(field, positions, directions, its outputs): a small field whose specular head is not zero."""
+    torch.manual_seed(seed)
+    field = DecoupledColourField(small(), AABB)
     torch.nn.init.normal_(field.spec_l3.weight, std=0.5)
     pos, dirs = rand_inputs()
-    out = field(pos, dirs)
+    return field, pos, dirs, field(pos, dirs)
+
+
+def test_shapes_and_colour_formula():
+    field, pos, dirs, out = glossy(0)
     assert out["c_d"].shape == out["c_s"].shape == out["rgb"].shape == (64, 3)
     torch.testing.assert_close(out["rgb"], torch.sigmoid(out["c_d"] + out["c_s"]))
     assert out["c_s"].abs().max() > 0
@@ -60,7 +65,7 @@ def test_shapes_and_colour_formula():
 
 
 def test_fresh_field_is_purely_diffuse():
-    field = DecoupledColorField(small(), AABB)
+    field = DecoupledColourField(small(), AABB)
     pos, dirs = rand_inputs()
     out = field(pos, dirs)
     assert torch.count_nonzero(out["c_s"]) == 0
@@ -70,11 +75,7 @@ def test_fresh_field_is_purely_diffuse():
 
 
 def test_residual_links_are_one_way():
-    torch.manual_seed(1)
-    field = DecoupledColorField(small(), AABB)
-    torch.nn.init.normal_(field.spec_l3.weight, std=0.5)
-    pos, dirs = rand_inputs()
-    out = field(pos, dirs)
+    field, pos, dirs, out = glossy(1)
     # the diffuse colour has no gradient into the specular branch
     grads = torch.autograd.grad(out["c_d"].sum(), [field.spec_l1.weight, field.spec_l2.weight, field.spec_l3.weight],
                                 allow_unused=True)
@@ -92,7 +93,7 @@ def test_residual_links_are_one_way():
 
 def test_without_residual_links_spec_ignores_diffuse_mlp():
     torch.manual_seed(2)
-    field = DecoupledColorField(small(residual_links=False), AABB)
+    field = DecoupledColourField(small(residual_links=False), AABB)
     torch.nn.init.normal_(field.spec_l3.weight, std=0.5)
     pos, dirs = rand_inputs()
     out = field(pos, dirs)
@@ -103,7 +104,7 @@ def test_without_residual_links_spec_ignores_diffuse_mlp():
 
 def test_single_mlp_baseline():
     torch.manual_seed(3)
-    field = DecoupledColorField(small(decoupled=False), AABB)
+    field = DecoupledColourField(small(decoupled=False), AABB)
     assert not any(n.startswith("spec_") for n, _ in field.named_parameters())
     pos, dirs = rand_inputs()
     out = field(pos, dirs)
@@ -116,7 +117,7 @@ def test_single_mlp_baseline():
 
 
 def test_box_mapping_and_contraction():
-    field = DecoupledColorField(small(), AABB)
+    field = DecoupledColourField(small(), AABB)
     centre = AABB.mean(0, keepdim=True)
     torch.testing.assert_close(field.normalized_positions(centre), torch.full((1, 3), 0.5))
     torch.testing.assert_close(field.normalized_positions(AABB[1:2]), torch.full((1, 3), 0.75))
@@ -139,7 +140,7 @@ def test_view_directions():
 def test_field_fits_a_view_dependent_colour():
     """Diffuse albedo plus a lobe along +z: the trained field reproduces it and puts the lobe in c_s."""
     torch.manual_seed(4)
-    field = DecoupledColorField(small(), AABB)
+    field = DecoupledColourField(small(), AABB)
     pos, _ = rand_inputs(256, seed=5)
     albedo = torch.sigmoid(torch.stack([pos[:, 0], pos[:, 1] * 0.5, -pos[:, 0]], dim=-1))
     opt = torch.optim.Adam(field.parameters(), lr=1e-2)
@@ -195,7 +196,7 @@ def test_grid_encoding_matches_nerfstudio_and_a_float64_reference():
     gradient through nerfstudio's per-corner indexing."""
     from nerfstudio.field_components.encodings import HashEncoding
 
-    field = DecoupledColorField(small(levels=6, base_res=4, growth=2.0), AABB)
+    field = DecoupledColourField(small(levels=6, base_res=4, growth=2.0), AABB)
     ours = field.hash
     kw = dict(num_levels=6, min_res=4, max_res=ours.scalings[-1].item(), log2_hashmap_size=12, features_per_level=2,
               implementation="torch")
@@ -220,7 +221,7 @@ def test_grid_encoding_matches_nerfstudio_and_a_float64_reference():
 def test_specular_split_by_what_a_view_changes(links):
     """MLP_spec from its direction-independent parts plus the per-view rest equals MLP_spec."""
     torch.manual_seed(0)
-    field = DecoupledColorField(small(residual_links=links), AABB).double()
+    field = DecoupledColourField(small(residual_links=links), AABB).double()
     for layer in (field.spec_l1, field.spec_l2, field.spec_l3):
         torch.nn.init.normal_(layer.weight, std=0.3)
         torch.nn.init.normal_(layer.bias, std=0.3)

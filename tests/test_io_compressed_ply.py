@@ -12,7 +12,7 @@ import torch
 from virgi_ns.errors import InputError
 from virgi_ns.gaussians import SH_C0, Gaussians
 from virgi_ns.io import decode_splat, load_splat, save_compressed_ply
-from virgi_ns.io.compressed_ply import CHUNK, COLOR_PROPS, PACKED, POS_PROPS, SCALE_PROPS
+from virgi_ns.io.compressed_ply import CHUNK, COLOUR_PROPS, PACKED, POS_PROPS, SCALE_PROPS
 from virgi_ns.io.plyfmt import ply_bytes
 
 
@@ -31,7 +31,7 @@ def _struct(names, dtype, rows):
 
 def test_hand_packed_gaussian_decodes_to_known_values():
     # chunk ranges chosen so that the 11/10/11-bit position fields read back as integers
-    chunk = _struct(POS_PROPS + SCALE_PROPS + COLOR_PROPS, "<f4",
+    chunk = _struct(POS_PROPS + SCALE_PROPS + COLOUR_PROPS, "<f4",
                     [[0, 0, 0, 2047, 1023, 2047, -1, -2, -3, 1, 2, 3, 0, 0, 0, 1, 1, 1]])
     w, x, z = 0.3, -0.2, 0.1  # y is the largest component (index 2 of w x y z)
     f = lambda v: round((v / math.sqrt(2) + 0.5) * 1023)  # noqa: E731

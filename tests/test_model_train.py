@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from method_configs.virgi import virgi_trainer_config
-from virgi_ns.colour.field import ColorFieldConfig
+from virgi_ns.colour.field import ColourFieldConfig
 from virgi_ns.nerfstudio.cameras import raster_cameras
 from virgi_ns.nerfstudio.pipeline import train_step, training_state
 from virgi_ns.raster import Request, rasterize
@@ -38,7 +38,7 @@ def build(scene: Scene, steps: int, decoupled: bool = True, batch_mode: str = "m
     m = cfg.pipeline.model
     m.geometry_from = scene.ply
     m.background_color = "black"
-    m.color_field = ColorFieldConfig(log2_hashmap_size=12, levels=8, decoupled=decoupled)
+    m.color_field = ColourFieldConfig(log2_hashmap_size=12, levels=8, decoupled=decoupled)
     m.raster_backend = "reference"
     cfg.optimizers["field_mlp"]["optimizer"].lr = 5e-3  # few steps: learn faster than the 40k-step recipe
     pipeline = cfg.pipeline.setup(device="cpu", test_mode="val")
@@ -202,7 +202,7 @@ def test_cpu_geometry_stage_then_freeze(scene):
     m.random_scale = 1.0
     m.num_downscales = 0
     m.background_color = "black"
-    m.color_field = ColorFieldConfig(log2_hashmap_size=12, levels=8)
+    m.color_field = ColourFieldConfig(log2_hashmap_size=12, levels=8)
     pipeline = cfg.pipeline.setup(device="cpu", test_mode="val")
     optimizers, cbs = training_state(cfg, pipeline)
     model = pipeline.model

@@ -23,7 +23,7 @@ model: !!python/object:virgi_ns.model.VirgiModelConfig
 
 
 def test_a_config_naming_the_old_module_paths_loads_the_new_classes():
-    from virgi_ns.colour.field import ColorFieldConfig
+    from virgi_ns.colour.field import ColourFieldConfig
     from virgi_ns.nerfstudio.datamanager import VirgiDataManager, VirgiDataManagerConfig
     from virgi_ns.nerfstudio.model import VirgiModel, VirgiModelConfig
     from virgi_ns.nerfstudio.pipeline import VirgiPipeline, VirgiPipelineConfig
@@ -34,15 +34,25 @@ def test_a_config_naming_the_old_module_paths_loads_the_new_classes():
     assert cfg.datamanager.tile_size == 16
     assert type(cfg.model) is VirgiModelConfig and cfg.model._target is VirgiModel
     assert cfg.model.colour_init_steps == 7
-    assert type(cfg.model.color_field) is ColorFieldConfig and cfg.model.color_field.hidden == 32
+    assert type(cfg.model.color_field) is ColourFieldConfig and cfg.model.color_field.hidden == 32
 
     # a whole saved config, as written before the move, loads as today's (the modules that moved are
     # renamed; virgi_ns.nerfstudio.trainer came later and never lived elsewhere)
     new = yaml.dump(virgi_trainer_config())
-    old = new.replace("virgi_ns.colour.field.", "virgi_ns.field.")
+    old = new.replace("virgi_ns.colour.field.ColourFieldConfig", "virgi_ns.field.ColorFieldConfig")
     for module in ("model", "datamanager", "pipeline"):
         old = old.replace(f"virgi_ns.nerfstudio.{module}.", f"virgi_ns.{module}.")
     for name in ("model.VirgiModelConfig", "datamanager.VirgiDataManagerConfig", "pipeline.VirgiPipelineConfig",
                  "field.ColorFieldConfig"):
         assert f"virgi_ns.{name}" in old
     assert yaml.dump(yaml.load(old, Loader=yaml.Loader)) == new
+    # and one written after the move, when the colour field's config was spelt ColorFieldConfig
+    spelt = new.replace("ColourFieldConfig", "ColorFieldConfig")
+    assert spelt != new and yaml.dump(yaml.load(spelt, Loader=yaml.Loader)) == new
+
+
+def test_the_fast_loader_takes_every_name_of_the_colour_fields_config():
+    from virgi_ns.nerfstudio.saved_run import FIELD_CLASSES
+
+    assert set(FIELD_CLASSES) == {"virgi_ns.colour.field.ColourFieldConfig", "virgi_ns.colour.field.ColorFieldConfig",
+                                  "virgi_ns.field.ColorFieldConfig"}

@@ -1,9 +1,8 @@
-"""Every way a pixel batch applies its sparse matrix (``EditConfig.batch_composite``) against a dense
-float64 oracle, through :func:`pixel_batches`, and in a whole edit against the original CSR (CPU)."""
+"""Both ways a pixel batch applies its sparse matrix (``EditConfig.batch_composite``: ``csr`` and ``fused``)
+against a dense float64 oracle, through :func:`pixel_batches`, and in a whole edit against each other."""
 
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 from types import SimpleNamespace
@@ -15,13 +14,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import edit_scene as es  # noqa: E402
 
 from virgi_ns.edit.engine import EditConfig, EditEngine  # noqa: E402
-from virgi_ns.edit.pixels import COMPOSITES, CompositeOp, near_changed, parse_composite, pixel_batches  # noqa: E402
+from virgi_ns.edit.pixels import CompositeOp, pixel_batches  # noqa: E402
 from virgi_ns.edit.recolor import RecolorRule, recolor  # noqa: E402
 from virgi_ns.edit.scene import render_view  # noqa: E402
 
-KINDS = list(COMPOSITES) + ["embedding_bag/index_add", "segment/csr32"]
-FUSED_KINDS = ["fused", "fused_atomics"]
-MATRIX_KINDS = [k for k in KINDS if k not in FUSED_KINDS]  # the kinds that apply a CompositeOp
+KINDS = ["csr", "fused"]
 
 
 def random_entries(p: int = 200, U: int = 150, used: int = 120, max_per_row: int = 30, seed: int = 0):
@@ -44,14 +41,13 @@ def rel_err(got: torch.Tensor, ref: torch.Tensor) -> float:
     return float((got.detach().double() - ref).abs().max() / ref.abs().max())
 
 
-@pytest.mark.parametrize("kind", MATRIX_KINDS)
-def test_composite_matches_dense_oracle(kind):
+def test_composite_matches_dense_oracle():
     """Forward ``A @ C`` and the gradient ``A^T @ g`` equal a float64 dense product to float32 rounding."""
     p, U = 200, 150
     rows, cols, vals = random_entries(p, U)
     assert (rows.bincount(minlength=p) == 0).any() and (cols.bincount(minlength=U) == 0).any()
     A = dense(rows, cols, vals, p, U)
-    op = CompositeOp(kind, rows, cols, vals, p, U)
+    op = CompositeOp(rows, cols, vals, p, U)
     g = torch.Generator().manual_seed(1)
     C = torch.rand(U, 3, generator=g, requires_grad=True)
     w = torch.randn(p, 3, generator=g)
@@ -66,27 +62,26 @@ def test_composite_matches_dense_oracle(kind):
 
 
 def test_composite_without_entries():
-    """A batch that meets no Gaussian renders zeros and passes a zero gradient, whatever the kind."""
+    """A batch that meets no Gaussian renders zeros and passes a zero gradient."""
     e = torch.zeros(0, dtype=torch.long)
-    for kind in MATRIX_KINDS:
-        op = CompositeOp(kind, e, e, torch.zeros(0), 4, 5)
-        C = torch.rand(5, 3, requires_grad=True)
-        out = op(C)
-        assert out.shape == (4, 3) and bool((out == 0).all()), kind
-        (grad,) = torch.autograd.grad(out.sum(), C)
-        assert bool((grad == 0).all()), kind
+    op = CompositeOp(e, e, torch.zeros(0), 4, 5)
+    C = torch.rand(5, 3, requires_grad=True)
+    out = op(C)
+    assert out.shape == (4, 3) and bool((out == 0).all())
+    (grad,) = torch.autograd.grad(out.sum(), C)
+    assert bool((grad == 0).all())
 
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("kind", FUSED_KINDS)
-def test_fused_sets_match_a_dense_oracle(device, kind):
-    """The fused kinds' loss of each pixel set and its gradient to the colours equal a float64 dense
+@pytest.mark.parametrize("gathered", [True, False])
+def test_fused_sets_match_a_dense_oracle(device, gathered):
+    """The fused kind's loss of each pixel set and its gradient to the colours equal a float64 dense
     computation (the composite, the weighted L1 mean, its subgradient); the device counter takes the
     sets in turn and wraps. On a GPU this checks the CUDA kernels (the gradient gathered per Gaussian,
-    or scattered by atomics), on the CPU the torch reference."""
+    or, without the sorted entries, scattered by atomics), on the CPU the torch reference."""
     P, U = 300, 150
     rows, cols, vals = random_entries(P, U, seed=4)
     dev = torch.device(device)
@@ -98,10 +93,12 @@ def test_fused_sets_match_a_dense_oracle(device, kind):
     C = torch.rand(U, 3, generator=g).to(dev)
     A = dense(rows, cols, vals, P, U)
     for weighted in (False, True):
-        batches = pixel_batches(contrib, target, bg, 3, 7, changed if weighted else None, 0.6, composite=kind)
+        batches = pixel_batches(contrib, target, bg, 3, 7, changed if weighted else None, 0.6, composite="fused")
         sets = batches[0].sets
         assert sets is not None and all(b.sets is sets for b in batches) and len(sets) == 3
-        assert sets.kind == kind and (sets.by_gaussian is not None) == (kind == "fused" and device == "cuda")
+        assert sets.kind == "fused" and (sets.by_gaussian is not None) == (device == "cuda")
+        if not gathered:
+            sets.by_gaussian = None
         sets.restart()
         for step in range(4):  # the fourth wraps to the first set
             b = batches[step % 3]
@@ -127,7 +124,7 @@ def test_the_gathered_gradient_over_long_and_short_runs_of_one_gaussian():
     """The gathered gradient (GPU) where one Gaussian is in every pixel (a run of thousands of entries
     over many warps' chunks), a few in many and most in few, over sets whose entries start anywhere
     in a chunk: the kernels' loss and gradient equal a float64 dense computation, and the scattered
-    kernel's."""
+    kernel's (the sets without their sorted entries)."""
     P, U = 5000, 400
     g = torch.Generator().manual_seed(11)
     per_row = [torch.cat([torch.tensor([0]), torch.randperm(U - 1, generator=g)[: int(k)] + 1])
@@ -143,8 +140,10 @@ def test_the_gathered_gradient_over_long_and_short_runs_of_one_gaussian():
     C = torch.rand(U, 3, generator=g).to(dev)
     A = dense(rows, cols, vals, P, U)
     grads = {}
-    for kind in FUSED_KINDS:
-        batches = pixel_batches(contrib, target, bg, 5, 3, changed, 0.5, composite=kind)
+    for kind in ("gathered", "scattered"):
+        batches = pixel_batches(contrib, target, bg, 5, 3, changed, 0.5, composite="fused")
+        if kind == "scattered":
+            batches[0].sets.by_gaussian = None
         batches[0].sets.restart()
         grads[kind] = []
         for b in batches:
@@ -156,7 +155,7 @@ def test_the_gathered_gradient_over_long_and_short_runs_of_one_gaussian():
             assert float(loss) == pytest.approx(float((err.abs().mean(-1) * w).sum()), rel=2e-6)
             assert rel_err(grad.cpu(), A[pix].T @ (w[:, None] / 3.0 * torch.sign(err))) < 2e-6
             grads[kind].append(grad)
-    for a, b in zip(grads["fused"], grads["fused_atomics"]):
+    for a, b in zip(grads["gathered"], grads["scattered"]):
         torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-7)
 
 
@@ -186,7 +185,7 @@ def test_the_gathered_kind_scatters_where_its_sorted_entries_cannot_be_built(mon
     assert sets.kind == "fused" and sets.by_gaussian is None
 
 
-def test_fused_sets_render_the_same_pixels_as_the_matrix_kinds():
+def test_fused_sets_render_the_same_pixels_as_csr():
     """A ``fused`` batch renders its pixels as a csr batch does, and its sets are csr's sets."""
     P, U = 200, 120
     rows, cols, vals = random_entries(P, U, seed=6)
@@ -206,21 +205,19 @@ def test_fused_sets_render_the_same_pixels_as_the_matrix_kinds():
 
 
 def test_composite_names_are_checked():
-    assert parse_composite("segment") == ("segment", "segment")
-    assert parse_composite("embedding_bag/index_add") == ("embedding_bag", "index_add")
-    for bad in ("cusparse", "segment/", "a/b/c", "", "fused/csr", "segment/fused", "fused_atomics/fused"):
+    for bad in ("cusparse", "segment", "", "fused/csr", "fused_atomics"):
         with pytest.raises(ValueError, match="batch_composite"):
-            EditConfig(batch_composite=bad)
+            EditConfig(batch_composite=bad)  # type: ignore[arg-type]
     cfg = EditConfig()
-    cfg.batch_composite = "nope"
-    with pytest.raises(ValueError, match="batch_composite must be 'auto' or one of csr"):
-        cfg.check()
+    with pytest.raises(ValueError, match="batch_composite must be one of auto, csr, fused"):
+        cfg.batch_composite = "nope"  # type: ignore[assignment]
+    assert cfg.batch_composite == "auto"  # a refused value is not kept
 
 
 @pytest.mark.parametrize("n_batches", [1, 3])
-def test_pixel_batches_of_every_kind_agree(n_batches):
+def test_pixel_batches_of_both_kinds_agree(n_batches):
     """:func:`pixel_batches` cuts the same pixel sets whatever the kind; each batch's render and
-    gradient equal the original CSR's."""
+    gradient equal the CSR's."""
     P, U = 300, 150
     rows, cols, vals = random_entries(P, U, seed=4)
     contrib = SimpleNamespace(num_pixels=P, pair_gaussian=torch.arange(U), pixel=rows, pair=cols, weight=vals,
@@ -230,7 +227,7 @@ def test_pixel_batches_of_every_kind_agree(n_batches):
     changed = torch.rand(P, generator=g) < 0.2
     ref = pixel_batches(contrib, target, bg, n_batches, 7, changed, 0.5)
     C = torch.rand(U, 3, generator=g, requires_grad=True)
-    for kind in KINDS[1:]:
+    for kind in ("fused",):
         got = pixel_batches(contrib, target, bg, n_batches, 7, changed, 0.5, composite=kind)
         assert len(got) == len(ref)
         for a, b in zip(ref, got):
@@ -248,57 +245,8 @@ def test_pixel_batches_of_every_kind_agree(n_batches):
     for a, b in zip(ref, counted):
         assert torch.equal(a.pixels if a.pixels is not None else torch.arange(P), b.pixels)
         assert torch.equal(a.target, b.target) and torch.equal(a.weight, b.weight)
-    with pytest.raises(ValueError, match="batch_composite"):
+    with pytest.raises(ValueError, match="composite"):
         pixel_batches(contrib, target, bg, n_batches, 7, composite="dense")
-
-
-@pytest.mark.parametrize("n_batches", [1, 3])
-@pytest.mark.parametrize("kind", ["csr", "fused"])
-def test_pixels_near_the_change_carry_their_share_of_the_unchanged_loss(n_batches, kind):
-    """With ``near`` pixels, every set's weights give the changed pixels ``share``, the near unchanged ones
-    ``near_share`` of the rest and the far ones the remainder, each group evenly (counted here per set
-    from the set's own pixels); a set without near (or without far) pixels gives the unchanged part to
-    the other group."""
-    P, U = 300, 150
-    rows, cols, vals = random_entries(P, U, seed=4)
-    contrib = SimpleNamespace(num_pixels=P, pair_gaussian=torch.arange(U), pixel=rows, pair=cols, weight=vals,
-                              transmittance=torch.rand(P))
-    g = torch.Generator().manual_seed(3)
-    target, bg = torch.rand(P, 3, generator=g), torch.tensor([0.2, 0.3, 0.4])
-    changed = torch.rand(P, generator=g) < 0.2
-    cases = {"some near": (torch.rand(P, generator=g) < 0.3), "none near": torch.zeros(P, dtype=torch.bool),
-             "all near": torch.ones(P, dtype=torch.bool)}
-    for what, near in cases.items():
-        batches = pixel_batches(contrib, target, bg, n_batches, 7, changed, 0.4, kind, near=near, near_share=0.7)
-        for b in batches:
-            pix = b.pixels if b.pixels is not None else torch.arange(P)
-            c, n = changed[pix].tolist(), (near[pix] & ~changed[pix]).tolist()
-            n_c, n_n = sum(c), sum(n)
-            n_f = len(pix) - n_c - n_n
-            s_near = 0.6 * (0.7 if n_n and n_f else (1.0 if n_n else 0.0))
-            want = [0.4 / n_c if ci else (s_near / n_n if ni else (0.6 - s_near) / n_f) for ci, ni in zip(c, n)]
-            torch.testing.assert_close(b.weight, torch.tensor(want), rtol=1e-6, atol=0, msg=what)
-            assert abs(float(b.weight.sum()) - 1.0) < 1e-5
-    # near_share 0 is the two groups' weights
-    plain = pixel_batches(contrib, target, bg, n_batches, 7, changed, 0.4, kind)
-    off = pixel_batches(contrib, target, bg, n_batches, 7, changed, 0.4, kind, near=cases["some near"], near_share=0.0)
-    for a, b in zip(plain, off):
-        assert torch.equal(a.weight, b.weight)
-
-
-def test_near_changed_is_the_square_neighbourhood_of_the_change():
-    """:func:`near_changed` against a loop over every pixel: unchanged pixels with a changed one within
-    ceil(radius x shorter side) pixels in both directions."""
-    g = torch.Generator().manual_seed(5)
-    changed = torch.rand(23, 37, generator=g) < 0.03
-    for radius in (0.0, 0.05, 0.1):
-        r = math.ceil(radius * 23)
-        want = torch.zeros_like(changed)
-        for y in range(23):
-            for x in range(37):
-                window = changed[max(0, y - r): y + r + 1, max(0, x - r): x + r + 1]
-                want[y, x] = bool(window.any()) and not bool(changed[y, x])
-        assert torch.equal(near_changed(changed, radius), want), radius
 
 
 @pytest.fixture(scope="module")
@@ -324,7 +272,7 @@ def _fit(tiny, kind: str, **kw):
 
 @pytest.mark.parametrize("kind", KINDS[1:])
 def test_edit_with_every_kind_matches_csr(tiny, kind):
-    """A few Adam steps with each kind give the edit the original CSR gives (float rounding apart)."""
+    """A few Adam steps with the fused kind give the edit CSR gives (float rounding apart)."""
     _, ref, t_ref = _fit(tiny, "csr")
     eng, got, t_got = _fit(tiny, kind)
     assert all(b.composite == kind for b in eng.batches)
@@ -343,9 +291,9 @@ def test_retarget_rebuilds_batches_for_another_kind(tiny):
     with es.one_thread():
         eng = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=2))
         eng.fit()
-        eng.cfg.batch_composite = "index_add"
+        eng.cfg.batch_composite = "fused"
         eng.retarget(edited)
-        assert all(b.composite == "index_add" for b in eng.batches)
+        assert all(b.composite == "fused" for b in eng.batches)
         eng.fit()
 
 
@@ -385,10 +333,10 @@ def test_recorded_steps_are_replayed_after_a_warm_retarget(tiny):
     for graphs in (True, False):
         eng = EditEngine(gpu, cam, edited.cuda(), cfg=EditConfig(steps=20, whole_image=True, cuda_graphs=graphs))
         eng.fit()
-        recorded = eng._graphs[0] if graphs else None
+        recorded = eng._graphs.graphs if graphs else None
         eng.retarget(other)
         fits[graphs] = eng.fit()
-        assert (eng._graphs[0] is recorded) if graphs else eng._graphs is None
+        assert (eng._graphs.graphs is recorded) if graphs else eng._graphs is None
     (e_g, t_g), (e_e, t_e) = fits[True], fits[False]
     torch.testing.assert_close(e_g.head_weight, e_e.head_weight, atol=1e-4, rtol=1e-4)
     torch.testing.assert_close(e_g.head_bias, e_e.head_bias, atol=1e-4, rtol=1e-4)
@@ -436,18 +384,16 @@ def test_the_fused_kernel_fits_as_csr_does_on_a_gpu(tiny):
         assert got_t.final_loss == pytest.approx(ref_t.final_loss, rel=1e-4)
 
 
-def test_auto_is_csr_on_a_cpu_and_the_measured_kinds_on_a_gpu(monkeypatch):
-    from virgi_ns.edit.pixels import AUTO_GPU, AUTO_GPU_WITHOUT_KERNELS, resolve_composite
+def test_auto_is_csr_on_a_cpu_and_the_fused_kind_on_a_gpu(monkeypatch):
+    from virgi_ns.edit.pixels import AUTO_GPU, resolve_composite
     from virgi_ns.raster import cuda
 
     assert resolve_composite("auto", torch.device("cpu")) == "csr"
-    # the fused kernel where our extension runs; the fastest torch kinds on a GPU without it
+    # the fused kernel where our extension runs; csr on a GPU without it
     monkeypatch.setattr(cuda, "available", lambda: (True, ""))
     assert resolve_composite("auto", torch.device("cuda")) == AUTO_GPU == "fused"
     monkeypatch.setattr(cuda, "available", lambda: (False, "nvcc not found"))
-    assert resolve_composite("auto", torch.device("cuda")) == AUTO_GPU_WITHOUT_KERNELS
+    assert resolve_composite("auto", torch.device("cuda")) == "csr"
     assert resolve_composite("auto", torch.device("cpu")) == "csr"
-    parse_composite(AUTO_GPU_WITHOUT_KERNELS)
-    assert parse_composite(AUTO_GPU) == (tuple(AUTO_GPU.split("/")) * 2)[:2]
-    assert resolve_composite("index_add", torch.device("cuda")) == "index_add"
+    assert resolve_composite("csr", torch.device("cuda")) == "csr"
     assert EditConfig().batch_composite == "auto"

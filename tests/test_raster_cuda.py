@@ -81,8 +81,8 @@ def _run_both(scene, cams: Cameras, request: Request):
     return cu, ref
 
 
-def _images(c, colors_vn, bg):
-    cols = colors_vn[c.pair_view, c.pair_gaussian]
+def _images(c, colours_vn, bg):
+    cols = colours_vn[c.pair_view, c.pair_gaussian]
     return composite(cols, c, bg)
 
 
@@ -125,9 +125,9 @@ def test_cuda_matches_reference(name, kind, lists, monkeypatch):
     req = _request(kind, cams)
     cu, ref = _run_both(scene, cams, req)
     dev = torch.device("cuda")
-    colors = torch.rand(2, scene[0].shape[0], 3, device=dev, generator=torch.Generator(dev).manual_seed(1))
+    colours = torch.rand(2, scene[0].shape[0], 3, device=dev, generator=torch.Generator(dev).manual_seed(1))
     bg = torch.tensor([0.2, 0.5, 0.9], device=dev)
-    assert (_images(cu, colors, bg) - _images(ref, colors, bg)).abs().max() <= IMG_TOL
+    assert (_images(cu, colours, bg) - _images(ref, colours, bg)).abs().max() <= IMG_TOL
     assert_same_contributions(cu, ref)
     if name in ("random", "pile", "large") and kind == "whole":
         assert ref.weight.numel() > 100  # the comparison is not vacuous
@@ -142,8 +142,8 @@ def test_cuda_matches_reference_larger_scene(seed):
     scene = random_scene(4000, seed=seed, spread=1.0, scale=(0.005, 0.08))
     cu, ref = _run_both(scene, cams, Request.whole_images(cams))
     dev = torch.device("cuda")
-    colors = torch.rand(3, 4000, 3, device=dev, generator=torch.Generator(dev).manual_seed(seed))
-    assert (_images(cu, colors, None) - _images(ref, colors, None)).abs().max() <= IMG_TOL
+    colours = torch.rand(3, 4000, 3, device=dev, generator=torch.Generator(dev).manual_seed(seed))
+    assert (_images(cu, colours, None) - _images(ref, colours, None)).abs().max() <= IMG_TOL
     assert_same_contributions(cu, ref)
     assert ref.weight.numel() > 10_000
     views = torch.randint(0, 3, (40,), generator=g)
@@ -153,8 +153,8 @@ def test_cuda_matches_reference_larger_scene(seed):
     cu_t, ref_t = _run_both(scene, cams, req)
     assert_same_contributions(cu_t, ref_t)
     # a tile equals the same pixels cut from the whole images
-    whole = _images(cu, colors, None).cpu()
-    tiles = _images(cu_t, colors, None).cpu().reshape(-1, 3)
+    whole = _images(cu, colours, None).cpu()
+    tiles = _images(cu_t, colours, None).cpu().reshape(-1, 3)
     pv, px, py = req.pixel_coords()
     ok = req.valid_mask(cams)
     assert (tiles[ok] - whole[pv[ok], py[ok], px[ok]]).abs().max() <= 1e-6
@@ -196,13 +196,13 @@ def test_fused_composite_matches_plain(d, kind, monkeypatch):
     c = cuda.rasterize(m, q, s, o, cams.to(dev, torch.float32), req)
     assert c.weight.numel() > 1000
     gen = torch.Generator(dev).manual_seed(d)
-    colors = torch.rand(len(c.pair_view), d, device=dev, generator=gen).requires_grad_(True)
+    colours = torch.rand(len(c.pair_view), d, device=dev, generator=gen).requires_grad_(True)
     bg = torch.rand(d, device=dev, generator=gen).requires_grad_(True)
     up = torch.randn(*c.shape, d, device=dev, generator=gen)
-    fused = cuda.composite(colors, c, bg)
-    (g_c, g_b) = torch.autograd.grad((fused * up).sum(), (colors, bg))
-    plain = composite_plain(colors, c, bg)
-    (p_c, p_b) = torch.autograd.grad((plain * up).sum(), (colors, bg))
+    fused = cuda.composite(colours, c, bg)
+    (g_c, g_b) = torch.autograd.grad((fused * up).sum(), (colours, bg))
+    plain = composite_plain(colours, c, bg)
+    (p_c, p_b) = torch.autograd.grad((plain * up).sum(), (colours, bg))
     assert (fused - plain).abs().max() <= 1e-5
     assert torch.allclose(g_c, p_c, atol=1e-4, rtol=1e-5)
     assert torch.allclose(g_b, p_b, atol=1e-3, rtol=1e-5)
@@ -232,17 +232,17 @@ def test_deferred_lists_equal_eager(d, kind, monkeypatch):
     for name in ("transmittance", "valid", "pair_view", "pair_gaussian", "pair_depth"):
         assert torch.equal(getattr(lazy, name), getattr(eager, name)), name
     gen = torch.Generator(dev).manual_seed(d)
-    colors = torch.rand(len(eager.pair_view), d, device=dev, generator=gen).requires_grad_(True)
+    colours = torch.rand(len(eager.pair_view), d, device=dev, generator=gen).requires_grad_(True)
     bg = torch.rand(d, device=dev, generator=gen).requires_grad_(True)
     up = torch.randn(*eager.shape, d, device=dev, generator=gen)
     for background in (bg, None):
-        out = composite(colors, lazy, background)
+        out = composite(colours, lazy, background)
         assert lazy._lists is None  # composited without building the entries
-        want = composite(colors, eager, background) if d in (1, 3, 4) else composite_plain(colors, eager, background)
+        want = composite(colours, eager, background) if d in (1, 3, 4) else composite_plain(colours, eager, background)
         assert (out - want).abs().max() <= 1e-6
-        inputs = (colors, bg) if background is not None else (colors,)
+        inputs = (colours, bg) if background is not None else (colours,)
         got_g = torch.autograd.grad((out * up).sum(), inputs)
-        want_g = torch.autograd.grad((composite_plain(colors, eager, background) * up).sum(), inputs)
+        want_g = torch.autograd.grad((composite_plain(colours, eager, background) * up).sum(), inputs)
         for g, w in zip(got_g, want_g):
             assert torch.allclose(g, w, atol=1e-4, rtol=1e-5)
     assert lazy.num_entries == eager.weight.numel() and lazy._lists is None
@@ -269,20 +269,20 @@ def test_composite_dispatches_to_fused(monkeypatch):
     cams = make_cams(64, 48, views=2)
     m, q, s, o = (a.float().to(dev) for a in random_scene(300, seed=3, scale=(0.01, 0.15)))
     c = cuda.rasterize(m, q, s, o, cams.to(dev, torch.float32), Request.whole_images(cams))
-    colors = torch.rand(len(c.pair_view), 3, device=dev, generator=torch.Generator(dev).manual_seed(0))
-    colors.requires_grad_(True)
-    out = composite(colors, c, 0.25)
+    colours = torch.rand(len(c.pair_view), 3, device=dev, generator=torch.Generator(dev).manual_seed(0))
+    colours.requires_grad_(True)
+    out = composite(colours, c, 0.25)
     assert len(calls) == 1
-    (g,) = torch.autograd.grad(out.square().sum(), colors)
-    ref = composite_plain(colors, c, 0.25)
-    (g_ref,) = torch.autograd.grad(ref.square().sum(), colors)
+    (g,) = torch.autograd.grad(out.square().sum(), colours)
+    ref = composite_plain(colours, c, 0.25)
+    (g_ref,) = torch.autograd.grad(ref.square().sum(), colours)
     assert (out - ref).abs().max() <= 1e-5 and torch.allclose(g, g_ref, atol=1e-4, rtol=1e-5)
-    out64 = composite(colors.double(), c, 0.25)  # not eligible: plain path
+    out64 = composite(colours.double(), c, 0.25)  # not eligible: plain path
     assert len(calls) == 1 and out64.dtype == torch.float64
     fields = {f: getattr(c, f) for f in Contributions.__dataclass_fields__}
     plain_obj = Contributions(**fields)
     # (index_add on the GPU sums in any order: equal to float32 rounding)
-    assert (composite(colors, plain_obj, 0.25) - ref).abs().max() <= 1e-6 and len(calls) == 1
+    assert (composite(colours, plain_obj, 0.25) - ref).abs().max() <= 1e-6 and len(calls) == 1
 
 
 @pytest.mark.gpu
@@ -410,17 +410,17 @@ def test_composite_dispatch_keeps_cpu_behaviour():
     offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])
     cu_like = CudaContributions(**fields, pixel_offsets=offsets)
     g = torch.Generator().manual_seed(5)
-    colors = torch.rand(len(ref.pair_view), 3, generator=g, dtype=torch.float64, requires_grad=True)
+    colours = torch.rand(len(ref.pair_view), 3, generator=g, dtype=torch.float64, requires_grad=True)
     bg = torch.tensor([0.1, 0.6, 0.3], dtype=torch.float64)
-    got = composite(colors, cu_like, bg)
-    assert torch.equal(got, composite_plain(colors, ref, bg))
+    got = composite(colours, cu_like, bg)
+    assert torch.equal(got, composite_plain(colours, ref, bg))
     want = torch.zeros(ref.num_pixels, 3, dtype=torch.float64)
     w = ref.weight.detach()
     for e in range(len(w)):
-        want[ref.pixel[e]] += w[e] * colors.detach()[ref.pair[e]]
+        want[ref.pixel[e]] += w[e] * colours.detach()[ref.pair[e]]
     want += ref.transmittance.detach()[:, None] * bg
     assert (got.detach().reshape(-1, 3) - want).abs().max() <= 1e-12
-    (gc,) = torch.autograd.grad(got.sum(), colors)
+    (gc,) = torch.autograd.grad(got.sum(), colours)
     gw = torch.zeros(len(ref.pair_view), dtype=torch.float64).index_add(0, ref.pair, w)
     assert torch.allclose(gc, gw[:, None].expand(-1, 3))
 

@@ -270,9 +270,9 @@ def test_tiles_match_brute_force_and_whole_images(size, tiles, name):
     # equal to the same pixels cut from the whole images
     whole = reference.rasterize(*scene, cams, Request.whole_images(cams))
     bg = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
-    colors = torch.rand(int(whole.pair_view.max()) + 1, scene[0].shape[0], 3, dtype=torch.float64)
-    img = composite(colors[whole.pair_view, whole.pair_gaussian], whole, background=bg)
-    tile_img = composite(colors[c.pair_view, c.pair_gaussian], c, background=bg)
+    colours = torch.rand(int(whole.pair_view.max()) + 1, scene[0].shape[0], 3, dtype=torch.float64)
+    img = composite(colours[whole.pair_view, whole.pair_gaussian], whole, background=bg)
+    tile_img = composite(colours[c.pair_view, c.pair_gaussian], c, background=bg)
     pv, px, py = req.pixel_coords()
     ok = req.valid_mask(cams)
     cut = img[pv[ok], py[ok], px[ok]]
@@ -305,9 +305,9 @@ def test_float32_matches_float64(name):
     c64 = reference.rasterize(*scene, cams, req)
     c32 = reference.rasterize(*(a.float() for a in scene), cams.to(dtype=torch.float32), req)
     assert c32.weight.dtype == torch.float32
-    colors = torch.rand(2, scene[0].shape[0], 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
-    i64 = composite(colors[c64.pair_view, c64.pair_gaussian], c64, 0.3)
-    i32 = composite(colors[c32.pair_view, c32.pair_gaussian].float(), c32, 0.3)
+    colours = torch.rand(2, scene[0].shape[0], 3, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    i64 = composite(colours[c64.pair_view, c64.pair_gaussian], c64, 0.3)
+    i32 = composite(colours[c32.pair_view, c32.pair_gaussian].float(), c32, 0.3)
     assert torch.isfinite(i32).all()
     assert (i64 - i32.double()).abs().max() <= TOL
     assert (c64.transmittance - c32.transmittance.double()).abs().max() <= TOL
@@ -346,10 +346,10 @@ def test_gradients_finite_on_hard_cases():
     for name in SCENES:
         means, quats, scales, opac = (a.clone().float().requires_grad_(True) for a in SCENES[name]())
         c = reference.rasterize(means, quats, scales, opac, cams.to(dtype=torch.float32), Request.whole_images(cams))
-        colors = torch.rand(len(c.pair_view), 3, requires_grad=True)
-        img = composite(colors, c, 1.0)
+        colours = torch.rand(len(c.pair_view), 3, requires_grad=True)
+        img = composite(colours, c, 1.0)
         (img.square().sum() + c.transmittance.sum()).backward()
-        for t in (means, quats, scales, opac, colors):
+        for t in (means, quats, scales, opac, colours):
             assert t.grad is not None and torch.isfinite(t.grad).all(), name
         if name == "random":
             assert means.grad.abs().sum() > 0 and opac.grad.abs().sum() > 0
@@ -359,15 +359,15 @@ def test_gradcheck_tiny_scene():
     cams = make_cams(20, 16, views=1, f=16.0)
     means, quats, scales, opac = random_scene(4, seed=7, spread=0.4, scale=(0.15, 0.4))
     opac = 0.2 + 0.5 * opac  # stay clear of the 0.999 clamp
-    colors = torch.rand(4, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    colours = torch.rand(4, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
     req = Request.whole_images(cams)
 
     def render(m, q, s, o, col):
         c = reference.rasterize(m, q, s, o, cams, req)
         return composite(col[c.pair_gaussian], c, torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64))
 
-    assert render(means, quats, scales, opac, colors).abs().sum() > 1
-    inputs = tuple(a.clone().requires_grad_(True) for a in (means, quats, scales, opac, colors))
+    assert render(means, quats, scales, opac, colours).abs().sum() > 1
+    inputs = tuple(a.clone().requires_grad_(True) for a in (means, quats, scales, opac, colours))
     assert torch.autograd.gradcheck(render, inputs, eps=1e-7, atol=1e-5, rtol=1e-3, fast_mode=True)
 
 
@@ -385,11 +385,11 @@ def test_reference_matches_gsplat_whole_images(name):
     dev = torch.device("cuda")
     cams = make_cams(96, 64, views=3)
     means, quats, scales, opac = (a.float().to(dev) for a in SCENES[name]())
-    colors = torch.rand(means.shape[0], 3, device=dev, generator=torch.Generator(device=dev).manual_seed(0))
+    colours = torch.rand(means.shape[0], 3, device=dev, generator=torch.Generator(device=dev).manual_seed(0))
     c = reference.rasterize(means, quats, scales, opac, cams.to(dev, torch.float32), Request.whole_images(cams))
-    ours = composite(colors[c.pair_gaussian], c, None)
+    ours = composite(colours[c.pair_gaussian], c, None)
     img, alpha, _ = gsplat.rasterization(
-        means, quats, scales, opac, colors, cams.viewmats.float().to(dev), cams.Ks.float().to(dev), 96, 64,
+        means, quats, scales, opac, colours, cams.viewmats.float().to(dev), cams.Ks.float().to(dev), 96, 64,
         packed=False, rasterize_mode="classic", sh_degree=None,
     )
     assert (ours - img).abs().max() <= GSPLAT_TOL[name]

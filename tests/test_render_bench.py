@@ -26,9 +26,9 @@ def test_render_bench_row_on_a_cpu(scene, bench_render, monkeypatch):  # noqa: F
     _, pipeline, optimizers, cbs = build(scene, steps=4)
     train(pipeline, optimizers, cbs, 4)
     pipeline.eval()
-    import virgi_ns.cli.export as export
+    import virgi_ns.nerfstudio.runs as runs
 
-    monkeypatch.setattr(export, "load_run", lambda path: (None, pipeline))
+    monkeypatch.setattr(runs, "load_run", lambda path: (None, pipeline))
     args = bench_render.Args(thresholds=[0.0, 1 / 255], repeats=1, views=1)
     row = bench_render.bench_scene(args, SimpleNamespace(name="tiny"), Path("unused"))
     assert math.isnan(row["splat_sh3_fps"])  # no gsplat on a CPU

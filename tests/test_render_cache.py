@@ -452,7 +452,7 @@ def _splat_by_contributions(model, passes: list):
     def splat(view, colours, backgrounds, mode, projection=None):
         passes.append((colours.shape[-1], mode, projection is not None))
         cams = Cameras(view.K, view.viewmat, [view.width], [view.height])
-        contrib = model._raster(cams, Request(torch.zeros(1, dtype=torch.long), 0, 0, view.width, view.height))
+        contrib = model.contributions(cams, Request(torch.zeros(1, dtype=torch.long), 0, 0, view.width, view.height))
         pg = contrib.pair_gaussian
         chans, bg = [colours[pg]], backgrounds[0]
         if mode == "RGB+ED":
@@ -858,11 +858,11 @@ def test_the_module_watch_sees_every_change_of_the_field():
     """:class:`ModuleWatch` replaces a walk of the field's parameters per frame: its structure check fails
     for a parameter, buffer or submodule set, added or removed, and its versions and storages move with
     in-place writes and ``.data`` assignments; its parameters are ``parameters()``'s, in order."""
-    from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
+    from virgi_ns.colour.field import ColourFieldConfig, DecoupledColourField
     from virgi_ns.nerfstudio.render_cache import ModuleWatch
 
     def field():
-        return DecoupledColorField(ColorFieldConfig(log2_hashmap_size=10, levels=4), torch.tensor([[-1.0] * 3, [1.0] * 3]))
+        return DecoupledColourField(ColourFieldConfig(log2_hashmap_size=10, levels=4), torch.tensor([[-1.0] * 3, [1.0] * 3]))
 
     fld = field()
     w = ModuleWatch(fld)

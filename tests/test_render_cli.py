@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from virgi_ns.cli.render import Render, run
-from virgi_ns.colour.sh import sh_colors, view_colors
+from virgi_ns.colour.sh import sh_colours, view_colours
 from virgi_ns.errors import InputError
 from virgi_ns.gaussians import Gaussians
 from virgi_ns.io.camera_json import CameraSpec, parse_camera, read_camera_json, write_camera_json
@@ -48,7 +48,7 @@ def write_inputs(tmp_path: Path, degree: int = 0):
     return g
 
 
-def expected_image(g: Gaussians, sp: CameraSpec, background, colors: np.ndarray) -> np.ndarray:
+def expected_image(g: Gaussians, sp: CameraSpec, background, colours: np.ndarray) -> np.ndarray:
     """Brute force per pixel (float64) of the stored (float32-rounded) Gaussians."""
     cams = sp.to_cameras(torch.float64)
     means, quats = g.means.double(), g.quats.double()
@@ -56,7 +56,7 @@ def expected_image(g: Gaussians, sp: CameraSpec, background, colors: np.ndarray)
     pix = [(x, y) for y in range(sp.height) for x in range(sp.width)]
     out = np.zeros((sp.height, sp.width, 3))
     for (x, y), (lst, T) in zip(pix, brute_force(means, quats, scales, opac, cams, 0, pix)):
-        out[y, x] = sum((w * colors[i] for i, w in lst), np.zeros(3)) + T * np.asarray(background)
+        out[y, x] = sum((w * colours[i] for i, w in lst), np.zeros(3)) + T * np.asarray(background)
     return out
 
 
@@ -68,8 +68,8 @@ def test_render_npy_and_png_match_brute_force(tmp_path):
     img = np.load(tmp_path / "o.npy")
     assert img.dtype == np.float32 and img.shape == (H, W, 3)
     f_dc = g.sh[:, 0].double().numpy()
-    colors = np.maximum(0.2820948 * f_dc + 0.5, 0.0)
-    ref = expected_image(g, spec(), bg, colors)
+    colours = np.maximum(0.2820948 * f_dc + 0.5, 0.0)
+    ref = expected_image(g, spec(), bg, colours)
     assert np.abs(img - ref).max() < 1e-5
     assert np.abs(img - np.asarray(bg)).max() > 0.1  # something was drawn
 
@@ -88,8 +88,8 @@ def test_render_higher_sh_bands(tmp_path):
     center = spec().to_cameras(torch.float64).camera_centers()[0]
     gs = pytest.importorskip("gsplat.cuda._torch_impl")
     dirs = g.means.double() - center
-    colors = torch.clamp_min(gs._spherical_harmonics(2, dirs, g.sh.double()) + 0.5, 0).numpy()
-    ref = expected_image(g, spec(), (0, 0, 0), colors)
+    colours = torch.clamp_min(gs._spherical_harmonics(2, dirs, g.sh.double()) + 0.5, 0).numpy()
+    ref = expected_image(g, spec(), (0, 0, 0), colours)
     assert np.abs(img - ref).max() < 1e-5
     flat = np.maximum(0.2820948 * g.sh[:, 0].double().numpy() + 0.5, 0.0)
     assert np.abs(img - expected_image(g, spec(), (0, 0, 0), flat)).max() > 1e-3  # the bands matter
@@ -102,10 +102,10 @@ def test_sh_matches_gsplat_convention_all_degrees():
         sh = torch.randn(50, (degree + 1) ** 2, 3, generator=gen, dtype=torch.float64)
         d = torch.randn(50, 3, generator=gen, dtype=torch.float64) * 3
         ref = torch.clamp_min(gs._spherical_harmonics(degree, d, sh) + 0.5, 0)
-        assert (sh_colors(sh, d) - ref).abs().max() < 1e-6
+        assert (sh_colours(sh, d) - ref).abs().max() < 1e-6
     sh0 = torch.tensor([[[1.0, -2.0, 0.0]]])
-    assert torch.allclose(sh_colors(sh0), torch.tensor([[0.2820948 + 0.5, 0.0, 0.5]]), atol=1e-6)
-    assert torch.allclose(view_colors(sh0, torch.zeros(1, 3), torch.ones(3)), sh_colors(sh0))
+    assert torch.allclose(sh_colours(sh0), torch.tensor([[0.2820948 + 0.5, 0.0, 0.5]]), atol=1e-6)
+    assert torch.allclose(view_colours(sh0, torch.zeros(1, 3), torch.ones(3)), sh_colours(sh0))
 
 
 def test_camera_json_round_trip_and_errors(tmp_path):

@@ -1,4 +1,4 @@
-"""The command-line tools' own run loader (:mod:`virgi_ns.nerfstudio.saved_run`, :func:`virgi_ns.cli.runs.open_run`)
+"""The command-line tools' own run loader (:mod:`virgi_ns.nerfstudio.saved_run`, :func:`virgi_ns.nerfstudio.runs.open_run`)
 on a tiny saved run (CPU): it gives the Gaussians, colour field, cameras and photos nerfstudio's
 loader gives; ``list``/``undo`` import neither nerfstudio nor torch and ``apply``/``export`` only
 nerfstudio's field components (the colour field's encodings); runs without ``virgi_run.json`` still load (through nerfstudio, which writes it)."""
@@ -30,8 +30,8 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def saved(tmp_path_factory):
     """A run saved by ``save_run`` (virgi_run.json beside its config.yml) and the same run loaded
-    through nerfstudio (:func:`virgi_ns.cli.export.load_run`, the independent path)."""
-    from virgi_ns.cli.export import load_run
+    through nerfstudio (:func:`virgi_ns.nerfstudio.runs.load_run`, the independent path)."""
+    from virgi_ns.nerfstudio.runs import load_run
 
     root = tmp_path_factory.mktemp("saved_run")
     scene = make_scene(root / "scene")
@@ -148,7 +148,7 @@ def test_an_edit_and_an_export_are_the_same_through_either_loader(saved, tmp_pat
     from virgi_ns.edit.stack import Edit
     from virgi_ns.io import load_splat
 
-    from virgi_ns.cli.runs import open_run
+    from virgi_ns.nerfstudio.runs import open_run
 
     cfg_a = _copy_run(saved, tmp_path / "a")
     cfg_b = _copy_run(saved, tmp_path / "b")
@@ -230,7 +230,7 @@ def test_stack_commands_import_neither_nerfstudio_nor_torch_and_apply_export_onl
 def test_a_run_without_virgi_run_json_loads_through_nerfstudio_with_a_note(saved, tmp_path):
     """No file, a damaged one, or a config changed since: a one-line note, nerfstudio's loader,
     the same model; the file is (re)written for the next command."""
-    from virgi_ns.cli.runs import open_run
+    from virgi_ns.nerfstudio.runs import open_run
     from virgi_ns.nerfstudio.saved_run import RUN_INFO
 
     cfg = _copy_run(saved, tmp_path / "run")
@@ -252,7 +252,7 @@ def test_a_run_without_virgi_run_json_loads_through_nerfstudio_with_a_note(saved
 
 
 def test_bad_runs_are_one_clear_line(saved, tmp_path):
-    from virgi_ns.cli.runs import open_run
+    from virgi_ns.nerfstudio.runs import open_run
 
     with pytest.raises(InputError, match="no such config"):
         open_run(tmp_path / "none.yml", _quiet())
@@ -299,7 +299,7 @@ def test_virgis_trainer_writes_virgi_run_json_beside_its_config(saved, tmp_path)
     loader takes (no nerfstudio load) and which describes the cameras nerfstudio's loader sees."""
     from viewer_run import tiny_config
 
-    from virgi_ns.cli.runs import open_run
+    from virgi_ns.nerfstudio.runs import open_run
     from virgi_ns.nerfstudio.cameras import raster_cameras
     from virgi_ns.nerfstudio.saved_run import RUN_INFO
 

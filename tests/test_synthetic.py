@@ -1,4 +1,4 @@
-"""The synthetic evaluation scenes (virgi_ns.bench.synthetic): files, truth and labels, checked against
+"""The synthetic evaluation scenes (bench/common/synthetic.py): files, truth and labels, checked against
 independent computations on a tiny capture."""
 
 from __future__ import annotations
@@ -10,11 +10,15 @@ import pytest
 import torch
 from PIL import Image
 
-from virgi_ns.bench.evalset import EVAL_SET, REAL, find
-from virgi_ns.bench.synthetic import SCENES, hue_rotate, write_scene
 from virgi_ns.edit.recolor import RecolorRule, recolor, rgb_to_hsv
 from virgi_ns.errors import InputError
 from virgi_ns.io import load_splat
+
+from script_module import bench_module
+
+_evalset, _synthetic = bench_module("evalset"), bench_module("synthetic")
+EVAL_SET, REAL, find = _evalset.EVAL_SET, _evalset.REAL, _evalset.find
+SCENES, hue_rotate, write_scene = _synthetic.SCENES, _synthetic.hue_rotate, _synthetic.write_scene
 
 VIEWS, W, H, SPACING = 8, 64, 48, 0.05
 

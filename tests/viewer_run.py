@@ -10,7 +10,7 @@ from pathlib import Path
 import torch
 
 from method_configs.virgi import virgi_trainer_config
-from virgi_ns.colour.field import ColorFieldConfig
+from virgi_ns.colour.field import ColourFieldConfig
 from virgi_ns.nerfstudio.pipeline import save_run, train_step, training_state
 
 from virgi_scene import Scene, use_scene
@@ -25,7 +25,7 @@ def tiny_config(scene: Scene, steps: int, output_dir: Path | None = None):
     m = cfg.pipeline.model
     m.geometry_from = scene.ply.resolve()
     m.background_color = "black"
-    m.color_field = ColorFieldConfig(log2_hashmap_size=12, levels=8)
+    m.color_field = ColourFieldConfig(log2_hashmap_size=12, levels=8)
     m.raster_backend = "reference"
     cfg.optimizers["field_mlp"]["optimizer"].lr = 5e-3
     cfg.machine.device_type = "cpu"

@@ -31,6 +31,10 @@ def sh_degree_from_coeffs(k: int) -> int:
 
 @dataclass
 class Gaussians:
+    """A splat: ``means`` [N,3], log-``scales`` [N,3], ``quats`` [N,4] (wxyz), logit-``opacities`` [N] and
+    ``sh`` [N,K,3], K = (degree + 1)^2 SH coefficients per channel in the 3DGS convention; the shapes are
+    checked at construction."""
+
     means: Tensor
     scales: Tensor
     quats: Tensor
@@ -38,7 +42,7 @@ class Gaussians:
     sh: Tensor
 
     def __post_init__(self) -> None:
-        n = self.means.shape[0]
+        n = len(self)
         expect = {"means": (n, 3), "scales": (n, 3), "quats": (n, 4), "opacities": (n,)}
         for name, shape in expect.items():
             got = tuple(getattr(self, name).shape)

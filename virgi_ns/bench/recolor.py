@@ -45,8 +45,8 @@ class RuleArgs:
     h1: float = 250.0
     shift: float = 150.0
     s_min: float = 0.1
-    """0.1 takes beercan's can whole (its pale blue back too) and nothing of the grey-white floor;
-    with 0.35 the rule split the can's print into shifted and unshifted patches."""
+    """Pixels less saturated than this are left alone: 0.1 takes beercan's can whole (its pale blue back
+    too) and nothing of its grey-white floor."""
     v_min: float = 0.15
     sat_scale: float = 1.0
 
@@ -58,13 +58,11 @@ class RuleArgs:
 
 
 @dataclass
-class Recolor:
-    """Edit one training view with the rule; measure the held-out views."""
+class _EditedView:
+    """What both commands read: the run, the rule and the training view it recolours."""
 
     load_config: Path
     """The run's config.yml."""
-    out: Path = Path("bench_out/recolor/results.json")
-    """JSON results; pictures are written beside it."""
     rule: RuleArgs = field(default_factory=RuleArgs)
     edit_view: int = 0
     """Training image to edit."""
@@ -73,6 +71,14 @@ class Recolor:
     whole_photo: bool = False
     """Fit the whole edited photo (also the pixels the rule left alone) instead of only the
     recoloured pixels, as when the unedited photo is not known."""
+
+
+@dataclass
+class Recolor(_EditedView):
+    """Edit one training view with the rule; measure the held-out views."""
+
+    out: Path = Path("bench_out/recolor/results.json")
+    """JSON results; pictures are written beside it."""
     steps: Optional[int] = None
     """Edit steps (default: the engine's)."""
     pixel_batches: Optional[int] = None
@@ -88,16 +94,11 @@ class Recolor:
 
 
 @dataclass
-class AccuracyTime:
+class AccuracyTime(_EditedView):
     """Sweep edit steps (and pixel subsampling): recolour PSNR against wall time."""
 
-    load_config: Path
     out: Path = Path("bench_out/accuracy_time/accuracy_time.json")
     """JSON results; the PNG plot is written beside it (same stem)."""
-    rule: RuleArgs = field(default_factory=RuleArgs)
-    edit_view: int = 0
-    edit_source: str = "photo"
-    whole_photo: bool = False
     steps: tuple[int, ...] = (10, 25, 50, 75, 100, 150, 200, 300, 500)
     pixel_batches: tuple[int, ...] = (1, 4)
     repeats: int = 3
@@ -243,8 +244,7 @@ class Bench:
                       "total_s": med([t.total_s for t in times]), "steps": cfg.steps,
                       "pixel_batches": cfg.pixel_batches, "final_l1": times[-1].final_loss,
                       "fit_l1": engine.fit_loss(),
-                      "start": edit.info.get("start"), "changed_fraction": edit.info.get("changed_fraction"),
-                      "map_explained": edit.info.get("map_explained")}
+                      "start": edit.info.get("start"), "changed_fraction": edit.info.get("changed_fraction")}
 
     def _per_gaussian_rule(self, i: int, rule: RecolorRule, truth: torch.Tensor, mask: torch.Tensor) -> dict:
         """Propagation figures of an object-level reference edit for held-out view ``i``: the rule
@@ -362,7 +362,7 @@ def run_recolor(args: Recolor, pipeline=None, console: Optional[Console] = None)
     console = console or Console(stderr=True)
     rule = args.rule.rule()
     if pipeline is None:
-        from virgi_ns.cli.edit import load_run
+        from virgi_ns.nerfstudio.runs import load_run
 
         with console.status(f"loading {args.load_config}"):
             _, pipeline = load_run(args.load_config)
@@ -400,7 +400,7 @@ def run_accuracy_time(args: AccuracyTime, pipeline=None, console: Optional[Conso
     if any(s < 1 for s in args.steps) or any(p < 1 for p in args.pixel_batches):
         raise InputError("--steps and --pixel-batches values must be >= 1")
     if pipeline is None:
-        from virgi_ns.cli.edit import load_run
+        from virgi_ns.nerfstudio.runs import load_run
 
         with console.status(f"loading {args.load_config}"):
             _, pipeline = load_run(args.load_config)

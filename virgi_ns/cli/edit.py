@@ -11,7 +11,7 @@
 
 Edits live in ``<run>/edits`` (beside ``config.yml``); the run itself is never written; ``pick``
 saves the edited image it made and its selection beside the edit. ``apply``, ``pick`` and
-``import`` load the run (:func:`virgi_ns.cli.runs.open_run`: from its files, without nerfstudio,
+``import`` load the run (:func:`virgi_ns.nerfstudio.runs.open_run`: from its files, without nerfstudio,
 when it can) and refuse edits of another base run; the other commands work on the edit stack's
 manifest alone (:mod:`virgi_ns.edit.manifest`), importing neither torch nor nerfstudio. Bad input
 is one line on stderr, exit 2, nothing saved.
@@ -33,7 +33,7 @@ if TYPE_CHECKING:  # torch, numpy and rich load with the commands that need them
     import numpy as np
     from rich.console import Console
 
-    from virgi_ns.cli.runs import OpenRun
+    from virgi_ns.nerfstudio.runs import OpenRun
 
 GREY_MODES = ("1", "L", "LA", "I", "I;16", "I;16B", "I;16L", "F")
 
@@ -64,27 +64,15 @@ class Apply:
     the edit left unchanged keep the scene's current colours instead of being fitted to the image."""
     whole_image: bool = False
     """Fit every pixel of the edited image, also those equal to the original."""
-    changed_target: Literal["affine", "map", "change", "transfer", "edited"] = "affine"
+    changed_target: Literal["affine", "edited"] = "affine"
     """With an original photo: fit the changed pixels to your pixels moved by the render's error as
     your change moves colours (``affine``, the default: your change fitted as an affine function of
-    colour, so the photo's detail the model never reproduced stays out of the edit), to the render
-    changed as you changed pixels of its colour (``map``), to the edited image's own pixels
-    (``edited``, the paper's), to the render plus your change (``change``) or to the render moved by
-    your change in logits (``transfer``). No effect with --whole-image or for an edited render."""
-    map_levels: Literal[1, 2, 3] = 1
-    """With ``--changed-target map``: grid levels of the colour map (3: finer grids answer near a
-    rule's threshold, where a coarse cell mixes colours changed differently)."""
-    map_fallback: Literal["change", "edited"] = "change"
-    """With ``--changed-target map``: what a changed pixel the map does not explain is fitted to: the
-    render plus that pixel's change (``change``, the default) or the edited image's pixel (``edited``)."""
+    colour, so the photo's detail the model never reproduced stays out of the edit) or to the edited
+    image's own pixels (``edited``, the paper's). No effect with --whole-image."""
     recipe: Literal["joint", "staged"] = "joint"
     """``joint``: the segmentation and the new colour are fitted together (the paper's recipe);
     ``staged``: the segmentation first, from which Gaussians your change covers, so parts of another
     colour inside a recoloured object keep theirs."""
-    map_init: bool = True
-    """For an edit that changes at least a fifth of the view, start from the colour map (in logit
-    space) that best takes the render to your changed pixels; --no-map-init starts from the
-    unedited layer (an edit of a small patch never uses the map: it would recolour the patch only)."""
 
 
 @dataclass
@@ -114,7 +102,7 @@ class Pick:
     selection: Literal["chroma_steps", "colour_features"] = "chroma_steps"
     """How the selection grows from the pixel: ``chroma_steps`` (the default) by the diffuse colour's hue
     and gradual chroma; ``colour_features`` by the angles of the diffuse colour and of the colour
-    field's features (the previous default)."""
+    field's features."""
     mode: Literal["hue", "shift", "colour"] = "hue"
     """``hue``: new hue and saturation, each pixel keeps its value (shading and highlights stay);
     ``shift``: the same, but every pixel's hue turns by the angle that takes the reference pixel's to
@@ -317,19 +305,10 @@ def _manifest(load_config: Path):
 
 
 # -------------------------------------------------------------------------- running
-def load_run(config: Path):
-    """(config, pipeline) of a VIRGi run through nerfstudio; see :func:`virgi_ns.cli.export.load_run`."""
-    from virgi_ns.cli.export import load_run as _load
-
-    if not Path(config).is_file():
-        raise InputError(f"no such config: {config}")
-    return _load(Path(config))
-
-
 def _run_of(load_config: Path, console: "Console", run=None) -> "OpenRun":
-    """``run`` as an :class:`~virgi_ns.cli.runs.OpenRun`: one already (returned as is), a loaded
+    """``run`` as an :class:`~virgi_ns.nerfstudio.runs.OpenRun`: one already (returned as is), a loaded
     nerfstudio pipeline (wrapped), or None (the run of ``load_config`` is opened)."""
-    from virgi_ns.cli.runs import OpenRun, open_run
+    from virgi_ns.nerfstudio.runs import OpenRun, open_run
 
     if isinstance(run, OpenRun):
         return run
@@ -342,7 +321,7 @@ def _run_of(load_config: Path, console: "Console", run=None) -> "OpenRun":
 def open_view(args: Union[Apply, Pick], console: "Console", pipeline=None):
     """(the run, its edit stack on the model's device, the camera on it, its description): what
     ``apply`` and ``pick`` edit. ``pipeline``: an already loaded run (a nerfstudio pipeline or an
-    :class:`~virgi_ns.cli.runs.OpenRun`)."""
+    :class:`~virgi_ns.nerfstudio.runs.OpenRun`)."""
     from virgi_ns.edit.stack import EditStack
 
     run = _run_of(args.load_config, console, pipeline)
@@ -385,10 +364,7 @@ def apply(args: Apply, console: "Console", pipeline=None) -> str:
         cfg.steps = args.steps
     cfg.whole_image = args.whole_image
     cfg.changed_target = args.changed_target
-    cfg.map_levels = args.map_levels
-    cfg.map_fallback = args.map_fallback
     cfg.recipe = args.recipe
-    cfg.map_init = args.map_init
     warmup.wait()
     with torch.no_grad():
         engine = EditEngine(scene, cams, torch.from_numpy(image), stack, cfg, source,
@@ -455,7 +431,7 @@ def pick(args: Pick, console: "Console", pipeline=None) -> str:
 
 def run(cmd: object, console: Optional["Console"] = None, pipeline=None) -> str:
     """Run one parsed command; returns the line to print. ``pipeline``: an already loaded run (a
-    nerfstudio pipeline or an :class:`~virgi_ns.cli.runs.OpenRun`) for the commands that load one."""
+    nerfstudio pipeline or an :class:`~virgi_ns.nerfstudio.runs.OpenRun`) for the commands that load one."""
     if isinstance(cmd, (Apply, Pick, Import)):
         if console is None:
             from rich.console import Console

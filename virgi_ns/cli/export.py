@@ -5,8 +5,7 @@ The run's edits (``<run>/edits``, as the viewer panel and the edit tools keep th
 specular strength are applied unless ``--no-edits``; ``--specular-strength`` overrides ``k``.
 Colours are fitted to SH degree 3 per Gaussian (:mod:`virgi_ns.nerfstudio.export`); geometry is put back in
 the capture's original frame (the inverse of the run's ``dataparser_transforms.json``), so the file lines up with the source data and any splat imported from it.
-The run is opened from its files when it can be (:func:`virgi_ns.cli.runs.open_run`); :func:`load_run` is
-nerfstudio's loader, for callers that want the whole pipeline.
+The run is opened from its files when it can be (:func:`virgi_ns.nerfstudio.runs.open_run`).
 """
 
 from __future__ import annotations
@@ -54,57 +53,10 @@ def _validate(args: Export) -> None:
         raise InputError(f"no such config: {args.load_config}")
 
 
-def load_run(config_path: Path):
-    """``eval_setup`` of a VIRGi run, with its problems as :class:`InputError`."""
-    import yaml
-
-    from virgi_ns.nerfstudio.model import VirgiModel
-
-    try:
-        cfg = yaml.load(config_path.read_text(), Loader=yaml.Loader)
-    except Exception as e:  # noqa: BLE001 - any unreadable config is the same user error
-        raise InputError(f"{config_path}: not a nerfstudio config ({type(e).__name__})") from None
-    model_cfg = getattr(getattr(cfg, "pipeline", None), "model", None)
-    from virgi_ns.nerfstudio.model import VirgiModelConfig
-
-    if not isinstance(model_cfg, VirgiModelConfig):
-        raise InputError(f"{config_path}: not a virgi run (method {getattr(cfg, 'method_name', '?')})")
-    ckpt_dir = cfg.get_checkpoint_dir()
-    if not ckpt_dir.is_dir() or not any(ckpt_dir.glob("step-*.ckpt")):
-        raise InputError(f"{config_path}: no checkpoint (step-*.ckpt) in {ckpt_dir} (nerfstudio looks where the "
-                         "run was trained, relative to the current directory)")
-    pipeline = _setup_inference(cfg, ckpt_dir)
-    if not isinstance(pipeline.model, VirgiModel):
-        raise InputError(f"{config_path}: not a virgi run")
-    return cfg, pipeline
-
-
-def _setup_inference(cfg, ckpt_dir: Path):
-    """The pipeline of ``cfg`` with its latest checkpoint, built for inference (no training images
-    are read). What nerfstudio's ``eval_setup`` does, without importing every method nerfstudio
-    knows, which a fresh process would otherwise pay for on every command."""
-    import torch
-
-    from virgi_ns.nerfstudio import compat
-
-    compat.apply()  # checkpoints load with torch's safe unpickling (idempotent; other code may have narrowed it)
-
-    steps = sorted(int(p.stem.split("-")[1]) for p in ckpt_dir.glob("step-*.ckpt") if p.stem.split("-")[1].isdigit())
-    if not steps:
-        raise InputError(f"no checkpoint (step-*.ckpt) in {ckpt_dir}")
-    cfg.load_dir = ckpt_dir
-    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    pipeline = cfg.pipeline.setup(device=device, test_mode="inference")
-    pipeline.eval()
-    state = torch.load(ckpt_dir / f"step-{steps[-1]:09d}.ckpt", map_location="cpu")
-    pipeline.load_pipeline(state["pipeline"], state["step"])
-    return pipeline
-
-
 def run(args: Export) -> str:
     """Do the export; returns the one-line summary."""
     _validate(args)
-    from virgi_ns.cli.runs import open_run
+    from virgi_ns.nerfstudio.runs import open_run
     from virgi_ns.edit.stack import EditStack
     from virgi_ns.nerfstudio.export import BakeConfig, bake, write_splat
     from virgi_ns.nerfstudio.frames import CaptureFrame

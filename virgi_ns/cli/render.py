@@ -41,7 +41,7 @@ class Render:
 
 def render_image(g, spec, backend: str = "auto", background=(0.0, 0.0, 0.0), device=None) -> np.ndarray:
     """HxWx3 float32 image of Gaussians ``g`` seen by camera ``spec`` (a CameraSpec)."""
-    from virgi_ns.colour.sh import view_colors
+    from virgi_ns.colour.sh import view_colours
     from virgi_ns.raster import Request, composite, rasterize
 
     if device is None:
@@ -53,9 +53,9 @@ def render_image(g, spec, backend: str = "auto", background=(0.0, 0.0, 0.0), dev
         Request.whole_images(cams), backend=backend,
     )
     center = cams.camera_centers()[0]
-    colors = view_colors(g.sh, g.means, center)[contrib.pair_gaussian]
+    colours = view_colours(g.sh, g.means, center)[contrib.pair_gaussian]
     bg = torch.as_tensor(background, dtype=torch.float32, device=device)
-    img = composite(colors, contrib, bg)[0]
+    img = composite(colours, contrib, bg)[0]
     return img.detach().cpu().numpy().astype(np.float32)
 
 

@@ -18,7 +18,7 @@ where the data asks for it.
 
 With ``decoupled=False`` the field is the single-MLP baseline: one MLP of the same depth reads
 ``[f, SH(d)]`` and its output is ``c_d``; ``c_s`` is identically zero. Its hidden layers then
-depend on the view direction, so :meth:`DecoupledColorField.diffuse_hidden` needs ``dirs``.
+depend on the view direction, so :meth:`DecoupledColourField.diffuse_hidden` needs ``dirs``.
 
 The field knows nothing of rendering; it maps positions (and directions) to colours.
 """
@@ -37,7 +37,7 @@ from virgi_ns.colour.encodings import GridEncoding
 
 
 @dataclass
-class ColorFieldConfig:
+class ColourFieldConfig:
     """Hash grid and MLP sizes (Compact-3DGS's grid by default)."""
 
     levels: int = 16
@@ -65,16 +65,20 @@ class ColorFieldConfig:
         return int(round(self.base_res * self.growth ** max(self.levels - 1, 0)))
 
 
-class DecoupledColorField(nn.Module):
+ColorFieldConfig = ColourFieldConfig
+"""The class under the name a run's ``config.yml`` may give it (``virgi_ns.colour.field.ColorFieldConfig``)."""
+
+
+class DecoupledColourField(nn.Module):
     """Per-point colour ``sigmoid(c_d + c_s)`` from hash features and a view direction."""
 
-    def __init__(self, cfg: ColorFieldConfig, aabb: Float[Tensor, "2 3"], empty: bool = False) -> None:
+    def __init__(self, cfg: ColourFieldConfig, aabb: Float[Tensor, "2 3"], empty: bool = False) -> None:
         """``empty``: leave the hash table uninitialised, for a field whose trained state is loaded next."""
         super().__init__()
         self.cfg = cfg
         aabb = torch.as_tensor(aabb, dtype=torch.float32).reshape(2, 3)
         if not bool((aabb[1] > aabb[0]).all()):
-            raise ValueError(f"DecoupledColorField: empty scene box {aabb.tolist()}")
+            raise ValueError(f"DecoupledColourField: empty scene box {aabb.tolist()}")
         self.register_buffer("aabb", aabb.clone())
         self.hash = GridEncoding(
             num_levels=cfg.levels,
@@ -278,5 +282,5 @@ def view_directions(means: Float[Tensor, "N 3"], centers: Float[Tensor, "N 3"]) 
     return d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
-__all__ = ["ColorFieldConfig", "DecoupledColorField", "GridEncoding", "direction_monomials", "monomial_degree",
+__all__ = ["ColorFieldConfig", "ColourFieldConfig", "DecoupledColourField", "GridEncoding", "direction_monomials", "monomial_degree",
            "sh_monomial_matrix", "view_directions"]

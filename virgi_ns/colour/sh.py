@@ -15,7 +15,7 @@ from torch import Tensor
 
 from virgi_ns.gaussians import SH_C0, sh_degree_from_coeffs
 
-__all__ = ["sh_basis", "sh_colors", "view_colors"]
+__all__ = ["sh_basis", "sh_colours", "view_colours"]
 
 
 def sh_basis(degree: int, dirs: Tensor) -> Tensor:
@@ -27,7 +27,7 @@ def sh_basis(degree: int, dirs: Tensor) -> Tensor:
     return comps * sign
 
 
-def sh_colors(sh: Tensor, dirs: Tensor | None = None) -> Tensor:
+def sh_colours(sh: Tensor, dirs: Tensor | None = None) -> Tensor:
     """Colours [N, 3] from SH coefficients [N, K, 3] seen along ``dirs`` [N, 3] (any length;
     normalised here). ``dirs`` may be None when K == 1."""
     degree = sh_degree_from_coeffs(sh.shape[1])
@@ -35,14 +35,14 @@ def sh_colors(sh: Tensor, dirs: Tensor | None = None) -> Tensor:
         rgb = SH_C0 * sh[:, 0]
     else:
         if dirs is None:
-            raise ValueError("sh_colors: view directions are needed for SH degree > 0")
+            raise ValueError("sh_colours: view directions are needed for SH degree > 0")
         d = torch.nn.functional.normalize(dirs.to(sh.dtype), dim=-1)
         rgb = (sh_basis(degree, d)[:, :, None] * sh).sum(dim=1)
     return torch.clamp_min(rgb + 0.5, 0.0)
 
 
-def view_colors(sh: Tensor, means: Tensor, camera_center: Tensor) -> Tensor:
+def view_colours(sh: Tensor, means: Tensor, camera_center: Tensor) -> Tensor:
     """Colours [N, 3] of Gaussians at ``means`` [N, 3] seen from ``camera_center`` [3]."""
     if sh.shape[1] == 1:
-        return sh_colors(sh)
-    return sh_colors(sh, means - camera_center.to(means).reshape(1, 3))
+        return sh_colours(sh)
+    return sh_colours(sh, means - camera_center.to(means).reshape(1, 3))

@@ -97,7 +97,7 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
 
                     model.contrib_cache = ContributionCache(
                         train_cams, model.num_points,
-                        lambda c, r: model._raster(c, r),
+                        lambda c, r: model.contributions(c, r),
                         progress=lambda d, n: (progress.update(t_cache, completed=d),
                                                None if console.is_terminal or d % 7 else
                                                console.log(f"rasterized training view {d}/{n}")))

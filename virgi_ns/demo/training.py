@@ -19,11 +19,11 @@ def _cached_model_class():
     class CachedVirgiModel(VirgiModel):
         contrib_cache = None
 
-        def _raster(self, cams, request, geometry_grad: bool = False):
+        def contributions(self, cams, request, geometry_grad: bool = False):
             cache = self.contrib_cache
             if cache is not None and self.geometry_frozen and cache.matches(cams):
                 return cache.contributions(request, self.means.detach())
-            return super()._raster(cams, request, geometry_grad)
+            return super().contributions(cams, request, geometry_grad)
 
     return CachedVirgiModel
 
@@ -31,7 +31,7 @@ def _cached_model_class():
 def trainer_config(cfg: DemoConfig, scene: Path, geometry: Optional[Path], use_cache: bool):
     """``ns-train virgi``'s recipe on ``scene``, with the demo's step counts and sizes."""
     from method_configs.virgi import virgi_trainer_config
-    from virgi_ns.colour.field import ColorFieldConfig
+    from virgi_ns.colour.field import ColourFieldConfig
 
     g_steps = 0 if geometry is not None else geometry_steps(cfg)
     tc = virgi_trainer_config("virgi-demo", geometry_steps=g_steps, colour_steps=colour_steps(cfg, geometry))
@@ -52,7 +52,7 @@ def trainer_config(cfg: DemoConfig, scene: Path, geometry: Optional[Path], use_c
         m.colour_init_steps = cfg.colour_init_steps
     if cfg.colour_init_batch is not None:
         m.colour_init_batch = cfg.colour_init_batch
-    m.color_field = ColorFieldConfig(log2_hashmap_size=cfg.hash_log2)
+    m.color_field = ColourFieldConfig(log2_hashmap_size=cfg.hash_log2)
     if g_steps > 0 and (cfg.device == "cpu" or not torch.cuda.is_available()):
         m.num_downscales = 2  # a CPU affords 1/4 resolution for the first half, 1/2 for the second
         m.resolution_schedule = max(1, (g_steps + 1) // 2)

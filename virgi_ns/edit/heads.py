@@ -1,9 +1,11 @@
-"""An edit step's two heads with their backward written out, for the GPU's fused step.
+"""An edit's heads: the segmentation head, and both heads' step written out for the GPU.
 
-The joint recipe trains the segmentation head and the copied last diffuse layer on the pixel loss
-(:mod:`virgi_ns.edit.engine`). Through autograd a step's heads are dozens of small kernels, as
-long as the pixel loss itself at 1M Gaussians. :class:`FusedHeads` does the same step as two
-cuBLAS products and two kernels of ours (``csrc/edit_heads.cu``)::
+- :class:`SegmentationHead`: ``alpha = sigmoid(MLP_seg([f, h_diff]))``, which Gaussians an edit
+  recolours; :func:`fresh_segmentation`, a fresh one drawn from a seed.
+- :class:`FusedHeads`: one step of the joint recipe's two heads (the segmentation head and the copied
+  last diffuse layer, :mod:`virgi_ns.edit.engine`) on the GPU. Through autograd a step's heads are
+  dozens of small kernels; here the same step is two cuBLAS products and two kernels of ours
+  (``csrc/edit_heads.cu``)::
 
     pre    = x W1^T + b1                           x = [f, h_diff] (constant during an edit)
     alpha  = sigmoid(relu(pre) . w2 + b2)
@@ -20,12 +22,58 @@ then the same Adam step on the same tensors as the autograd step. :func:`referen
 
 from __future__ import annotations
 
+import functools
+import threading
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor
+from jaxtyping import Float
+from torch import Tensor, nn
 
-from virgi_ns.edit.stack import SegmentationHead
+
+class SegmentationHead(nn.Module):
+    """``alpha = sigmoid(l2(relu(l1([f, h_diff]))))``: which Gaussians an edit recolours.
+
+    The output bias starts at ``init_bias`` (negative) and the output weights near zero, so a
+    fresh head gives ``alpha ~ sigmoid(init_bias)`` everywhere: the edit starts as a no-op."""
+
+    def __init__(self, feature_dim: int, hidden_dim: int, width: int = 64, init_bias: float = -4.0) -> None:
+        super().__init__()
+        self.feature_dim, self.hidden_dim, self.width = feature_dim, hidden_dim, width
+        self.l1 = nn.Linear(feature_dim + hidden_dim, width)
+        self.l2 = nn.Linear(width, 1)
+        nn.init.normal_(self.l2.weight, std=1e-2)
+        nn.init.constant_(self.l2.bias, init_bias)
+
+    def inputs(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N FH"]:
+        """``[f, h_diff]``, the head's input (constant during an edit, so callers may cache it)."""
+        return torch.cat([feats.to(self.l1.weight.dtype), h_diff.to(self.l1.weight.dtype)], dim=-1)
+
+    def logits_of(self, x: Float[Tensor, "N FH"]) -> Float[Tensor, "N 1"]:
+        return self.l2(torch.relu(self.l1(x)))
+
+    def logits(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N 1"]:
+        return self.logits_of(self.inputs(feats, h_diff))
+
+    def forward(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N 1"]:
+        return torch.sigmoid(self.logits(feats, h_diff))
+
+
+GLOBAL_RNG_LOCK = threading.Lock()
+"""Held while the global CPU random state is seeded or forked here, so that another thread (the
+warm-up, :mod:`virgi_ns.edit.warmup`) cannot draw from it between a seed and its use."""
+
+
+@functools.lru_cache(maxsize=8)
+def fresh_segmentation(feature_dim: int, hidden_dim: int, width: int, init_bias: float, seed: int,
+                       device: torch.device) -> SegmentationHead:
+    """A fresh segmentation head drawn on the CPU with ``seed`` (the same on every device), moved to
+    ``device`` and kept there for the next edit of the same shape (building it and moving it waits for
+    the GPU's queue). Callers copy it."""
+    with GLOBAL_RNG_LOCK, torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        head = SegmentationHead(feature_dim, hidden_dim, width, init_bias)
+    return head.to(device)
 
 
 MAX_WIDTH = 256
@@ -116,4 +164,5 @@ class FusedHeads:
         return loss[0]
 
 
-__all__ = ["FusedHeads", "HeadsInputs", "reference_backward", "reference_forward"]
+__all__ = ["GLOBAL_RNG_LOCK", "FusedHeads", "HeadsInputs", "SegmentationHead", "fresh_segmentation", "reference_backward",
+           "reference_forward"]

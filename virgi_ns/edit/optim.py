@@ -2,8 +2,7 @@
 
 ``torch.optim.Adam(fused=True)`` runs the same kernel, but building any ``torch.optim`` optimizer
 imports ``torch._dynamo`` (the optimizer's methods are wrapped to keep the compiler out of them),
-which costs about a second in a fresh process: the first edit of every CLI call and viewer session
-paid it (bench/RESULTS.md, "Render: the colour model in a view"). :class:`EditAdam` keeps Adam's
+a cost the first edit of every CLI call and viewer session would pay. :class:`EditAdam` keeps Adam's
 state itself and calls the kernel (``torch._fused_adam_``) directly; where that kernel is missing it
 falls back to ``torch.optim.Adam``.
 """

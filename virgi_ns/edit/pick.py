@@ -12,10 +12,9 @@ The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain to
   diffuse colour (the direction of its chromaticity, which shading does not move; the highlight is
   not in the diffuse render) is within ``tolerance`` x 90 degrees of the click's and it is reached
   through neighbours whose chroma changes gradually: an object's pale and deep tones meet through
-  blends, another object of the same hue meets it at a step. ``colour_features`` (the previous
-  default) asks both the diffuse colour and the colour field's features to point within that angle
-  of the click's; it stopped short of the object on most scenes of the evaluation set
-  (bench/RESULTS.md, "Pick");
+  blends, another object of the same hue meets it at a step. ``colour_features`` asks both the
+  diffuse colour and the colour field's features to point within that angle of the click's (stricter:
+  it stops where shading or texture turns the features);
 - :func:`recolour`: the edited image: ``hue`` gives the selection the colour's hue and saturation
   and keeps each pixel's value (shading and highlights stay: saturation is scaled so a reference
   pixel gets the colour's, and a white highlight stays near white); ``shift`` does the same but turns
@@ -33,8 +32,8 @@ The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain to
   saved beside it.
 
 The edit fits the selection as its changed pixels (the rest keeps the render), with the engine's
-``joint`` recipe (:data:`PICK_RECIPE`; ``staged``, whose segmentation is first a classifier of the
-Gaussians the selection covers, stays selectable).
+``joint`` recipe (:data:`PICK_RECIPE`; or ``staged``, whose segmentation is first a classifier of the
+Gaussians the selection covers).
 """
 
 from __future__ import annotations
@@ -94,8 +93,7 @@ def check_mode(mode: str) -> str:
 
 
 PICK_RECIPE = "joint"
-"""The recipe of a pick's edit: ``joint``, the engine's default (chosen over ``staged`` on run set 11 by a
-rule fixed before it ran: bench/RESULTS.md, "Pick"). ``staged`` stays selectable."""
+"""The recipe of a pick's edit: ``joint``, the engine's default; :func:`pick_config` takes ``staged`` too."""
 
 
 def pick_config(device: torch.device, recipe: str = PICK_RECIPE) -> EditConfig:
@@ -266,9 +264,9 @@ REFERENCES = ("median", "click")
 """Which pixel :func:`recolour` gives the chosen colour's saturation (hue) or value (colour): the
 selection's median one, or the clicked one (the others keep their ratio to it)."""
 DEFAULT_REFERENCE = "click"
-"""The clicked pixel takes the chosen colour (chosen over the median on run set 10 by a rule fixed
-before it ran: bench/RESULTS.md, "Pick"); a selection of pale and deep tones otherwise gets the colour's
-saturation on its median tone, and its deep tones more than the colour has."""
+"""The clicked pixel takes the chosen colour: the pixel the user pointed at shows the colour they chose (with
+the median as reference, a selection of pale and deep tones gets the colour's saturation on its median
+tone, and its deep tones more than the colour has)."""
 
 
 HIGHLIGHT_SATURATION_SHARE = 0.5

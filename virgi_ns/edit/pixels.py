@@ -1,27 +1,27 @@
-"""The edited view's pixels as sparse linear maps of per-Gaussian colours, split into batches.
+"""The edited view's pixels as sparse linear maps of per-Gaussian colours, split into sets.
 
 Geometry is frozen, so a view's pixels are ``A C + T bg`` with ``A`` fixed
-(:mod:`virgi_ns.raster.contract`). :func:`pixel_batches` cuts the view into random pixel sets,
-each with its own rows of ``A`` (:class:`CompositeOp`, which also holds what ``A^T`` needs for the
-backward pass).
+(:mod:`virgi_ns.raster.contract`). :func:`pixel_batches` cuts the view into random pixel sets, one
+:class:`PixelBatch` each (its rows of ``A``, background, target and loss weights), in one of two kinds
+(:attr:`EditConfig.batch_composite`):
 
-How a batch applies ``A`` (and ``A^T`` in the backward pass) is ``EditConfig.batch_composite``, one
-of :data:`COMPOSITES` (or ``"FWD/BWD"``: one kind for each pass; ``"csr"`` on both, cuSPARSE with a
-precomputed transpose, is the reference). Every kind is built once per batch
-and then runs without a host sync and with shapes fixed, so a step can be recorded as a CUDA graph.
-The fused kinds build no matrix per batch: one kernel reads the view's own entries for the step's
-pixels and gives the loss, and the gradient is gathered per Gaussian over the entries sorted by
-Gaussian once per edit (``fused``) or scattered by the same kernel (``fused_atomics``)
-(:class:`FusedSets`).
+- ``csr``: each set's ``A`` and ``A^T`` as sparse CSR matrices (:class:`CompositeOp`), built once and
+  applied by sparse products: the reference, on any device;
+- ``fused``: no matrix per set (:class:`FusedSets`): on a GPU one kernel reads the view's own entries for
+  the step's pixels and gives the loss and each pixel's signs, and a second gathers the gradient per
+  Gaussian over the entries sorted by Gaussian once per edit; the step's set is a counter on the device,
+  so one recorded CUDA graph replays every set. Elsewhere the same sums run in torch.
+
+Both run without a host sync and with shapes fixed, so a step can be recorded as a CUDA graph, and give
+the same loss and gradient up to the order of float sums.
 """
 
 from __future__ import annotations
 
 import itertools
-import math
 import warnings
 from dataclasses import dataclass
-from typing import NamedTuple, Optional
+from typing import Optional
 
 import torch
 from torch import Tensor
@@ -29,147 +29,64 @@ from torch import Tensor
 from virgi_ns.raster import Contributions
 
 
-COMPOSITES = {
-    "csr": "cuSPARSE CSR x dense: A and a precomputed A^T, int64 indices (the original)",
-    "csr32": "as csr with int32 indices (half the index traffic)",
-    "csr4": "as csr32 with the dense operand padded to 4 columns (16-byte rows)",
-    "csr_cm": "as csr32 with the dense operand column-major",
-    "segment": "gather x[cols] * vals, then torch.segment_reduce over each row's entries (A^T: by Gaussian)",
-    "index_add": "gather x[cols] * vals, then index_add_ by row (atomics; A^T: the same entries, by Gaussian)",
-    "embedding_bag": "torch.embedding_bag, mode sum with per-sample weights: gather, weight and sum in one kernel",
-    "fused": "the whole step's loss in one CUDA kernel (composite, weighted L1, each pixel's signs), its gradient "
-             "to the colours in a second, over the sets' entries sorted by Gaussian once per edit; the step's pixel "
-             "set chosen on the device; no per-set matrices (:class:`FusedSets`)",
-    "fused_atomics": "as fused, the gradient scattered by the loss kernel itself with one atomic per entry (the "
-                     "previous fused kind: nothing sorted, more atomics per step)",
-}
-"""The kinds of :attr:`EditConfig.batch_composite` (a name, or ``"FWD/BWD"`` for one kind per pass)."""
-
-_CSR_KINDS = ("csr", "csr32", "csr4", "csr_cm")
-_FUSED_KINDS = ("fused", "fused_atomics")
-
-
 AUTO_GPU = "fused"
-"""What ``"auto"`` picks on a GPU: the fastest kind that gave csr's edit in ``bench/edit_step.py``
-(bench/RESULTS.md, "Edit speed at 1M Gaussians"); on a CPU ``"auto"`` is ``"csr"``."""
-
-AUTO_GPU_WITHOUT_KERNELS = "segment/csr32"
-"""``"auto"`` on a GPU where our CUDA extension is not available (the fastest torch kinds there)."""
+"""What ``"auto"`` picks on a GPU where the package's CUDA extension is available; elsewhere ``"csr"``."""
 
 
 def resolve_composite(name: str, device: torch.device) -> str:
-    """``name`` with ``"auto"`` replaced by the kinds for ``device``."""
+    """``name`` (``auto``, ``csr`` or ``fused``) with ``auto`` replaced by the kind for ``device``."""
     if name != "auto":
         return name
     if torch.device(device).type != "cuda":
         return "csr"
     from virgi_ns.raster import cuda
 
-    return AUTO_GPU if cuda.available()[0] else AUTO_GPU_WITHOUT_KERNELS
+    return AUTO_GPU if cuda.available()[0] else "csr"
 
 
-def parse_composite(name: str) -> tuple[str, str]:
-    """``"segment"`` -> ``("segment", "segment")``; ``"embedding_bag/index_add"`` -> the forward and the
-    backward kind. Raises ValueError for a kind not in :data:`COMPOSITES`."""
-    if name == "auto":
-        return parse_composite(AUTO_GPU)
-    parts = str(name).split("/")
-    if any(p in _FUSED_KINDS for p in parts) and len(parts) != 1:
-        raise ValueError(f"EditConfig.batch_composite {' and '.join(map(repr, _FUSED_KINDS))} do both passes in "
-                         f"their own kernels: they cannot be paired, got {name!r}")
-    if len(parts) == 1:
-        parts = parts * 2
-    if len(parts) != 2 or any(p not in COMPOSITES for p in parts):
-        raise ValueError(f"EditConfig.batch_composite must be 'auto' or one of {', '.join(COMPOSITES)} (or 'FWD/BWD', "
-                         f"one of them for each pass), got {name!r}")
-    return parts[0], parts[1]
-
-
-class _Side(NamedTuple):
-    """One ordering of a sparse map's entries, out[target[j]] += vals[j] * x[gather[j]], out [n, k]."""
-
-    n: int
-    gather: Tensor  # [nnz] rows of x
-    vals: Tensor  # [nnz]
-    target: Optional[Tensor] = None  # [nnz] rows of out, sorted (segment, embedding_bag) or any (index_add)
-    offsets: Optional[Tensor] = None  # [n+1] where each row of out starts (entries sorted by target)
-    csr: Optional[Tensor] = None  # the map as a CSR matrix [n, len(x)]
-
-
-def _apply(kind: str, side: _Side, x: Tensor) -> Tensor:
-    """``out = M @ x`` for the map ``side`` by ``kind`` (no host sync, shapes fixed by ``side``)."""
-    if kind in ("csr", "csr32"):
-        return side.csr @ x
-    if kind == "csr4":
-        return (side.csr @ torch.nn.functional.pad(x, (0, 1)))[:, : x.shape[1]]
-    if kind == "csr_cm":
-        return side.csr @ x.t().contiguous().t()
-    if side.gather.numel() == 0:  # no entry: nothing to gather (segment_reduce refuses empty data on some builds)
-        return x.new_zeros(side.n, x.shape[1])
-    if kind == "embedding_bag":
-        return torch.embedding_bag(x, side.gather, side.offsets, False, 0, False, side.vals, True, None)[0]
-    terms = x.index_select(0, side.gather) * side.vals[:, None]
-    if kind == "segment":
-        return torch.segment_reduce(terms, "sum", offsets=side.offsets, unsafe=True)
-    if kind == "index_add":
-        return x.new_zeros(side.n, x.shape[1]).index_add_(0, side.target, terms)
-    raise ValueError(f"unknown composite kind {kind!r}")
-
-
-class _BatchRender(torch.autograd.Function):
-    """``A @ C`` by the operator's forward kind; the backward pass ``A^T @ grad`` by its backward kind."""
+class _CsrProduct(torch.autograd.Function):
+    """``A @ C`` by a sparse CSR product; the backward pass ``A^T @ grad`` by the precomputed transpose."""
 
     @staticmethod
     def forward(ctx, colours: Tensor, op: "CompositeOp") -> Tensor:  # type: ignore[override]
         ctx.op = op
-        return _apply(op.fwd, op.forward_side, colours)
+        return op.matrix @ colours
 
     @staticmethod
     def backward(ctx, grad: Tensor):  # type: ignore[override]
-        op = ctx.op
-        return _apply(op.bwd, op.backward_side, grad.contiguous()), None
+        return ctx.op.transpose @ grad.contiguous(), None
 
 
 class CompositeOp:
-    """A batch's constant ``A`` [p, U] applied by the kinds ``kind`` names (:func:`parse_composite`),
-    with every index array the two passes need built here, once: ``op(C)`` is ``A @ C`` with an
-    explicit backward. ``rows``, ``cols``, ``vals``: the entries, sorted by row (pixel)."""
+    """A set's constant ``A`` [p, U] and its transpose as sparse CSR matrices (int64 indices), built once:
+    ``op(C)`` is ``A @ C`` [p, k] with an explicit backward. ``rows``, ``cols``, ``vals`` [nnz]: the
+    entries, sorted by row (pixel)."""
 
-    def __init__(self, kind: str, rows: Tensor, cols: Tensor, vals: Tensor, p: int, U: int) -> None:
-        self.kind = kind
-        self.fwd, self.bwd = parse_composite(kind)
+    kind = "csr"
+
+    def __init__(self, rows: Tensor, cols: Tensor, vals: Tensor, p: int, U: int) -> None:
         self.shape = (p, U)
-        nnz = rows.numel()
-        small = max(nnz, p, U) < 2**31 - 1
-        idx = torch.int64 if "csr" in (self.fwd, self.bwd) or not small else torch.int32
-        rows, cols = rows.to(idx), cols.to(idx)
-        crow = _offsets(rows, p, idx)
-        if self.fwd == "index_add":
-            self.forward_side = _Side(p, cols, vals, target=rows)
-        else:
-            self.forward_side = _Side(p, cols, vals, rows, crow,
-                                      _csr_of(crow, cols, vals, (p, U)) if self.fwd in _CSR_KINDS else None)
-        if self.bwd == "index_add":  # the same entries, the roles of rows and columns swapped
-            self.backward_side = _Side(U, rows, vals, target=cols)
-        else:  # the entries sorted by Gaussian (pixels ascending within one: rows are sorted already)
-            t_order = torch.argsort(cols, stable=True)
-            rows_t, cols_t, vals_t = rows[t_order], cols[t_order], vals[t_order]
-            ccol = _offsets(cols_t, U, idx)
-            self.backward_side = _Side(U, rows_t, vals_t, cols_t, ccol,
-                                       _csr_of(ccol, rows_t, vals_t, (U, p)) if self.bwd in _CSR_KINDS else None)
+        rows, cols = rows.long(), cols.long()
+        self.matrix = csr_matrix(row_offsets(rows, p, torch.long), cols, vals, (p, U))
+        # the entries sorted by Gaussian (pixels ascending within one: rows are sorted already)
+        t_order = torch.argsort(cols, stable=True)
+        rows_t, cols_t, vals_t = rows[t_order], cols[t_order], vals[t_order]
+        self.transpose = csr_matrix(row_offsets(cols_t, U, torch.long), rows_t, vals_t, (U, p))
 
     def __call__(self, colours: Tensor) -> Tensor:
-        return _BatchRender.apply(colours, self)
+        return _CsrProduct.apply(colours, self)
 
 
-def _offsets(sorted_rows: Tensor, n: int, dtype: torch.dtype) -> Tensor:
-    """[n+1] start of each row's entries in ``sorted_rows`` (and the end)."""
+def row_offsets(sorted_rows: Tensor, n: int, dtype: torch.dtype) -> Tensor:
+    """[n+1] the start of each of ``n`` rows' entries in ``sorted_rows`` [nnz] (and the end), as ``dtype``."""
     out = torch.zeros(n + 1, dtype=torch.long, device=sorted_rows.device)
     out[1:] = torch.cumsum(torch.bincount(sorted_rows, minlength=n), 0)
     return out.to(dtype)
 
 
-def _csr_of(crow: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int]) -> Tensor:
+def csr_matrix(crow: Tensor, cols: Tensor, vals: Tensor, shape: tuple[int, int]) -> Tensor:
+    """A sparse CSR matrix of ``shape`` from its row offsets [rows+1], column indices and values [nnz]
+    (unchecked: the callers build them sorted)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return torch.sparse_csr_tensor(crow, cols, vals, shape, check_invariants=False)
@@ -200,25 +117,25 @@ def _to_device(host: Tensor, dev: torch.device) -> Tensor:
 
 
 class FusedSets:
-    """The pixel sets of the fused kinds: every set's rows in one array ordered by set (``rows``:
+    """The pixel sets of the ``fused`` kind: every set's rows in one array ordered by set (``rows``:
     the view's pixels; ``background``, ``target``, ``loss_weight`` alike, each set's slice being its
     :class:`PixelBatch`'s), read with the view's own entries (``pixel_offsets``, ``pair``,
     ``weight``), so nothing is built per set. Which set a step uses is a counter on the device, set
     ``counter % len(starts) - 1`` and advanced by each :meth:`loss`: one recorded CUDA graph of a step
     replays every set in turn. :meth:`restart` sets it to the first set.
 
-    ``gathered`` (the ``fused`` kind): on a GPU the gradient is summed per Gaussian over every set's
-    entries sorted by Gaussian (:attr:`by_gaussian`, built here, once), instead of scattered by one
-    atomic per entry (``fused_atomics``). Both give the same loss and gradient up to the order of
-    float sums."""
+    On a GPU the gradient is summed per Gaussian over every set's entries sorted by Gaussian
+    (:attr:`by_gaussian`, built here, once); where those cannot be built (None) the loss kernel scatters
+    it with one atomic per entry instead: the same loss and gradient up to the order of float sums."""
+
+    kind = "fused"
 
     def __init__(self, contrib: Contributions, rows: Tensor, starts: list[int], background: Tensor, target: Tensor,
-                 loss_weight: Tensor, U: int, gathered: bool = True) -> None:
-        self.kind = "fused" if gathered else "fused_atomics"
+                 loss_weight: Tensor, U: int) -> None:
         dev = target.device
         offsets = getattr(contrib, "pixel_offsets", None)
         self.pixel_offsets = (offsets if offsets is not None else
-                              _offsets(contrib.pixel.to(dev).long(), contrib.num_pixels, torch.long)).to(dev).long()
+                              row_offsets(contrib.pixel.to(dev).long(), contrib.num_pixels, torch.long)).to(dev).long()
         self.pair = contrib.pair.to(dev, torch.int32).contiguous()
         self.weight = contrib.weight.detach().to(dev, torch.float32).contiguous()
         self.rows, self.background, self.target, self.loss_weight = rows, background, target, loss_weight
@@ -229,7 +146,7 @@ class FusedSets:
         self.U = U
         self._kernel: Optional[bool] = None
         self.by_gaussian: Optional[list[Tensor]] = None  # (t_start, t_gauss, t_row, t_w): the gathered kernel's
-        if gathered and self._use_kernel(target):
+        if self._use_kernel(target):
             self.by_gaussian = self._sorted_by_gaussian()
 
     def _sorted_by_gaussian(self) -> Optional[list[Tensor]]:
@@ -249,7 +166,7 @@ class FusedSets:
                                         self.loss_weight, self.U)
             except torch.cuda.OutOfMemoryError:
                 why = f"too little free GPU memory for {self.pair.numel():,} entries sorted by Gaussian"
-        warnings.warn(f"edit steps scatter their gradient (the fused_atomics kernel): {why}")
+        warnings.warn(f"edit steps scatter their gradient (an atomic per entry): {why}")
         return None
 
     def __len__(self) -> int:
@@ -314,6 +231,9 @@ class FusedSets:
 
 @dataclass
 class PixelBatch:
+    """One pixel set of the view: its ``A`` [p, U] (``op``: a :class:`CompositeOp`, or the :class:`FusedSets`
+    every set of the ``fused`` kind shares), and per pixel its background ``T bg``, target and loss weight."""
+
     op: "CompositeOp | FusedSets"  # the batch's A [p, U] and how it is applied (FusedSets: shared by every set)
     background: Tensor  # [p, 3] T * bg
     target: Tensor  # [p, 3]
@@ -327,7 +247,7 @@ class PixelBatch:
 
     @property
     def sets(self) -> Optional[FusedSets]:
-        """The ``fused`` kind's sets, which every batch of the view shares (None for the other kinds)."""
+        """The ``fused`` kind's sets, which every batch of the view shares (None for ``csr``)."""
         return self.op if isinstance(self.op, FusedSets) else None
 
     def render(self, colours: Tensor) -> Tensor:
@@ -342,7 +262,7 @@ class PixelBatch:
             C = torch.zeros(self.sets.U, grad.shape[1], dtype=grad.dtype, device=grad.device, requires_grad=True)
             with torch.enable_grad():
                 return torch.autograd.grad(self.render(C), C, grad)[0]
-        return _apply(self.op.bwd, self.op.backward_side, grad.contiguous())
+        return self.op.transpose @ grad.contiguous()
 
     def loss(self, colours: Tensor) -> Tensor:
         """The step's loss on this batch: the (weighted) mean over its pixels and channels of
@@ -359,77 +279,58 @@ class PixelBatch:
         return err.mean() if self.weight is None else (err.mean(-1) * self.weight).sum()
 
 
-def _group_weights(changed: Optional[Tensor], share: float, n_changed: Optional[int] = None,
-                   near: Optional[Tensor] = None, near_share: float = 0.0) -> Optional[Tensor]:
-    """Per-pixel loss weights [p] summing to 1: the ``changed`` pixels carry ``share`` of the loss and
+def _group_weights(changed: Optional[Tensor], share: float, n_changed: Optional[int] = None) -> Optional[Tensor]:
+    """Per-pixel loss weights [p] summing to 1: the ``changed`` [p] pixels carry ``share`` of the loss and
     the others the rest, whatever their numbers (all of it when one group is empty). ``n_changed``:
-    how many are changed, when the caller knows it (counting them waits for the GPU). ``near`` [p]
-    (unchanged pixels next to the change, :func:`near_changed`): they carry ``near_share`` of the
-    unchanged pixels' part and the far ones the rest (all of it when one of the two is empty); their
-    counts stay on the device."""
+    how many are changed, when the caller knows it (counting them waits for the GPU)."""
     if changed is None:
         return None
     n_c = int(changed.sum()) if n_changed is None else n_changed
     n_u = changed.numel() - n_c
     if n_c == 0 or n_u == 0:
         return torch.full(changed.shape, 1.0 / max(changed.numel(), 1), device=changed.device)
-    if near is None or near_share <= 0.0:
-        return torch.where(changed, share / n_c, (1.0 - share) / n_u).float()
-    near = near & ~changed
-    n_near = near.sum().float()
-    n_far = n_u - n_near
-    s_near = torch.where(n_far == 0, 1.0, torch.where(n_near == 0, 0.0, near_share)) * (1.0 - share)
-    unchanged = torch.where(near, s_near / n_near.clamp_min(1.0), ((1.0 - share) - s_near) / n_far.clamp_min(1.0))
-    return torch.where(changed, share / n_c, unchanged).float()
-
-
-def near_changed(changed: Tensor, radius: float) -> Tensor:
-    """[H, W] bool: the pixels within ``radius`` (a fraction of the view's shorter side, rounded up to
-    whole pixels; a square neighbourhood) of a ``changed`` [H, W] pixel that are not changed
-    themselves: a part of another colour inside a recoloured object, and the object's rim."""
-    H, W = changed.shape
-    r = math.ceil(radius * min(H, W))
-    if r <= 0:
-        return torch.zeros_like(changed)
-    grown = changed.float()[None, None]
-    grown = torch.nn.functional.max_pool2d(grown, (1, 2 * r + 1), 1, (0, r))  # rows, then columns
-    grown = torch.nn.functional.max_pool2d(grown, (2 * r + 1, 1), 1, (r, 0))
-    return (grown[0, 0] > 0) & ~changed
+    return torch.where(changed, share / n_c, (1.0 - share) / n_u).float()
 
 
 def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches: int, seed: int,
-                   changed: Optional[Tensor] = None, share: float = 0.5, composite: str = "csr",
-                   n_changed: Optional[int] = None, near: Optional[Tensor] = None,
-                   near_share: float = 0.0) -> list[PixelBatch]:
-    """Split the view's pixels into ``n_batches`` random, equally sized sets, each with its own
-    rows of ``A`` (pixels ascending within a set) and its own ``A^T``. With ``changed`` [P] (the
-    pixels an edit changed) the changed and the other pixels are each spread evenly over the sets,
-    and within every set the changed ones carry ``share`` of the loss (:func:`_group_weights`).
-    ``composite``: how each batch applies ``A`` (:data:`COMPOSITES`, :func:`parse_composite`);
-    ``n_changed``: how many pixels ``changed`` marks, when the caller has counted them; ``near`` [P]
-    and ``near_share``: the unchanged pixels next to the change and their part of the unchanged
-    pixels' share (:func:`_group_weights`)."""
+                  changed: Optional[Tensor] = None, share: float = 0.5, composite: str = "csr",
+                  n_changed: Optional[int] = None) -> list[PixelBatch]:
+    """Split the view's pixels into ``n_batches`` random, equally sized sets, each with its own rows of
+    ``A`` (pixels ascending within a set). With ``changed`` the changed and the other pixels are each
+    spread evenly over the sets, and within every set the changed ones carry ``share`` of the loss.
 
+    Args:
+        contrib: the view's contribution lists (one view, P pixels).
+        target: [P, 3] each pixel's target.
+        bg: [3] the background colour.
+        n_batches: how many sets (1: the whole view).
+        seed: seeds the split.
+        changed: [P] bool, the pixels an edit changed (None: every pixel weighs the same).
+        share: the changed pixels' share of each set's loss.
+        composite: ``csr``, ``fused`` or ``auto`` (:func:`resolve_composite`).
+        n_changed: how many pixels ``changed`` marks, when the caller has counted them.
+
+    Returns:
+        One :class:`PixelBatch` per set."""
     composite = resolve_composite(composite, target.device)
-    parse_composite(composite)
+    if composite not in ("csr", "fused"):
+        raise ValueError(f"pixel_batches: composite must be 'auto', 'csr' or 'fused', got {composite!r}")
     dev, dt = target.device, target.dtype
     P = contrib.num_pixels
     U = int(contrib.pair_gaussian.shape[0])
     T = contrib.transmittance.detach().to(dev, dt)
-    if n_batches == 1 and composite not in _FUSED_KINDS:  # the whole image: entries are already grouped by pixel
+    if n_batches == 1 and composite == "csr":  # the whole image: entries are already grouped by pixel
         pix, pair = contrib.pixel.to(dev).long(), contrib.pair.to(dev).long()
         w = contrib.weight.detach().to(dev, dt)
-        op = CompositeOp(composite, pix, pair, w, P, U)
-        return [PixelBatch(op, T[:, None] * bg[None, :], target,
-                           _group_weights(changed, share, n_changed, near, near_share))]
+        op = CompositeOp(pix, pair, w, P, U)
+        return [PixelBatch(op, T[:, None] * bg[None, :], target, _group_weights(changed, share, n_changed))]
     if changed is not None and n_changed is None:
         n_changed = int(changed.sum())
     batch_of = _assign_sets(P, n_batches, seed, changed, dev, n_changed)
     # the sets' pixels one after another, ascending within a set
     order = torch.argsort(batch_of, stable=True)
-    if composite in _FUSED_KINDS:
-        return _fused_batches(contrib, order, T, bg, target, changed, share, U, n_batches, n_changed, near, near_share,
-                              gathered=composite == "fused")
+    if composite == "fused":
+        return _fused_batches(contrib, order, T, bg, target, changed, share, U, n_batches, n_changed)
     counts = torch.bincount(batch_of, minlength=n_batches)
     starts = torch.cumsum(counts, 0) - counts
     # local row of each pixel: its rank among its batch's pixels, in ascending pixel order
@@ -448,12 +349,10 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
         e0 += e_counts[b]
         rows, cols, vals = local[pix[sel]], pair[sel], w[sel]
         p_b = int(counts[b])
-        op = CompositeOp(composite, rows, cols, vals, p_b, U)
+        op = CompositeOp(rows, cols, vals, p_b, U)
         pixels = order[int(starts[b]) : int(starts[b]) + p_b]
         out.append(PixelBatch(op, T[pixels, None] * bg[None, :], target[pixels],
-                              None if changed is None else _group_weights(
-                                  changed[pixels], share, None, None if near is None else near[pixels], near_share),
-                              pixels, b))
+                              None if changed is None else _group_weights(changed[pixels], share), pixels, b))
     return out
 
 
@@ -487,9 +386,8 @@ def _assign_sets(P: int, n_batches: int, seed: int, changed: Optional[Tensor], d
 
 def _fused_batches(contrib: Contributions, order: Tensor, T: Tensor, bg: Tensor, target: Tensor,
                    changed: Optional[Tensor], share: float, U: int, n_sets: int,
-                   n_changed: Optional[int], near: Optional[Tensor] = None, near_share: float = 0.0,
-                   gathered: bool = True) -> list[PixelBatch]:
-    """The fused kinds' batches: slices of one :class:`FusedSets` (no per-set matrices). Each set's
+                   n_changed: Optional[int]) -> list[PixelBatch]:
+    """The ``fused`` kind's batches: slices of one :class:`FusedSets` (no per-set matrices). Each set's
     size, and its share of the changed pixels, follow from the split of :func:`_assign_sets` on the
     host, so nothing here waits for the GPU."""
     P = order.numel()
@@ -504,12 +402,12 @@ def _fused_batches(contrib: Contributions, order: Tensor, T: Tensor, bg: Tensor,
     loss_weight = torch.empty(P, dtype=torch.float32, device=order.device)
     for s, (a, b) in enumerate(zip(starts[:-1], starts[1:])):
         loss_weight[a:b] = (1.0 / max(b - a, 1)) if changed is None else _group_weights(
-            changed[order[a:b]], share, changed_counts[s], None if near is None else near[order[a:b]], near_share)
-    sets = FusedSets(contrib, order, starts, background, rows_target, loss_weight, U, gathered)
+            changed[order[a:b]], share, changed_counts[s])
+    sets = FusedSets(contrib, order, starts, background, rows_target, loss_weight, U)
     return [PixelBatch(sets, background[a:b], rows_target[a:b],
                        None if changed is None else loss_weight[a:b], order[a:b], i)
             for i, (a, b) in enumerate(zip(starts[:-1], starts[1:]))]
 
 
-__all__ = ["AUTO_GPU", "COMPOSITES", "CompositeOp", "FusedSets", "PixelBatch", "near_changed", "parse_composite",
-           "pixel_batches", "resolve_composite"]
+__all__ = ["AUTO_GPU", "CompositeOp", "FusedSets", "PixelBatch", "csr_matrix", "pixel_batches", "resolve_composite",
+           "row_offsets"]

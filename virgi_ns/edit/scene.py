@@ -13,9 +13,25 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
-from virgi_ns.colour.field import DecoupledColorField, view_directions
-from virgi_ns.edit.stack import EditStack, field_fingerprint
+from virgi_ns.colour.field import DecoupledColourField, view_directions
+from virgi_ns.edit.stack import EditStack
+from virgi_ns.fingerprint import field_fingerprint
 from virgi_ns.raster import Cameras, Contributions, Request, composite, rasterize
+
+
+@dataclass
+class SceneView:
+    """What one view sees of a :class:`FrozenScene`: ``contrib``, its contribution lists; ``gaussians``
+    [U], the Gaussian of each of its (view, Gaussian) pairs; per pair, the features ``feats`` [U,F] and
+    ``h_diff`` [U,H], the base diffuse logits ``c_d`` [U,3] and the specular logits ``c_s`` [U,3] for the
+    view's camera."""
+
+    contrib: Contributions
+    gaussians: Tensor
+    feats: Tensor
+    h_diff: Tensor
+    c_d: Tensor
+    c_s: Tensor
 
 
 @dataclass
@@ -27,7 +43,7 @@ class FrozenScene:
     quats: Tensor
     scales: Tensor
     opacities: Tensor
-    field: DecoupledColorField
+    field: DecoupledColourField
     background: Tensor
     backend: str = "auto"
     features: Optional[tuple[Tensor, Tensor, Tensor]] = None
@@ -68,6 +84,21 @@ class FrozenScene:
         h1, h2 = self.field.diffuse_hidden(f)
         return f, h1.float(), h2.float()
 
+    @torch.no_grad()
+    def view(self, camera: Cameras, contrib: Optional[Contributions] = None) -> "SceneView":
+        """What one view (``camera``, one camera on this scene's device) sees: its contributions (``contrib``
+        when the caller has them) and, per (view, Gaussian) pair, the colour field's features and the
+        base diffuse and specular logits for this camera (:class:`SceneView`)."""
+        if contrib is None:
+            contrib = self.contributions(camera, Request.whole_images(camera))
+        g = contrib.pair_gaussian.to(self.device)
+        means = self.means[g].float()
+        feats, h1, h2 = self.gaussian_features(g)
+        c_d = self.field.diffuse(h2).float()
+        dirs = view_directions(means, camera.camera_centers()[0].to(means).expand_as(means))
+        c_s = self.field.specular(feats, dirs, h1, h2).float()
+        return SceneView(contrib, g, feats, h2, c_d, c_s)
+
     def fingerprint(self) -> str:
         """The base run's fingerprint that every edit of it carries."""
         return field_fingerprint(self.means, self.field, [self.quats, self.scales, self.opacities])
@@ -93,15 +124,8 @@ def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional
     Gaussian's diffuse colour ``sigmoid(c_d'')`` [U,3], the specular part then added to its logit as
     usual (what an edit of the diffuse colour alone can reach)."""
     cams = cameras.index(view).to(scene.device, torch.float32)
-    if contrib is None:
-        contrib = scene.contributions(cams, Request.whole_images(cams))
-    fld = scene.field
-    g = contrib.pair_gaussian.to(scene.device)
-    m = scene.means[g].float()
-    f, h1, h2 = scene.gaussian_features(g)
-    c_d = fld.diffuse(h2).float()
-    dirs = view_directions(m, cams.camera_centers()[0].to(m).expand_as(m))
-    c_s = fld.specular(f, dirs, h1, h2).float()
+    seen = scene.view(cams, contrib)
+    contrib, f, h2, c_d, c_s = seen.contrib, seen.feats, seen.h_diff, seen.c_d, seen.c_s
     k = 1.0
     seg = torch.zeros_like(c_d[:, :1])
     if stack is not None:
@@ -119,4 +143,4 @@ def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional
 
 
 
-__all__ = ["FrozenScene", "render_view"]
+__all__ = ["FrozenScene", "SceneView", "render_view"]

@@ -23,72 +23,21 @@ never enters a model's checkpoint.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable
 
 import torch
 from jaxtyping import Float
-from torch import Tensor, nn
+from torch import Tensor
 
+from virgi_ns.edit.heads import SegmentationHead
 from virgi_ns.edit.manifest import EDITS_DIR, MANIFEST, edits_dir, read_manifest, remove_edit_files, write_manifest
 from virgi_ns.errors import InputError, atomic_path
 
 EDIT_FORMAT = "virgi-edit"
 EDIT_VERSION = 1
-
-
-# ------------------------------------------------------------------------------ heads
-class SegmentationHead(nn.Module):
-    """``alpha = sigmoid(l2(relu(l1([f, h_diff]))))``: which Gaussians an edit recolours.
-
-    The output bias starts at ``init_bias`` (negative) and the output weights near zero, so a
-    fresh head gives ``alpha ~ sigmoid(init_bias)`` everywhere: the edit starts as a no-op."""
-
-    def __init__(self, feature_dim: int, hidden_dim: int, width: int = 64, init_bias: float = -4.0) -> None:
-        super().__init__()
-        self.feature_dim, self.hidden_dim, self.width = feature_dim, hidden_dim, width
-        self.l1 = nn.Linear(feature_dim + hidden_dim, width)
-        self.l2 = nn.Linear(width, 1)
-        nn.init.normal_(self.l2.weight, std=1e-2)
-        nn.init.constant_(self.l2.bias, init_bias)
-
-    def inputs(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N FH"]:
-        """``[f, h_diff]``, the head's input (constant during an edit, so callers may cache it)."""
-        return torch.cat([feats.to(self.l1.weight.dtype), h_diff.to(self.l1.weight.dtype)], dim=-1)
-
-    def logits_of(self, x: Float[Tensor, "N FH"]) -> Float[Tensor, "N 1"]:
-        return self.l2(torch.relu(self.l1(x)))
-
-    def logits(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N 1"]:
-        return self.logits_of(self.inputs(feats, h_diff))
-
-    def forward(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N 1"]:
-        return torch.sigmoid(self.logits(feats, h_diff))
-
-
-# ------------------------------------------------------------------------ fingerprint
-def run_fingerprint(tensors: Iterable[Tensor], samples: int = 1 << 16) -> str:
-    """A short hash of a base run: shapes, dtypes and a strided sample of every tensor (the frozen
-    geometry and the colour field's state). Equal runs give equal fingerprints on any device."""
-    h = hashlib.sha256()
-    for t in tensors:
-        t = t.detach()
-        h.update(f"{tuple(t.shape)}|{str(t.dtype)}|".encode())
-        flat = t.reshape(-1)
-        stride = max(1, flat.numel() // samples)
-        sample = flat[::stride][:samples].to("cpu", torch.float64)
-        h.update(sample.numpy().tobytes())
-    return h.hexdigest()[:16]
-
-
-def field_fingerprint(means: Tensor, field_module: nn.Module, extra: Iterable[Tensor] = ()) -> str:
-    """Fingerprint of frozen means + every tensor of the colour field's state dict (+ ``extra``)."""
-    sd = field_module.state_dict()
-    return run_fingerprint([means, *extra, *(sd[k] for k in sorted(sd))])
 
 
 # ------------------------------------------------------------------------------- edit
@@ -428,5 +377,4 @@ def new_edit_info(**kw) -> dict:
     return {"created": time.strftime("%Y-%m-%d %H:%M:%S"), **kw}
 
 
-__all__ = ["EDITS_DIR", "MANIFEST", "Edit", "EditSource", "EditStack", "SegmentationHead", "field_fingerprint",
-           "run_fingerprint", "new_edit_info"]
+__all__ = ["EDITS_DIR", "MANIFEST", "Edit", "EditSource", "EditStack", "SegmentationHead", "new_edit_info"]

@@ -8,7 +8,7 @@ edit (whose recorded CUDA graphs must not share the device with another thread's
 
 The warm-up draws its scene from its own generator, and builds its colour field with the global
 random state forked, under the lock the engine holds while it seeds its segmentation head
-(:data:`~virgi_ns.edit.engine.GLOBAL_RNG_LOCK`): it changes nothing a caller's seeds decide. A
+(:data:`~virgi_ns.edit.heads.GLOBAL_RNG_LOCK`): it changes nothing a caller's seeds decide. A
 warm-up that fails only leaves the first edit slow: its error is kept (:data:`last_error`), never
 raised.
 """
@@ -38,8 +38,8 @@ GAUSSIANS, WIDTH, HEIGHT = 60_000, 320, 180
 def _scene(device: torch.device, n: int, width: int, height: int):
     """(scene, camera, generator): ``n`` random Gaussians in front of one camera of ``width`` x
     ``height``, a colour field of the default size, all drawn from one seeded generator."""
-    from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
-    from virgi_ns.edit.engine import GLOBAL_RNG_LOCK
+    from virgi_ns.colour.field import ColourFieldConfig, DecoupledColourField
+    from virgi_ns.edit.heads import GLOBAL_RNG_LOCK
     from virgi_ns.edit.scene import FrozenScene
     from virgi_ns.raster import Cameras
 
@@ -55,7 +55,7 @@ def _scene(device: torch.device, n: int, width: int, height: int):
     quats = torch.nn.functional.normalize(rand(n, 4) - 0.5, dim=-1)
     aabb = torch.tensor([[-6.0, -4.0, 1.5], [6.0, 4.0, 8.5]])
     with GLOBAL_RNG_LOCK, torch.random.fork_rng(devices=[]):  # the layers' initialisation draws from it
-        field = DecoupledColorField(ColorFieldConfig(), aabb, empty=True).to(device)
+        field = DecoupledColourField(ColourFieldConfig(), aabb, empty=True).to(device)
     for p in field.parameters():
         p.copy_((rand(*p.shape) - 0.5) * 0.2)
     cams = Cameras.from_params(f, f, width / 2, height / 2, torch.eye(4, device=device)[None], width, height)

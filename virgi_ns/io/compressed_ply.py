@@ -30,7 +30,7 @@ from virgi_ns.io.plyfmt import PlyData, ply_bytes
 CHUNK = 256
 POS_PROPS = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z"]
 SCALE_PROPS = ["min_scale_x", "min_scale_y", "min_scale_z", "max_scale_x", "max_scale_y", "max_scale_z"]
-COLOR_PROPS = ["min_r", "min_g", "min_b", "max_r", "max_g", "max_b"]
+COLOUR_PROPS = ["min_r", "min_g", "min_b", "max_r", "max_g", "max_b"]
 PACKED = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
 SQRT2 = math.sqrt(2.0)
 # Opacity bytes 0 and 255 are sigmoid 0 and 1; keep the logits finite by decoding them half a step inside.
@@ -87,7 +87,7 @@ def gaussians_from_compressed(ply: PlyData, where: str = "file") -> Gaussians:
         raise InputError(
             f"{where}: compressed PLY has {chunk.count:,} chunks for {n:,} Gaussians; expected {(n + CHUNK - 1) // CHUNK:,}"
         )
-    has_color = all(p in chunk.names for p in COLOR_PROPS)
+    has_colour = all(p in chunk.names for p in COLOUR_PROPS)
     cd, vd = chunk.data, vertex.data
     ci = np.arange(n) // CHUNK
     cget = lambda names: np.stack([np.asarray(cd[p], np.float64) for p in names], 1)[ci]  # noqa: E731
@@ -100,8 +100,8 @@ def gaussians_from_compressed(ply: PlyData, where: str = "file") -> Gaussians:
     pc = u32("packed_color")
     rgba = np.stack([_unorm(pc, 24, 8), _unorm(pc, 16, 8), _unorm(pc, 8, 8), _unorm(pc, 0, 8)], 1)
     rgb = rgba[:, :3]
-    if has_color:
-        col_mm = cget(COLOR_PROPS)
+    if has_colour:
+        col_mm = cget(COLOUR_PROPS)
         rgb = _lerp(col_mm[:, :3], col_mm[:, 3:], rgb)
     f_dc = (rgb - 0.5) / SH_C0
     opac = logit(rgba[:, 3])
@@ -164,7 +164,7 @@ def compressed_ply_bytes(g: Gaussians, with_sh: bool = True) -> bytes:
     a = lambda x: x.detach().cpu().to(torch.float64).numpy()  # noqa: E731
     means, scales, quats, opac, sh = a(g.means), a(g.scales), a(g.quats), a(g.opacities), a(g.sh)
     nc = (n + CHUNK - 1) // CHUNK
-    color = sh[:, 0] * SH_C0 + 0.5
+    colour = sh[:, 0] * SH_C0 + 0.5
 
     def minmax(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pad = nc * CHUNK - n
@@ -174,16 +174,16 @@ def compressed_ply_bytes(g: Gaussians, with_sh: bool = True) -> bytes:
 
     pmin, pmax = minmax(means)
     smin, smax = minmax(np.clip(scales, -20, 20))
-    cmin, cmax = minmax(color)
+    cmin, cmax = minmax(colour)
     ci = np.arange(n) // CHUNK
     chunk_cols = np.concatenate([pmin, pmax, smin, smax, cmin, cmax], 1).astype("<f4")
-    chunk = chunk_cols.view(np.dtype([(p, "<f4") for p in POS_PROPS + SCALE_PROPS + COLOR_PROPS])).reshape(nc)
+    chunk = chunk_cols.view(np.dtype([(p, "<f4") for p in POS_PROPS + SCALE_PROPS + COLOUR_PROPS])).reshape(nc)
 
     vertex = np.empty(n, dtype=np.dtype([(p, "<u4") for p in PACKED]))
     vertex["packed_position"] = _pack_111011(_normalize(means, pmin[ci], pmax[ci]))
     vertex["packed_rotation"] = pack_smallest_three(quats)
     vertex["packed_scale"] = _pack_111011(_normalize(scales, smin[ci], smax[ci]))
-    ct = _normalize(color, cmin[ci], cmax[ci])
+    ct = _normalize(colour, cmin[ci], cmax[ci])
     alpha = 1.0 / (1.0 + np.exp(-opac))
     vertex["packed_color"] = ((_pack_unorm(ct[:, 0], 8) << np.uint32(24)) | (_pack_unorm(ct[:, 1], 8) << np.uint32(16))
                               | (_pack_unorm(ct[:, 2], 8) << np.uint32(8)) | _pack_unorm(alpha, 8))

@@ -31,7 +31,7 @@ from virgi_ns.errors import InputError
 from virgi_ns.gaussians import Gaussians
 
 MAGIC = 0x5053474E  # b"NGSP" little-endian
-COLOR_SCALE = 0.15
+COLOUR_SCALE = 0.15
 SQRT1_2 = 1.0 / math.sqrt(2.0)
 MAX_POINTS = 50_000_000
 ALPHA_EPS = 0.5 / 255.0
@@ -70,7 +70,7 @@ def _attr_sizes(n: int, version: int, sh_dim: int) -> list[int]:
 
 # ------------------------------------------------------------------------------------ reading
 def _decode(n: int, version: int, sh_deg: int, frac: int, parts: list[bytes]) -> Gaussians:
-    pos_b, alpha_b, color_b, scale_b, rot_b, sh_b = (np.frombuffer(p, dtype=np.uint8) for p in parts)
+    pos_b, alpha_b, colour_b, scale_b, rot_b, sh_b = (np.frombuffer(p, dtype=np.uint8) for p in parts)
     if version == 1:
         means = np.frombuffer(parts[0], dtype="<f2").astype(np.float64).reshape(n, 3)
     else:
@@ -79,7 +79,7 @@ def _decode(n: int, version: int, sh_deg: int, frac: int, parts: list[bytes]) ->
         fixed = np.where(fixed & 0x800000, fixed - (1 << 24), fixed)
         means = (fixed.astype(np.float64) / float(1 << frac)).reshape(n, 3)
     opac = _logit(alpha_b.astype(np.float64) / 255.0)
-    f_dc = (color_b.reshape(n, 3).astype(np.float64) / 255.0 - 0.5) / COLOR_SCALE
+    f_dc = (colour_b.reshape(n, 3).astype(np.float64) / 255.0 - 0.5) / COLOUR_SCALE
     scales = scale_b.reshape(n, 3).astype(np.float64) / 16.0 - 10.0
     if version >= 3:
         r = rot_b.reshape(n, 4).astype(np.uint32)
@@ -223,7 +223,7 @@ def spz_bytes(g: Gaussians, version: int = 3, fractional_bits: int | None = None
     fixed &= 0xFFFFFF
     pos = np.stack([fixed & 0xFF, (fixed >> 8) & 0xFF, (fixed >> 16) & 0xFF], 1).astype(np.uint8)
     alpha = u8(255.0 / (1.0 + np.exp(-opac)))
-    color = u8(sh[:, 0] * (COLOR_SCALE * 255.0) + 127.5)
+    colour = u8(sh[:, 0] * (COLOUR_SCALE * 255.0) + 127.5)
     scale = u8((scales + 10.0) * 16.0)
     rows = np.arange(n)
     if version >= 3:
@@ -241,7 +241,7 @@ def spz_bytes(g: Gaussians, version: int = 3, fractional_bits: int | None = None
         rot = u8(xyzw[:, :3] * sgn * 127.5 + 127.5)
     sh_dim = _dim_for_degree(deg)
     shq = u8(sh[:, 1:] * _SH_FLIP[:sh_dim, None] * 128.0 + 128.0) if sh_dim else np.zeros((n, 0, 3), np.uint8)
-    parts = [p.tobytes() for p in (pos, alpha, color, scale, rot, shq)]
+    parts = [p.tobytes() for p in (pos, alpha, colour, scale, rot, shq)]
     if version == 4:
         if not sh_dim:
             parts = parts[:5]

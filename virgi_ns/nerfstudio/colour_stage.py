@@ -161,7 +161,7 @@ class ColourStage:
         if cams is None or len(cams) == 0 or rest.shape[1] == 0 or not bool((rest != 0).any()):
             CONSOLE.log("virgi: no training cameras or no SH above degree 0: degree-0 warm start")
             return None
-        from virgi_ns.colour.sh import sh_colors
+        from virgi_ns.colour.sh import sh_colours
 
         dtype = self.means.dtype
         cams = cams.to(self.device, dtype)
@@ -177,7 +177,7 @@ class ColourStage:
             seen = cams.project_points(m, v)[1]
             dirs = view_directions(m, centres[v])
             file_dirs = dirs if rot is None else dirs @ rot
-            full = torch.logit(sh_colors(sh[idx], file_dirs).clamp(eps, 1.0 - eps))
+            full = torch.logit(sh_colours(sh[idx], file_dirs).clamp(eps, 1.0 - eps))
             return dirs, full, seen
 
         return draw
@@ -265,7 +265,7 @@ class ColourStage:
 
     # ----------------------------------------------------------- tile batches
     def _tile_outputs(self, batch: TileBatch) -> Dict[str, Union[Tensor, List]]:
-        contrib = self._raster(batch.cameras, batch.request)
+        contrib = self.contributions(batch.cameras, batch.request)
         cols = self.pair_colours(contrib, batch.cameras)
         bg = self.background_color.to(self.device)
         rgb = composite(cols["rgb"], contrib, bg)

@@ -83,7 +83,8 @@ def processes_per_host(world: int) -> int:
 GPU_PROCESS_THREADS = 16
 """At most this many CPU threads in a process that drives a GPU. Its CPU work is small ops between
 kernel launches (the colour stage's batch drawing), whose thread pool must not take every core
-from the process's own launching thread (bench/RESULTS.md, "Several GPUs", measures it)."""
+from the process's own launching thread: with a pool as wide as a large host the drawing runs slower by an
+order of magnitude."""
 
 
 def share_cpu_threads(world: int, device_type: str = "cpu") -> int:

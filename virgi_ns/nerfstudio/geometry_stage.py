@@ -40,16 +40,16 @@ class GeometryStage:
             return self._imported_gaussians(Path(cfg.geometry_from), dim_sh)
         if self.seed_points is not None and not cfg.random_init:
             means = self.seed_points[0].float().cpu()
-            colors = self.seed_points[1].float().cpu() / 255.0 if self.seed_points[1].shape[0] > 0 else None
+            colours = self.seed_points[1].float().cpu() / 255.0 if self.seed_points[1].shape[0] > 0 else None
         else:
             means = (torch.rand(cfg.num_random, 3) - 0.5) * cfg.random_scale
-            colors = None
+            colours = None
         n = means.shape[0]
         dist, _ = self.k_nearest_sklearn(means, 3) if n > 3 else (None, None)
         avg = torch.from_numpy(dist).mean(-1, keepdim=True) if dist is not None else torch.full((n, 1), 0.01)
         from nerfstudio.models.splatfacto import random_quat_tensor
 
-        dc = RGB2SH(colors) if colors is not None else torch.rand(n, 3)
+        dc = RGB2SH(colours) if colours is not None else torch.rand(n, 3)
         return {
             "means": means,
             "scales": torch.log(avg.clamp_min(1e-7).repeat(1, 3)),
@@ -144,7 +144,7 @@ class GeometryStage:
         cams = raster_cameras(camera[0:1] if len(camera.shape) else camera.reshape((1,)))
         camera.rescale_output_resolution(d)
         req = Request.whole_images(cams)
-        contrib = self._raster(cams, req, geometry_grad=self.training)
+        contrib = self.contributions(cams, req, geometry_grad=self.training)
         colours = (SH_C0 * self.features_dc + 0.5).clamp_min(0.0)
         bg = self._get_background_color() if self.training else self.background_color.to(self.device)
         rgb = composite(contrib.gather(colours), contrib, bg)[0].clamp(0, 1)

@@ -29,7 +29,7 @@ from pytorch_msssim import SSIM
 from torch import Tensor
 from torch.nn import Parameter
 
-from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
+from virgi_ns.colour.field import ColourFieldConfig, DecoupledColourField
 from virgi_ns.errors import InputError
 from virgi_ns.nerfstudio import distributed
 from virgi_ns.nerfstudio.colour_stage import ColourStage
@@ -56,7 +56,7 @@ class VirgiModelConfig(SplatfactoModelConfig):
     """Geometry training steps (ignored with geometry_from)."""
     colour_steps: int = 10000
     """Colour-stage length used for the lambda_spec schedule when the trainer's is unknown."""
-    color_field: ColorFieldConfig = field(default_factory=ColorFieldConfig)
+    color_field: ColourFieldConfig = field(default_factory=ColourFieldConfig)
     """Hash grid and MLP sizes; ``decoupled=False`` is the single-MLP baseline."""
     lambda_spec_start: float = 0.25
     lambda_spec_end: float = 0.05
@@ -148,7 +148,7 @@ class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
         # gsplat's outputs of this process's views in the current geometry step (see step_post_backward)
         self._view_infos: deque = deque(maxlen=max(1, views // distributed.world_size()))
 
-        self.field = DecoupledColorField(cfg.color_field, self._scene_aabb())
+        self.field = DecoupledColourField(cfg.color_field, self._scene_aabb())
         self.register_buffer("frozen", torch.tensor(False))  # in checkpoints
         self._frozen = False  # its host copy: the flag is read every step, and reading a GPU buffer syncs
         self.register_load_state_dict_post_hook(VirgiModel._sync_frozen)
@@ -179,7 +179,10 @@ class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
     def _scene_aabb(self) -> Tensor:
         return self.scene_box.aabb.detach().float().cpu().clone()
 
-    def _raster(self, cams: Cameras, request: Request, geometry_grad: bool = False) -> Contributions:
+    def contributions(self, cams: Cameras, request: Request, geometry_grad: bool = False) -> Contributions:
+        """The contribution lists of ``request`` on ``cams`` (:func:`virgi_ns.raster.rasterize`): with the
+        configured backend on frozen geometry, the reference (differentiable) before; ``geometry_grad``: the
+        lists keep the geometry's gradient (the geometry stage's own rasterization)."""
         means, quats, scales, opac = self.means, self.quats, torch.exp(self.scales), torch.sigmoid(self.opacities)
         with torch.set_grad_enabled(geometry_grad and torch.is_grad_enabled()):
             return rasterize(means, quats, scales, opac.reshape(-1), cams.to(self.device), request,

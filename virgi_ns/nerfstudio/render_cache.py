@@ -7,7 +7,7 @@ So :class:`RenderCache` keeps, each level rebuilt when what it was computed from
   scales, sigmoid opacities);
 - **gate** (:class:`GateCache`): for each Gaussian the specular gate keeps, its mean and the
   direction-independent parts of MLP_spec's three pre-activations
-  (:meth:`~virgi_ns.colour.field.DecoupledColorField.specular_parts`), and MLP_spec's per-view
+  (:meth:`~virgi_ns.colour.field.DecoupledColourField.specular_parts`), and MLP_spec's per-view
   weights with the SH direction encoding folded into a weight on direction monomials;
 - **edits** (:class:`EditCache`): every Gaussian's edited diffuse colour ``sigmoid(c_d'')``
   (through the edit stack and the live edit), and for gated Gaussians ``c_d'' + k p3`` and
@@ -176,6 +176,19 @@ class ViewColours:
 
 # ---------------------------------------------------------------------------- the caches
 @dataclass(eq=False)
+class BackgroundCache:
+    """A render's background: ``key`` (its stamp and device), the ``source`` tensor, its copy ``on_device``,
+    and, once asked for, the [1,3] float32 ``row`` gsplat takes and ``row_with_depth`` ([1,4], a zero for an
+    expected-depth channel)."""
+
+    key: tuple
+    source: Tensor
+    on_device: Tensor
+    row: Optional[Tensor] = None
+    row_with_depth: Optional[Tensor] = None
+
+
+@dataclass(eq=False)
 class GeometryCache:
     key: tuple
     refs: tuple
@@ -299,7 +312,7 @@ class RenderCache:
         self.geometry_level: Optional[GeometryCache] = None
         self.gate_level: Optional[GateCache] = None
         self.edit_level: Optional[EditCache] = None
-        self._background: Optional[tuple] = None
+        self._background: Optional[BackgroundCache] = None
         self._watch: Optional[ModuleWatch] = None
         self.graph_failed = False
         """A recording failed once: colours are computed eagerly from then on."""
@@ -324,7 +337,7 @@ class RenderCache:
         w = self.watch(model.field)
         versions = w.versions()
         means = _gaussian_params(model)["means"]
-        if not model._gate_current(w.param_stamp(versions), int(means.shape[0])):
+        if not model.gate_current(w.param_stamp(versions), int(means.shape[0])):
             return None
         gate = self.gate(model, w, versions, means)
         return gate, self.edits(model, gate)
@@ -369,27 +382,27 @@ class RenderCache:
     def background(self, bg: Tensor, device: torch.device) -> Tensor:
         """``bg`` on ``device`` (copied once per background tensor, not once per frame)."""
         key = (stamp(bg), device)
-        if self._background is None or self._background[0] != key:
-            self._background = (key, bg, bg.to(device), None, None)
-        return self._background[2]
+        if self._background is None or self._background.key != key:
+            self._background = BackgroundCache(key, bg, bg.to(device))
+        return self._background.on_device
 
     def background_row(self, bg: Tensor) -> Tensor:
         """``bg`` as :meth:`background` returned it, as gsplat takes backgrounds: [1,3] float32 (made once
         per background)."""
         b = self._background
-        if b is None or b[2] is not bg:
+        if b is None or b.on_device is not bg:
             return bg.float().reshape(1, -1)
-        if b[3] is None:
-            row = bg.float().reshape(1, -1)
-            self._background = b = (*b[:3], row, torch.cat([row, row.new_zeros(1, 1)], dim=1))
-        return b[3]
+        if b.row is None:
+            b.row = bg.float().reshape(1, -1)
+            b.row_with_depth = torch.cat([b.row, b.row.new_zeros(1, 1)], dim=1)
+        return b.row
 
     def with_depth_channel(self, row: Tensor) -> Tensor:
         """[1,D] backgrounds and a zero for an expected-depth channel: [1,D+1] (kept for
         :meth:`background_row`'s row)."""
         b = self._background
-        if b is not None and b[3] is row:
-            return b[4]
+        if b is not None and b.row is row:
+            return b.row_with_depth
         return torch.cat([row, row.new_zeros(1, 1)], dim=1)
 
     def geometry(self, model) -> GeometryCache:
@@ -483,7 +496,7 @@ def edited_diffuse(fld, f: Tensor, h2: Tensor, stack, live) -> Tensor:
 
 @torch.no_grad()
 def _build_edits(model, key: tuple, refs: tuple, gate: Optional[GateCache]) -> EditCache:
-    stack = model._active_stack()
+    stack = model.active_stack()
     live = getattr(model, "live_edit", None)
     means = model.means.detach()
     if stack is None and live is None:

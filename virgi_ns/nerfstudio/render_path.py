@@ -77,13 +77,14 @@ class RenderPath:
 
     def fingerprint(self) -> str:
         """The base run's fingerprint that every edit of it carries."""
-        from virgi_ns.edit.stack import field_fingerprint
+        from virgi_ns.fingerprint import field_fingerprint
 
         return field_fingerprint(self.means.detach(), self.field,
                                  [self.quats.detach(), torch.exp(self.scales.detach()),
                                   torch.sigmoid(self.opacities.detach()).reshape(-1)])
 
-    def _active_stack(self):
+    def active_stack(self):
+        """The edit stack renders go through, or None where it changes nothing (none set, or the identity)."""
         st = self.edit_stack
         return None if st is None or st.is_identity else st
 
@@ -101,7 +102,7 @@ class RenderPath:
         once per distinct Gaussian, MLP_spec once per pair."""
         pg = contrib.pair_gaussian.to(self.device)
         pv = contrib.pair_view.to(self.device)
-        stack = self._active_stack()
+        stack = self.active_stack()
         live = getattr(self, "live_edit", None)
         if pg.numel() == 0:
             z = torch.zeros(0, 3, device=self.device)
@@ -147,7 +148,7 @@ class RenderPath:
         """Every Gaussian's colour from the field (no cache): the reference the cached colours
         must equal."""
         fld = self.field
-        stack = self._active_stack()
+        stack = self.active_stack()
         live = getattr(self, "live_edit", None)
         k = stack.specular_strength if stack is not None else 1.0
         means = self.means.detach()
@@ -206,9 +207,9 @@ class RenderPath:
 
     def gate_ready(self) -> bool:
         """A gate is built for these Gaussians and the field has not changed since."""
-        return self._gate_current(None)
+        return self.gate_current(None)
 
-    def _gate_current(self, field_stamp: Optional[tuple], n: Optional[int] = None) -> bool:
+    def gate_current(self, field_stamp: Optional[tuple], n: Optional[int] = None) -> bool:
         """Whether the gate was measured for these Gaussians and this field (``field_stamp``: the field's
         :meth:`_field_stamp` now, or None to take it; ``n``: the number of Gaussians, or None)."""
         built = getattr(self, "_gate_stamp", None)
@@ -294,7 +295,7 @@ class RenderPath:
         bg_all = torch.cat([bg, bg, zero] + ([zero] if seg is not None else []))
         for y0 in range(0, H, rows):
             h = min(rows, H - y0)
-            contrib = self._raster(cams, Request(torch.zeros(1, dtype=torch.long), 0, y0, W, h))
+            contrib = self.contributions(cams, Request(torch.zeros(1, dtype=torch.long), 0, y0, W, h))
             pg = contrib.pair_gaussian.to(self.device)
             channels = [colours.rgb[pg], diffuse[pg], contrib.pair_depth[:, None].to(colours.rgb)]
             if seg is not None:

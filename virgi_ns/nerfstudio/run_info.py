@@ -2,7 +2,7 @@
 
 The file records the cameras as nerfstudio's loader of the run sees them: a datamanager set up for
 inference (``test_mode="inference"``: no image is read, the dataparser runs at downscale 1, the
-evaluation split is ``test``), which is what :func:`virgi_ns.cli.export.load_run` builds. Training
+evaluation split is ``test``), which is what :func:`virgi_ns.nerfstudio.runs.load_run` builds. Training
 builds one such datamanager once from its config (:func:`training_run_info`) and writes the file at
 every checkpoint (nerfstudio's ``save_only_latest_checkpoint`` clears the folder); a command that had
 to load a run through nerfstudio writes it from the pipeline it loaded (:func:`run_info_of`).

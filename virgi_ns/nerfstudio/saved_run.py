@@ -1,7 +1,7 @@
 """A trained VIRGi run read from its files without nerfstudio's loader: what ``virgi-edit apply|pick|import``
 and ``virgi-export`` need of it.
 
-nerfstudio's own loader (``eval_setup``, or :func:`virgi_ns.cli.export.load_run`) imports the
+nerfstudio's own loader (``eval_setup``, or :func:`virgi_ns.nerfstudio.runs.load_run`) imports the
 classes a run's ``config.yml`` names (most of nerfstudio), runs the dataparser and builds the whole
 model, re-reading an imported splat, before the checkpoint overwrites it all: seconds a command pays
 for a handful of tensors. Here instead
@@ -17,7 +17,7 @@ for a handful of tensors. Here instead
 
 A run without ``virgi_run.json`` (saved before it existed), whose ``config.yml`` changed since it was
 written, or whose config this module does not recognise, is loaded through nerfstudio
-(:func:`virgi_ns.cli.runs.open_run` decides).
+(:func:`virgi_ns.nerfstudio.runs.open_run` decides).
 """
 
 from __future__ import annotations
@@ -43,7 +43,8 @@ RUN_INFO_FORMAT = "virgi-run-info"
 RUN_INFO_VERSION = 1
 
 VIRGI_MODEL_CLASSES = ("virgi_ns.nerfstudio.model.VirgiModelConfig", "virgi_ns.model.VirgiModelConfig")
-FIELD_CLASSES = ("virgi_ns.colour.field.ColorFieldConfig", "virgi_ns.field.ColorFieldConfig")
+FIELD_CLASSES = ("virgi_ns.colour.field.ColourFieldConfig", "virgi_ns.colour.field.ColorFieldConfig",
+                 "virgi_ns.field.ColorFieldConfig")
 RUN_DIR_CLASSES = ("virgi_ns.nerfstudio.pipeline.RunDirConfig",)
 """Trainer configs whose run directory is ``output_dir`` itself."""
 TRAINER_CLASSES = ("nerfstudio.engine.trainer.TrainerConfig", "virgi_ns.nerfstudio.trainer.VirgiTrainerConfig")
@@ -121,7 +122,7 @@ class RunSettings:
     """Where nerfstudio looks for ``step-*.ckpt`` (relative paths: to the current directory, as nerfstudio)."""
     method_name: str
     color_field: dict
-    """The :class:`~virgi_ns.colour.field.ColorFieldConfig` values."""
+    """The :class:`~virgi_ns.colour.field.ColourFieldConfig` values."""
     raster_backend: str = "auto"
     gate_threshold: float = 1.0 / 255.0
     specular_gating: bool = True
@@ -398,7 +399,7 @@ class SavedModel:
 
     def fingerprint(self) -> str:
         """The base run's fingerprint that every edit of it carries (as the model computes it)."""
-        from virgi_ns.edit.stack import field_fingerprint
+        from virgi_ns.fingerprint import field_fingerprint
 
         return field_fingerprint(self.means.detach(), self.field,
                                  [self.quats.detach(), torch.exp(self.scales.detach()),
@@ -408,14 +409,14 @@ class SavedModel:
     def from_state(state: dict, settings: RunSettings, info: RunInfo, device: torch.device,
                    where: str = "checkpoint") -> "SavedModel":
         """Build from a model state dict (:func:`model_state`) on ``device``."""
-        from virgi_ns.colour.field import ColorFieldConfig, DecoupledColorField
+        from virgi_ns.colour.field import ColourFieldConfig, DecoupledColourField
 
         try:
             gauss = {p: state[f"gauss_params.{p}"].to(device, torch.float32) for p in GAUSS_PARAMS}
-            known = {f.name for f in fields(ColorFieldConfig)}
-            cfg = ColorFieldConfig(**{k: v for k, v in settings.color_field.items() if k in known})
+            known = {f.name for f in fields(ColourFieldConfig)}
+            cfg = ColourFieldConfig(**{k: v for k, v in settings.color_field.items() if k in known})
             field_state = {k[len("field."):]: v for k, v in state.items() if k.startswith("field.")}
-            field = DecoupledColorField(cfg, field_state["aabb"], empty=True)
+            field = DecoupledColourField(cfg, field_state["aabb"], empty=True)
             field.load_state_dict(field_state)
             field.to(device).eval()
             spec = state.get("spec_magnitude", torch.zeros(0)).to(device)

@@ -49,15 +49,8 @@ def resolve_backend(backend: str, device: torch.device) -> str:
     return "reference"
 
 
-def rasterize(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    cameras: Cameras,
-    request: Request,
-    backend: str = "auto",
-) -> Contributions:
+def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cameras: Cameras, request: Request,
+              backend: str = "auto") -> Contributions:
     """Contributions of N Gaussians to the pixels of ``request``.
 
     ``means`` [N,3]; ``quats`` [N,4] wxyz (normalised inside); ``scales`` [N,3] standard

@@ -197,30 +197,30 @@ class Contributions:
         """[T,h,w] opacity (1 - final transmittance)."""
         return (1.0 - self.transmittance).reshape(self.shape)
 
-    def composite(self, colors: Tensor, background: Tensor | float | None = None) -> Tensor:
+    def composite(self, colours: Tensor, background: Tensor | float | None = None) -> Tensor:
         """What :func:`composite` computes; a backend's subclass may override it with a fused
         version of the same function (the plain torch path is :func:`composite_plain`)."""
-        return composite_plain(colors, self, background)
+        return composite_plain(colours, self, background)
 
 
-def composite(colors: Tensor, contrib: Contributions, background: Tensor | float | None = None) -> Tensor:
-    """Per-pair colours [U, D] -> images [T, h, w, D]. Differentiable in ``colors`` (and in the
+def composite(colours: Tensor, contrib: Contributions, background: Tensor | float | None = None) -> Tensor:
+    """Per-pair colours [U, D] -> images [T, h, w, D]. Differentiable in ``colours`` (and in the
     weights, where they carry history). ``background`` is a [D] vector, a scalar, or None (0).
     Defers to ``contrib.composite``, so a backend's lists can use its fused kernels."""
-    return contrib.composite(colors, background)
+    return contrib.composite(colours, background)
 
 
-def composite_plain(colors: Tensor, contrib: Contributions, background: Tensor | float | None = None) -> Tensor:
+def composite_plain(colours: Tensor, contrib: Contributions, background: Tensor | float | None = None) -> Tensor:
     """:func:`composite` in plain torch (gather + ``index_add``), for any backend's lists."""
-    if colors.shape[0] != contrib.pair_view.shape[0]:
-        raise ValueError(f"composite: {colors.shape[0]} colours for {contrib.pair_view.shape[0]} pairs")
-    d = colors.shape[1]
-    w = contrib.weight.to(colors.dtype)
-    vals = colors.index_select(0, contrib.pair) * w[:, None]
-    out = colors.new_zeros(contrib.num_pixels, d).index_add(0, contrib.pixel, vals)
+    if colours.shape[0] != contrib.pair_view.shape[0]:
+        raise ValueError(f"composite: {colours.shape[0]} colours for {contrib.pair_view.shape[0]} pairs")
+    d = colours.shape[1]
+    w = contrib.weight.to(colours.dtype)
+    vals = colours.index_select(0, contrib.pair) * w[:, None]
+    out = colours.new_zeros(contrib.num_pixels, d).index_add(0, contrib.pixel, vals)
     if background is not None:
-        bg = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(1, -1)
-        out = out + contrib.transmittance.to(colors.dtype)[:, None] * bg
+        bg = torch.as_tensor(background, dtype=colours.dtype, device=colours.device).reshape(1, -1)
+        out = out + contrib.transmittance.to(colours.dtype)[:, None] * bg
     t, h, wd = contrib.shape
     return out.reshape(t, h, wd, d)
 

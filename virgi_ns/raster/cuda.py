@@ -34,7 +34,7 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import torch
 from torch import Tensor
@@ -47,7 +47,7 @@ CSRC = Path(__file__).resolve().parents[2] / "csrc"
 SOURCES = ("extension.cpp", "raster_kernels.cu", "composite_kernels.cu", "edit_kernels.cu", "edit_heads.cu")
 EXTENSION_NAME = "virgi_ns_raster"
 
-TILE_BACKWARD_MIN_PIXELS = 1 << 20  # measured on an H200: per-entry atomics win below ~1 Mpix
+TILE_BACKWARD_MIN_PIXELS = 1 << 20  # per-entry atomics are the faster backward below ~1 Mpix
 # Size of the compact visible-pair arrays to try first; None: the extension estimates it (tests
 # set a small value to exercise the overflow and its retry).
 VISIBLE_CAPACITY: int | None = None
@@ -220,47 +220,67 @@ class CudaContributions(Contributions):
     pixel_offsets: Tensor | None = None
     tile_lists: tuple | None = None
 
-    def composite(self, colors: Tensor, background: Tensor | float | None = None) -> Tensor:
+    def composite(self, colours: Tensor, background: Tensor | float | None = None) -> Tensor:
         """Fused on the GPU (float32 [U, D] colours on CUDA, weights without history); anything
         else takes the plain torch path, as for any :class:`Contributions`."""
-        fused = (self.pixel_offsets is not None and colors.is_cuda and colors.dtype == torch.float32
-                 and colors.dim() == 2 and not self.weight.requires_grad)
+        fused = (self.pixel_offsets is not None and colours.is_cuda and colours.dtype == torch.float32
+                 and colours.dim() == 2 and not self.weight.requires_grad)
         if not fused:
-            return _plain_composite(colors, self, background)
-        return self._run(_FusedComposite, colors, background)
+            return _plain_composite(colours, self, background)
+        return self._run(_FusedComposite, colours, background)
 
-    def _run(self, fn, colors: Tensor, background: Tensor | float | None) -> Tensor:
+    def _run(self, fn, colours: Tensor, background: Tensor | float | None) -> Tensor:
         """Check the colours against the pairs, shape the background as [D], apply the kernels'
         autograd function ``fn`` and return the [T, h, w, D] images."""
-        if colors.shape[0] != self.pair_view.shape[0]:
-            raise ValueError(f"composite: {colors.shape[0]} colours for {self.pair_view.shape[0]} pairs")
-        d = colors.shape[1]
+        if colours.shape[0] != self.pair_view.shape[0]:
+            raise ValueError(f"composite: {colours.shape[0]} colours for {self.pair_view.shape[0]} pairs")
+        d = colours.shape[1]
         bg = None
         if background is not None:
-            bg = torch.as_tensor(background, dtype=colors.dtype, device=colors.device).reshape(-1).expand(d)
+            bg = torch.as_tensor(background, dtype=colours.dtype, device=colours.device).reshape(-1).expand(d)
             bg = bg.contiguous()
-        out = fn.apply(colors, bg, self)
+        out = fn.apply(colours, bg, self)
         t, h, w = self.shape
         return out.reshape(t, h, w, d)
 
 
+class DeferredLists(NamedTuple):
+    """What the count pass of a deferred request keeps (``csrc/raster_kernels.cu``): the request's tile
+    ``plan``, ``meta`` and each tile's list ``ranges``, the lists' pairs (``list_pair``), each pixel's entry
+    count (``px_count``), the lists' sorted depth keys (``sorted_vals``), the records of the pass
+    (``rec0``, ``rec1``), each pair's ``rank``, and per tile the list elements that matter to some pixel
+    (``keep``, ranged by ``keep_end``)."""
+
+    plan: Tensor
+    meta: Tensor
+    ranges: Tensor
+    list_pair: Tensor
+    px_count: Tensor
+    sorted_vals: Tensor
+    rec0: Tensor
+    rec1: Tensor
+    rank: Tensor
+    keep: Tensor
+    keep_end: Tensor
+
+
 class DeferredCudaContributions(CudaContributions):
     """Contributions whose entries are built on first access (``pixel``, ``pair``, ``weight``,
-    ``pixel_offsets``); :meth:`composite` works from the tile lists without them."""
+    ``pixel_offsets``) from the count pass's :class:`DeferredLists`; :meth:`composite` works from the tile
+    lists without them."""
 
     _LAZY = ("pixel", "pair", "weight", "pixel_offsets")
 
-    def __init__(self, state: tuple, **kw) -> None:
-        # plan, meta, ranges, list_pair, px_count, sorted_vals, rec0, rec1, rank, keep_list, keep_end
-        self._state = state
+    def __init__(self, lists: DeferredLists, **kw) -> None:
+        self.deferred = lists
         self._lists: dict | None = None
         super().__init__(pixel=None, pair=None, weight=None, pixel_offsets=None, **kw)
 
     def _materialize(self) -> dict:
         if self._lists is None:
-            plan, meta, ranges, _list_pair, px_count, sorted_vals, rec0, rec1, rank = self._state[:9]
-            pixel, pair, weight, offsets = _load().materialize_lists(plan, meta, ranges, sorted_vals, rec0,
-                                                                    rec1, px_count, rank)
+            d = self.deferred
+            pixel, pair, weight, offsets = _load().materialize_lists(d.plan, d.meta, d.ranges, d.sorted_vals, d.rec0,
+                                                                    d.rec1, d.px_count, d.rank)
             self._lists = {"pixel": pixel, "pair": pair, "weight": weight, "pixel_offsets": offsets}
         return self._lists
 
@@ -268,13 +288,13 @@ class DeferredCudaContributions(CudaContributions):
     def num_entries(self) -> int:
         if self._lists is not None:
             return int(self._lists["weight"].numel())
-        return int(self._state[4].sum())
+        return int(self.deferred.px_count.sum())
 
-    def composite(self, colors: Tensor, background: Tensor | float | None = None) -> Tensor:
-        if not (colors.is_cuda and colors.dtype == torch.float32 and colors.dim() == 2
-                and 1 <= colors.shape[1] <= 8):
-            return super().composite(colors, background)
-        return self._run(_DeferredComposite, colors, background)
+    def composite(self, colours: Tensor, background: Tensor | float | None = None) -> Tensor:
+        if not (colours.is_cuda and colours.dtype == torch.float32 and colours.dim() == 2
+                and 1 <= colours.shape[1] <= 8):
+            return super().composite(colours, background)
+        return self._run(_DeferredComposite, colours, background)
 
 
 def _lazy_field(name: str) -> property:
@@ -292,14 +312,8 @@ for _name in DeferredCudaContributions._LAZY:
     setattr(DeferredCudaContributions, _name, _lazy_field(_name))
 
 
-def rasterize(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    cameras: Cameras,
-    request: Request,
-) -> CudaContributions:
+def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cameras: Cameras,
+              request: Request) -> CudaContributions:
     """Contributions of N Gaussians to the pixels of ``request`` (see :func:`virgi_ns.raster.rasterize`).
 
     Computes in float32 on the Gaussians' device; the outputs do not track geometry gradients.
@@ -326,7 +340,7 @@ def rasterize(
     if deferred:
         plan, meta, ranges, list_pair = out[9:13]
         return DeferredCudaContributions(
-            tuple(out[9:]),
+            DeferredLists(*out[9:]),
             request=request, num_gaussians=int(n), pair_view=pair_view, pair_gaussian=pair_gaussian,
             pair_depth=pair_depth, transmittance=transmittance, valid=valid,
             tile_lists=(plan, meta, ranges, list_pair))
@@ -337,70 +351,75 @@ def rasterize(
     )
 
 
+def _keep_for_backward(ctx, colours: Tensor, background: Tensor | None, contrib: CudaContributions) -> Tensor:
+    """A composite's forward: keep what its backward reads (the lists, whether there is a background, the
+    number of pairs); returns the background as the kernels take it ([D], or empty)."""
+    ctx.contrib = contrib
+    ctx.has_bg = background is not None
+    ctx.num_pairs = colours.shape[0]
+    bg = background if background is not None else torch.empty(0, device=colours.device)
+    return bg.contiguous()
+
+
+def _background_grad(ctx, grad: Tensor) -> Tensor | None:
+    """A composite's gradient to its background [D]: the images' gradient weighed by each pixel's
+    transmittance, or None where there is none to give."""
+    if ctx.has_bg and ctx.needs_input_grad[1]:
+        return (ctx.contrib.transmittance[:, None] * grad).sum(0)
+    return None
+
+
 class _FusedComposite(torch.autograd.Function):
-    """images = sum_k w_k colors[pair_k] + T background, gradient to colours and background."""
+    """images = sum_k w_k colours[pair_k] + T background, gradient to colours and background."""
 
     @staticmethod
-    def forward(ctx, colors: Tensor, background: Tensor | None, contrib: CudaContributions) -> Tensor:
-        ext = _load()
-        bg = background if background is not None else torch.empty(0, device=colors.device)
-        out = ext.composite_forward(colors.contiguous(), contrib.pair, contrib.weight,
-                                    contrib.pixel_offsets, contrib.transmittance, bg.contiguous())
-        ctx.contrib = contrib
-        ctx.has_bg = background is not None
-        ctx.num_pairs = colors.shape[0]
-        return out
+    def forward(ctx, colours: Tensor, background: Tensor | None, contrib: CudaContributions) -> Tensor:
+        bg = _keep_for_backward(ctx, colours, background, contrib)
+        return _load().composite_forward(colours.contiguous(), contrib.pair, contrib.weight,
+                                         contrib.pixel_offsets, contrib.transmittance, bg)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
         c: CudaContributions = ctx.contrib
         grad = grad.contiguous()
-        g_colors = g_bg = None
+        g_colours = None
         if ctx.needs_input_grad[0]:
             # per tile (warp sums, one atomic per tile and Gaussian) pays off on whole images,
             # where a Gaussian reaches many pixels; small tile batches are faster per entry
             if c.tile_lists is not None and grad.shape[1] in (1, 3, 4) and \
                     c.num_pixels >= TILE_BACKWARD_MIN_PIXELS:
-                g_colors = _load().composite_backward_tiles(grad, c.pixel_offsets, c.pair, c.weight,
+                g_colours = _load().composite_backward_tiles(grad, c.pixel_offsets, c.pair, c.weight,
                                                             ctx.num_pairs, *c.tile_lists)
             else:
-                g_colors = _load().composite_backward(grad, c.pixel, c.pair, c.weight, ctx.num_pairs)
-        if ctx.has_bg and ctx.needs_input_grad[1]:
-            g_bg = (c.transmittance[:, None] * grad).sum(0)
-        return g_colors, g_bg, None
+                g_colours = _load().composite_backward(grad, c.pixel, c.pair, c.weight, ctx.num_pairs)
+        return g_colours, _background_grad(ctx, grad), None
 
 
 class _DeferredComposite(torch.autograd.Function):
     """The same function as :class:`_FusedComposite`, from deferred lists."""
 
     @staticmethod
-    def forward(ctx, colors: Tensor, background: Tensor | None, contrib: DeferredCudaContributions) -> Tensor:
-        plan, meta, ranges, list_pair, _px_count, sorted_vals, rec0, rec1, _rank, keep, keep_end = contrib._state
-        bg = background if background is not None else torch.empty(0, device=colors.device)
-        out = _load().deferred_composite_forward(colors.contiguous(), bg.contiguous(), plan, meta, ranges,
-                                                 sorted_vals, list_pair, rec0, rec1, contrib.transmittance,
-                                                 keep, keep_end)
-        ctx.contrib = contrib
-        ctx.has_bg = background is not None
-        ctx.num_pairs = colors.shape[0]
-        return out
+    def forward(ctx, colours: Tensor, background: Tensor | None, contrib: DeferredCudaContributions) -> Tensor:
+        d = contrib.deferred
+        bg = _keep_for_backward(ctx, colours, background, contrib)
+        return _load().deferred_composite_forward(colours.contiguous(), bg, d.plan, d.meta, d.ranges,
+                                                  d.sorted_vals, d.list_pair, d.rec0, d.rec1, contrib.transmittance,
+                                                  d.keep, d.keep_end)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        c: DeferredCudaContributions = ctx.contrib
-        plan, meta, ranges, list_pair, _px_count, sorted_vals, rec0, rec1, _rank, keep, keep_end = c._state
-        g_colors = g_bg = None
+        d = ctx.contrib.deferred
+        g_colours = None
         if ctx.needs_input_grad[0]:
-            g_colors = _load().deferred_composite_backward(grad.contiguous(), ctx.num_pairs, plan, meta, ranges,
-                                                           sorted_vals, list_pair, rec0, rec1, keep, keep_end)
-        if ctx.has_bg and ctx.needs_input_grad[1]:
-            g_bg = (c.transmittance[:, None] * grad).sum(0)
-        return g_colors, g_bg, None
+            g_colours = _load().deferred_composite_backward(grad.contiguous(), ctx.num_pairs, d.plan, d.meta, d.ranges,
+                                                           d.sorted_vals, d.list_pair, d.rec0, d.rec1, d.keep,
+                                                           d.keep_end)
+        return g_colours, _background_grad(ctx, grad), None
 
 
-def composite(colors: Tensor, contrib: Contributions, background: Tensor | float | None = None) -> Tensor:
+def composite(colours: Tensor, contrib: Contributions, background: Tensor | float | None = None) -> Tensor:
     """The same as :func:`virgi_ns.raster.composite` (kept for callers of this module)."""
-    return _composite(colors, contrib, background)
+    return _composite(colours, contrib, background)
 
 
 def edit_by_gaussian(pair: Tensor, weight: Tensor, pixel_offsets: Tensor, rows: Tensor, starts: Tensor,
@@ -411,16 +430,16 @@ def edit_by_gaussian(pair: Tensor, weight: Tensor, pixel_offsets: Tensor, rows: 
     return list(_load().edit_by_gaussian(pair, weight, pixel_offsets, rows, starts, loss_weight, int(U)))
 
 
-def edit_l1_step(colors: Tensor, pair: Tensor, weight: Tensor, pixel_offsets: Tensor, rows: Tensor, starts: Tensor,
+def edit_l1_step(colours: Tensor, pair: Tensor, weight: Tensor, pixel_offsets: Tensor, rows: Tensor, starts: Tensor,
                  counter: Tensor, background: Tensor, target: Tensor, loss_weight: Tensor,
                  max_rows: int, by_gaussian: Optional[list[Tensor]] = None) -> tuple[Tensor, Tensor]:
     """One step of an edit's weighted L1 pixel loss on the pixel set ``counter % (len(starts) - 1)``
     (:class:`virgi_ns.edit.pixels.FusedSets` says what each argument holds): (loss [1], its gradient
-    to ``colors`` [U, 4], the last column padding); advances ``counter``. No host sync. The gradient
+    to ``colours`` [U, 4], the last column padding); advances ``counter``. No host sync. The gradient
     is scattered by one atomic per entry, or, with ``by_gaussian`` (:func:`edit_by_gaussian`'s),
     gathered per Gaussian."""
     gather = (None,) * 4 if by_gaussian is None else tuple(by_gaussian)
-    loss, grad = _load().edit_l1_step(colors, pair, weight, pixel_offsets, rows, starts, counter, background, target,
+    loss, grad = _load().edit_l1_step(colours, pair, weight, pixel_offsets, rows, starts, counter, background, target,
                                       loss_weight, int(max_rows), *gather)
     return loss, grad
 
@@ -429,16 +448,16 @@ def edit_heads_forward(pre: Tensor, x: Tensor, w2: Tensor, b2: Tensor, wd: Tenso
                        cs: Tensor, k: float, hd_offset: int) -> tuple[Tensor, Tensor, Tensor]:
     """The edit heads' forward from ``pre = x W1^T + b1`` (:mod:`virgi_ns.edit.heads` says what each
     argument holds): (colours [U, 3], alpha [U], the copied layer's output [U, 3])."""
-    colors, alpha, cdp = _load().edit_heads_forward(pre, x, w2, b2, wd, bd, cd, cs, float(k), int(hd_offset))
-    return colors, alpha, cdp
+    colours, alpha, cdp = _load().edit_heads_forward(pre, x, w2, b2, wd, bd, cd, cs, float(k), int(hd_offset))
+    return colours, alpha, cdp
 
 
-def edit_heads_backward(grad_colors: Tensor, colors: Tensor, alpha: Tensor, cdp: Tensor, cd: Tensor, pre: Tensor,
+def edit_heads_backward(grad_colours: Tensor, colours: Tensor, alpha: Tensor, cdp: Tensor, cd: Tensor, pre: Tensor,
                         w2: Tensor) -> tuple[Tensor, Tensor]:
     """The edit heads' backward from the loss's gradient to the colours ([U, 4], the last column
     padding): (the gradients to ``pre`` and to the layer's output, then a 0 [U, S + 4], the summed
     gradients of b1, w2, b2 and bd [2 S + 4])."""
-    rows, sums = _load().edit_heads_backward(grad_colors, colors, alpha, cdp, cd, pre, w2)
+    rows, sums = _load().edit_heads_backward(grad_colours, colours, alpha, cdp, cd, pre, w2)
     return rows, sums
 
 

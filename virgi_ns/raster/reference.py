@@ -223,15 +223,8 @@ def _segment_arange(counts: Tensor) -> Tensor:
     return torch.arange(total, device=counts.device) - torch.repeat_interleave(starts, counts, output_size=total)
 
 
-def rasterize(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    cameras: Cameras,
-    request: Request,
-    max_pairs: int = 1 << 21,
-) -> Contributions:
+def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cameras: Cameras, request: Request,
+              max_pairs: int = 1 << 21) -> Contributions:
     """Contribution lists for ``request`` (see the module docstring for the rules).
 
     Work is split into chunks of whole grid tiles of about ``max_pairs`` candidate (pixel,

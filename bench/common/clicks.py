@@ -1,4 +1,4 @@
-"""Issue 17's measurement of a pick (a click and a colour, :mod:`virgi_ns.edit.pick`) for
+"""The benchmark's measurement of a pick (a click and a colour, :mod:`virgi_ns.edit.pick`) for
 ``bench/edit.py --pick``: how far one click gets compared with the same edit made from the
 rule-edited image, and how long the viewer takes from a colour change or a release to its frame.
 
@@ -37,7 +37,6 @@ frame, and the GUI's refresh of the edit list.
 
 from __future__ import annotations
 
-import dataclasses
 import statistics
 import tempfile
 import time
@@ -47,7 +46,7 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor
 
-from virgi_ns.edit.engine import _sync  # the engine's own timings' synchronisation
+from common.training import sync as _sync
 from virgi_ns.edit.recolor import RecolorRule, hsv_to_rgb, recolor, rule_mask
 from virgi_ns.errors import InputError
 from virgi_ns.nerfstudio.render_path import RenderPath
@@ -129,45 +128,11 @@ def pick_passes(p: dict) -> bool:
     return p["difference_db"] >= -WITHIN_DB
 
 
-PICK_OPTIONS = {"criterion": None, "reference": ("median", "click"), "recipe": ("joint", "staged"),
-                "recolour": ("pick", "rule"), "contiguous": ("true", "false"), "seed": ("0", "1", "2", "3", "4"),
-                "mode": ("hue", "shift", "colour")}
-"""What a pick variant (``bench/edit.py --pick-variants``) may set, each apart: the selection criterion,
-the recolour's reference pixel, the edit recipe, ``recolour=rule`` (a diagnostic: the rule itself
-recolours the pick's selection of the render, so the pick differs from the rule edit only in its
-selection and its recipe), ``contiguous=false`` (the selection takes every pixel of the view that
-passes its colour tests, connected to the click or not), ``seed`` (the fit's ``EditConfig.seed``:
-the segmentation head's start and the pixel sets, to see how far a refit of the same pick moves), and
-``mode`` (the recolour mode, :data:`virgi_ns.edit.pick.MODES`)."""
-
-
-def parse_pick_variant(text: str) -> dict:
-    """``'criterion=colour_features,recipe=joint'`` -> ``{'criterion': ..., 'recipe': ...}``; an unknown
-    key or value is an :class:`InputError`."""
-    from virgi_ns.edit.pick import CRITERIA
-
-    out = {}
-    for part in filter(None, (p.strip() for p in text.split(","))):
-        key, _, value = part.partition("=")
-        allowed = CRITERIA if key == "criterion" else PICK_OPTIONS.get(key)
-        if key not in PICK_OPTIONS or value not in allowed:
-            raise InputError(f"pick variant {text!r}: {part!r} is not one of "
-                             + ", ".join(f"{k}={'|'.join(CRITERIA if v is None else v)}" for k, v in PICK_OPTIONS.items()))
-        out[key] = value
-    return out
-
-
-def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, criterion: Optional[str] = None,
-                 reference: Optional[str] = None, recipe: Optional[str] = None, recolour: str = "pick",
-                 contiguous: str = "true", seed: str = "0", mode: str = MODE) -> tuple[dict, list, Tensor]:
-    """One click on ``b``'s edit view by the module docstring's rule, measured as the rule edit is
-    (``rule_propagation``: its propagation PSNR on the same run), its selection grown by ``criterion``
-    (default: the product's, :data:`~virgi_ns.edit.pick.DEFAULT_CRITERION`); ``reference``, ``recipe``,
-    ``recolour``, ``contiguous``, ``seed`` and ``mode``: :data:`PICK_OPTIONS` (defaults: the product's). Returns (figures,
-    the held-out pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection |
-    rule mask)."""
-    from virgi_ns.edit.pick import (DEFAULT_CRITERION, DEFAULT_REFERENCE, MIN_COVER, PICK_RECIPE, PickSession,
-                                    colour_hex, commit, pick_config, select)
+def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0) -> tuple[dict, list, Tensor]:
+    """One click on ``b``'s edit view by the module docstring's rule, as ``virgi-edit pick`` makes it, measured as
+    the rule edit is (``rule_propagation``: its propagation PSNR on the same run). Returns (figures, the
+    held-out pictures of :meth:`Bench.measure`, the edit view's render | edited image | selection | rule mask)."""
+    from virgi_ns.edit.pick import MIN_COVER, PickSession, commit, pick_config
     from virgi_ns.edit.stack import EditStack
 
     render = b.edit_base
@@ -178,19 +143,9 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, c
     stack.to(b.scene.device)
     _sync(b.scene.device)
     t0 = time.perf_counter()
-    cfg = dataclasses.replace(pick_config(b.scene.device, recipe or PICK_RECIPE), seed=int(seed))
-    reference = reference or DEFAULT_REFERENCE
-    connected = contiguous == "true"
-    session = PickSession(b.scene, b.edit_camera, x, y, stack, cfg, criterion=criterion or DEFAULT_CRITERION,
-                          reference=reference)
-    if recolour == "rule":  # the pick's selection, recoloured by the rule on the render: the session's first fit
-        session.mask = select(session.maps, x, y, TOLERANCE, session.criterion, connected)
-        session.edited = torch.where(session.mask[..., None], recolor(render, rule)[0], render)
-        session.settings = {"colour": colour_hex(colour), "selected": float(session.mask.float().mean())}
-        session.engine.retarget(session.edited, session.mask)
-        edit = session.refine(cfg.steps)
-    else:
-        edit = session.update(colour, TOLERANCE, mode, contiguous=connected)
+    cfg = pick_config(b.scene.device)
+    session = PickSession(b.scene, b.edit_camera, x, y, stack, cfg)
+    edit = session.update(colour, TOLERANCE, MODE)
     _sync(b.scene.device)
     fit_s = time.perf_counter() - t0
     commit(stack, session, edit)
@@ -198,10 +153,9 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0, c
     sel = session.mask
     union = int((sel | mask).sum())
     m = res["mean"]
-    out = {"pixel": [x, y], "depth": depth, "colour": session.settings["colour"], "mode": mode,
-           "criterion": session.criterion, "reference": reference, "recipe": cfg.recipe, "recolour": recolour,
-           "contiguous": connected, "seed": int(seed),
-           "tolerance": TOLERANCE, "selected": session.settings["selected"],
+    out = {"pixel": [x, y], "depth": depth, "colour": session.settings["colour"], "mode": MODE,
+           "criterion": session.criterion, "reference": session.reference, "recipe": cfg.recipe,
+           "contiguous": session.settings["contiguous"], "tolerance": TOLERANCE, "selected": session.settings["selected"],
            "iou": int((sel & mask).sum()) / union if union else float("nan"),
            "propagation_psnr": m["propagation_psnr"], "miss_psnr": m["miss_psnr"], "leak_psnr": m["leak_psnr"],
            "edit_view_propagation_psnr": m["edit_view_propagation_psnr"],
@@ -241,7 +195,7 @@ class ViewerRender(RenderPath):
         self.diffuse_cache = torch.zeros(0, 3, device=self.device)
         self.edit_stack = self.live_edit = self.segmentation_edit = None
 
-    def _raster(self, cams, request):
+    def contributions(self, cams, request):
         return self.scene.contributions(cams, request)
 
     def frame(self, camera) -> dict:
@@ -371,6 +325,6 @@ def viewer_latency(scene, cams, repeats: int, cfg=None) -> dict:
             "top_up": med(top_ups), "release": med(releases), "target_s": LATENCY_TARGET_S}
 
 
-__all__ = ["LATENCY_TARGET_S", "MODE", "PICK_OPTIONS", "TOLERANCE", "WITHIN_DB", "ViewerRender", "border_distance",
-           "click_pixel", "coverage", "drag_frame", "largest_component", "measure_pick", "parse_pick_variant",
+__all__ = ["LATENCY_TARGET_S", "MODE", "TOLERANCE", "WITHIN_DB", "ViewerRender", "border_distance",
+           "click_pixel", "coverage", "drag_frame", "largest_component", "measure_pick",
            "pick_passes", "release_frame", "rule_colour", "top_up_frame", "viewer_latency"]

@@ -6,7 +6,7 @@ out to select something it should not is a rule problem, reported as such, not e
 Every scene is trained as a user would (``ns-train virgi``: geometry from the photos, then the
 colour field), one training photo is recoloured by the scene's rule, and the edit is scored on the
 held-out views (:mod:`virgi_ns.bench.recolor`). The real captures are those of ``shared/data``;
-the synthetic ones (:mod:`virgi_ns.bench.synthetic`) add a known truth, so their recolour PSNR is
+the synthetic ones (``bench/common/synthetic.py``) add a known truth, so their recolour PSNR is
 measured against what the recoloured scene really looks like rather than against the rule.
 
 Settings chosen once, with their reasons:
@@ -42,7 +42,7 @@ class EvalScene:
     name: str
     capture: str
     """A folder of the shared data (COLMAP or LLFF), or ``synthetic/<name>`` for a scene of
-    :data:`virgi_ns.bench.synthetic.SCENES`."""
+    ``common.synthetic.SCENES``."""
     rule: RecolorRule
     why: str
 
@@ -52,7 +52,7 @@ class EvalScene:
 
 
 def _synthetic_rows() -> tuple[EvalScene, ...]:
-    from virgi_ns.bench.synthetic import SCENES
+    from common.synthetic import SCENES
 
     return tuple(EvalScene(f"syn_{name}", f"synthetic/{name}", spec.rule, spec.why) for name, spec in SCENES.items())
 
@@ -120,7 +120,7 @@ def capture_folder(scene: EvalScene, data: Path, synthetic_root: Path, device: s
         if not folder.is_dir():
             raise InputError(f"{scene.name}: capture folder not found: {folder} (--data)")
         return folder
-    from virgi_ns.bench.synthetic import SCENES, write_scene
+    from common.synthetic import SCENES, write_scene
 
     folder = synthetic_root / name
     if not (folder / "scene.json").is_file():

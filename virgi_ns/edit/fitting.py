@@ -1,0 +1,207 @@
+"""How an edit's steps run: the optimizer and its schedule, the staged recipe's classifier, and the
+recorded CUDA graphs the steps replay.
+
+- :func:`schedule`: the learning rate, ``lr`` for the first :data:`LR_HOLD` of the steps and then half a
+  cosine to 0; :func:`segmentation_rate`: the segmentation head's multiple of it.
+- :func:`gaussian_labels`, :func:`classifier_samples`, :func:`train_classifier`: the ``staged`` recipe's first
+  stage, the segmentation head trained as a classifier of the view's Gaussians.
+- :func:`capture`, :class:`GraphedSteps`: a fit's steps recorded once as CUDA graphs and replayed.
+- :class:`EditTiming`, :class:`Stopwatch`: what a fit took.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Callable, Iterator, Optional
+
+import torch
+from torch import Tensor
+
+from virgi_ns.edit.config import EditConfig
+from virgi_ns.edit.heads import SegmentationHead
+from virgi_ns.edit.optim import EditAdam
+
+LR_HOLD = 0.5
+"""The share of a fit's steps at the full rate before the half cosine, which spans the rest: the fit
+travels far first and settles after (a cosine from the first step travels half as far, too little where
+the colour map starts far from the target)."""
+
+LARGE_EDIT_SEG_RATE = 2.0
+"""The joint recipe's segmentation head steps at this multiple of ``lr`` where the changed pixels are
+more of the view than :attr:`EditConfig.changed_share` but not all of it: there each unchanged pixel
+weighs more than a changed one, and together they pull the head down inside the recoloured object
+too. Everywhere else it steps at ``lr``, as the copied layer does."""
+
+SEG_LR = 1e-2
+"""``staged``: learning rate of the segmentation classifier."""
+
+SEG_PRIOR_SHARE = 0.2
+"""``staged``: the share of the classifier's negative samples drawn from the whole scene, unlabelled
+(most of a scene is not part of an edit): keeps the segmentation off what the edited view never showed
+unless it resembles what the edit changed."""
+
+
+@dataclass
+class EditTiming:
+    """What a fit took: the set-up (the view, or a retarget) and the steps, in seconds, how many steps
+    ran and the last step's loss."""
+
+    setup_s: float
+    steps_s: float
+    steps: int
+    final_loss: float
+
+    @property
+    def total_s(self) -> float:
+        return self.setup_s + self.steps_s
+
+
+def sync(dev: torch.device) -> None:
+    """Wait for ``dev``'s queue (a GPU's), so that wall-clock timings hold the work they time."""
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+
+
+def segmentation_rate(cfg: EditConfig, changed_fraction: Optional[float]) -> float:
+    """The joint recipe's segmentation head's rate as a multiple of ``lr``: :data:`LARGE_EDIT_SEG_RATE`
+    where the changed pixels (``changed_fraction`` of the view; None: a whole-image fit) are more than
+    ``cfg.changed_share`` of it but not all, else 1."""
+    if changed_fraction is not None and cfg.changed_share < changed_fraction < 1.0:
+        return LARGE_EDIT_SEG_RATE
+    return 1.0
+
+
+def schedule(cfg: EditConfig) -> tuple[int, int]:
+    """(hold, decay): the edit's learning rate stays at ``cfg.lr`` for ``hold`` steps, :data:`LR_HOLD` of
+    ``cfg.steps`` with at least two steps left to the half cosine (its first step is still at ``lr``, so the
+    last step's rate is lower), then falls to 0 over ``decay`` steps (:class:`~virgi_ns.edit.optim.EditAdam`'s
+    ``hold_steps`` and ``decay_steps``)."""
+    hold = min(int(LR_HOLD * cfg.steps), max(cfg.steps - 2, 0))
+    return hold, max(cfg.steps - hold, 1)
+
+
+def gaussian_labels(pair: Tensor, weight: Tensor, on_changed: Tensor, count: int) -> tuple[Tensor, Tensor]:
+    """Each of ``count`` Gaussians labelled by where its pixel weight lands: (label [U] bool, the share
+    on changed pixels above one half; trust [U], its weight times how clear that share is).
+
+    Args:
+        pair: [E] the Gaussian of each contribution entry.
+        weight: [E] its weight.
+        on_changed: [E] bool, whether its pixel changed."""
+    mass = torch.zeros(count, device=weight.device).index_add_(0, pair, weight)
+    changed = torch.zeros(count, device=weight.device).index_add_(0, pair, weight * on_changed.float())
+    share = changed / mass.clamp_min(1e-12)
+    return share > 0.5, mass * (2.0 * share - 1.0).abs()
+
+
+def classifier_samples(label: Tensor, trust: Tensor, cfg: EditConfig, scene_size: int
+                       ) -> Optional[tuple[Tensor, Tensor]]:
+    """What the ``staged`` recipe's classifier trains on: (indices [S] of the view's Gaussians, drawn by
+    ``trust``, half from each class of ``label``; indices [R] of unlabelled Gaussians of the whole scene, of
+    ``scene_size``, the :data:`SEG_PRIOR_SHARE` of the negatives that are weak negatives), ``cfg.seg_samples``
+    in all, from a generator seeded with ``cfg.seed``; None where one class is empty (a constant alpha,
+    :func:`constant_segmentation`).
+
+    Args:
+        label, trust: [U] from :func:`gaussian_labels`."""
+    pos_w, neg_w = trust * label, trust * ~label
+    if float(pos_w.sum()) <= 0.0 or float(neg_w.sum()) <= 0.0:
+        return None
+    half = cfg.seg_samples // 2
+    n_prior = int(round(half * SEG_PRIOR_SHARE))
+    g = torch.Generator(device=trust.device).manual_seed(cfg.seed)
+    idx = torch.cat([torch.multinomial(pos_w, half, replacement=True, generator=g),
+                     torch.multinomial(neg_w, half - n_prior, replacement=True, generator=g)])
+    anywhere = torch.randint(0, scene_size, (n_prior,), device=trust.device, generator=g)
+    return idx, anywhere
+
+
+def constant_segmentation(seg: SegmentationHead, seg_input: Tensor, positive: bool) -> Tensor:
+    """``seg`` set (in place) to a constant alpha, near 1 (``positive``) or near 0, frozen; returns it on the
+    view's Gaussians ([U, 1]; ``seg_input`` [U, F+H])."""
+    for p in seg.parameters():
+        p.requires_grad_(False)
+    torch.nn.init.zeros_(seg.l2.weight)
+    torch.nn.init.constant_(seg.l2.bias, 8.0 if positive else -8.0)
+    return torch.sigmoid(seg.logits_of(seg_input))
+
+
+def train_classifier(seg: SegmentationHead, x: Tensor, y: Tensor, seg_input: Tensor, cfg: EditConfig,
+                     warm: bool = False, steps: Optional[int] = None) -> Tensor:
+    """The ``staged`` recipe's first stage: ``seg`` trained (in place) as a classifier of the inputs ``x``
+    [S, F+H] with labels ``y`` [S, 1] (binary cross-entropy, Adam at :data:`SEG_LR`, ``steps`` steps, default
+    ``cfg.seg_steps``, on all of them every step), then frozen; returns its alpha [U, 1] on the view's
+    Gaussians (``seg_input``), fixed for the layer's steps. ``warm``: on from the head's state instead of
+    its fresh output bias."""
+    if not warm:
+        torch.nn.init.constant_(seg.l2.bias, 0.0)
+    params = list(seg.parameters())
+    for p in params:
+        p.requires_grad_(True)
+    opt = EditAdam(params, lr=SEG_LR)
+    with torch.enable_grad():
+        for _ in range(cfg.seg_steps if steps is None else steps):
+            opt.zero_grad()
+            torch.nn.functional.binary_cross_entropy_with_logits(seg.logits_of(x), y).backward()
+            opt.step()
+    for p in params:
+        p.requires_grad_(False)
+    return torch.sigmoid(seg.logits_of(seg_input))
+
+
+@contextmanager
+def capture(graph: torch.cuda.CUDAGraph, stream: torch.cuda.Stream, pool: Optional[tuple] = None) -> Iterator[None]:
+    """Record the work of the ``with`` body into ``graph`` on ``stream`` (sharing ``pool``).
+    ``torch.cuda.graph`` would also wait for the GPU and empty the allocator's caches first, which costs every
+    fresh edit milliseconds and sends the next edit's allocations back to the driver; an eager step run
+    before on ``stream`` warms the libraries up instead."""
+    with torch.cuda.stream(stream):
+        graph.capture_begin(pool=pool)
+        try:
+            yield
+        finally:
+            graph.capture_end()
+
+
+class GraphedSteps:
+    """A fit's steps as recorded CUDA graphs: ``graphs[i]`` runs step ``i`` of every cycle of
+    ``len(graphs)`` steps (one per pixel set, or one for all when the set is chosen on the device) and
+    writes its loss into ``losses[i]``. They replay while the tensors they read stay the same."""
+
+    def __init__(self, graphs: list, losses: list[Tensor]) -> None:
+        self.graphs, self.losses = graphs, losses
+
+    def replay(self, start: int, n: int, progress: Optional[Callable[[int, int], None]] = None) -> Tensor:
+        """Steps ``start`` to ``n - 1`` replayed in order (``progress(done, n)`` every 10 steps and at the
+        end); returns the last step's loss."""
+        count = len(self.graphs)
+        for i in range(start, n):
+            self.graphs[i % count].replay()
+            if progress is not None and ((i + 1) % 10 == 0 or i + 1 == n):
+                progress(i + 1, n)
+        return self.losses[(n - 1) % count].clone()
+
+
+class Stopwatch:
+    """Seconds of the ``with`` body's work on ``device`` (its queue waited for before and after):
+    ``with Stopwatch(dev) as watch: ...``, then ``watch.seconds``."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.device = device
+        self.seconds = 0.0
+
+    def __enter__(self) -> "Stopwatch":
+        sync(self.device)
+        self._t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        sync(self.device)
+        self.seconds = time.perf_counter() - self._t0
+
+
+__all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Stopwatch",
+           "capture", "classifier_samples", "constant_segmentation", "gaussian_labels", "schedule",
+           "segmentation_rate", "sync", "train_classifier"]
