@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from virgi_ns.colour.field import DecoupledColorField, view_directions
+from virgi_ns.colour.file_colours import FileColours
 from virgi_ns.edit.stack import EditStack, field_fingerprint
 from virgi_ns.raster import Cameras, Contributions, Request, composite, rasterize
 
@@ -33,6 +34,10 @@ class FrozenScene:
     features: Optional[tuple[Tensor, Tensor, Tensor]] = None
     """Optional cache of every Gaussian's (f, h1, h_diff) (:meth:`precompute_features`); edits
     then gather them instead of running the hash grid and MLP_diff's first layers."""
+    file_colours: Optional[FileColours] = None
+    """The Gaussians' own colours when they are the base under edits (a run with
+    ``base_colours="file"``): edits then start from the file's logits instead of the field's
+    ``c_d`` and ``c_s`` (:mod:`virgi_ns.colour.file_colours`)."""
 
     @property
     def device(self) -> torch.device:
@@ -44,9 +49,11 @@ class FrozenScene:
         ``means/quats/scales/opacities``, a ``field`` and a ``background_color``)."""
         dev = model.means.device
         backend = getattr(getattr(model, "config", None), "raster_backend", "auto")
+        own = getattr(model, "file_colours", None)
         return FrozenScene(model.means.detach(), model.quats.detach(), torch.exp(model.scales.detach()),
                            torch.sigmoid(model.opacities.detach()).reshape(-1), model.field,
-                           torch.as_tensor(model.background_color, dtype=torch.float32).to(dev).reshape(3), backend)
+                           torch.as_tensor(model.background_color, dtype=torch.float32).to(dev).reshape(3), backend,
+                           file_colours=own() if callable(own) else None)
 
     @torch.no_grad()
     def precompute_features(self, chunk: int = 1 << 18) -> "FrozenScene":
@@ -102,6 +109,9 @@ def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional
     c_d = fld.diffuse(h2).float()
     dirs = view_directions(m, cams.camera_centers()[0].to(m).expand_as(m))
     c_s = fld.specular(f, dirs, h1, h2).float()
+    own = scene.file_colours
+    if own is not None:  # the file's own colours under the edits
+        c_d, c_s = (t.float() for t in own.logits(g, dirs))
     k = 1.0
     seg = torch.zeros_like(c_d[:, :1])
     if stack is not None:
@@ -113,6 +123,8 @@ def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional
     if diffuse_map is not None:
         c_d = torch.logit(diffuse_map(torch.sigmoid(c_d)).clamp(1e-6, 1.0 - 1e-6))
     colours = torch.sigmoid(c_d + k * c_s)
+    if own is not None and diffuse_map is None:  # as the model renders them: exact where no edit touches
+        colours = own.edited_colours(g, dirs, c_d, k).float()
     rgb = composite(colours if colour_map is None else colour_map(colours), contrib, bg)[0]
     diff = composite(torch.sigmoid(c_d), contrib, bg)[0]
     return {"rgb": rgb, "diffuse": diff, "specular": rgb - diff, "segmentation": composite(seg, contrib)[0]}

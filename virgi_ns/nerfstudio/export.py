@@ -13,6 +13,9 @@ weighted least squares in the 3DGS convention, ``C(d) ~ SH(d) . coeffs + 0.5`` w
 :func:`virgi_ns.colour.sh.sh_basis` (what ``virgi-render`` and other 3DGS viewers evaluate). Gaussians
 whose colour does not depend on the direction (below the model's specular gate, every Gaussian
 when ``k = 0``) get their exact colour in the DC coefficient alone, as the model renders them.
+A run that shows the splat file's own colours (``base_colours="file"``) exports them: each
+Gaussian's own coefficients, plus a fit of the edits' change where an edit touches it
+(:func:`~virgi_ns.nerfstudio.file_colour_path.bake_file_colours`).
 
 Geometry is moved back into the capture's original frame with
 :class:`~virgi_ns.nerfstudio.frames.CaptureFrame`, the inverse of the frame change an imported splat
@@ -139,6 +142,12 @@ def bake(
               else (stack.specular_strength if stack is not None else 1.0))
     if not (k >= 0.0 and math.isfinite(k)):
         raise InputError(f"specular strength must be a finite number >= 0, got {k}")
+    own = getattr(model, "file_colours", None)
+    own = own() if callable(own) else None
+    if own is not None:  # the file's own coefficients, with the edits' change added where they touch
+        from virgi_ns.nerfstudio.file_colour_path import bake_file_colours
+
+        return bake_file_colours(model, own, stack, k, frame, cameras, cfg, SH_DEGREE, progress)
     active = stack is not None and len(stack.active) > 0
     fld = model.field
     means = model.means.detach()

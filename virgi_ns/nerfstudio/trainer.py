@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import math
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Tuple, Type
@@ -124,11 +125,28 @@ def _describe(cfg: TrainerConfig, world: int) -> str:
 class VirgiTrainerConfig(TrainerConfig):
     _target: Type = field(default_factory=lambda: VirgiTrainer)
 
+    def save_config(self) -> None:
+        """nerfstudio's, after a run on a splat file is made one (:func:`virgi_ns.data.splat.prepare_splat_run`:
+        ``ns-train`` calls this before anything else is written, so bad input is one line and exit 2 with
+        nothing written)."""
+        from virgi_ns.data.splat import prepare_splat_run
+        from virgi_ns.errors import VirgiError
+
+        try:
+            prepare_splat_run(self)
+        except VirgiError as e:
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
+        super().save_config()
+
 
 class VirgiTrainer(Trainer):
     """nerfstudio's trainer; on several processes as the module doc says."""
 
     def __init__(self, config: TrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        from virgi_ns.data.splat import prepare_splat_run
+
+        prepare_splat_run(config)  # (already done where ns-train saved the config)
         threads = distributed.share_cpu_threads(world_size, config.machine.device_type)
         if world_size > 1:
             config = for_processes(config, world_size)
