@@ -17,11 +17,17 @@ scaled by the specular strength ``k``. The file's colours give them
     b_g    = logit(clamp(C_g^0, eps, 1 - eps))               the degree-0 colour, view independent
     s_g(d) = logit(clamp(C_g(d), eps, 1 - eps)) - b_g        the file's own view-dependent part
 
-so that ``sigmoid(b + s)`` is the file's colour within ``(eps, 1 - eps)``. With ``e_g`` the
-diffuse logit after the edits (the stack applied to ``b_g``), the shown colour is the file's
-colour plus the edits' change::
+so that ``sigmoid(b + s)`` is the file's colour within ``(eps, 1 - eps)``. The edits change the
+field's diffuse logit ``c_d`` into ``c_d''`` (each mixes its copied layer in by its segmentation);
+that change is applied to the file's logit, ``e_g = b_g + (c_d''_g - c_d_g)``, and the shown colour
+is the file's colour plus the change it makes::
 
     C'_g(d) = C_g(d) + sigmoid(e_g + k s_g(d)) - sigmoid(b_g + s_g(d))
+
+(Mixing the copied layer with ``b`` directly would leak ``alpha (c_d - b)``, the field's own error,
+onto every Gaussian, since an edit's segmentation is never exactly 0.) The edit engine fits
+``sigmoid(c_d'' + k c_s)``; it takes ``c_d`` from the field and
+``c_s = s + (b - c_d) / k`` (:meth:`FileColours.for_edit`), which is the same colour.
 
 A Gaussian is *touched* when ``k != 1`` (for a view-dependent file) or when the edits move its
 diffuse colour ``sigmoid(e_g)`` away from ``sigmoid(b_g)`` by more than ``tolerance`` in some
@@ -125,6 +131,23 @@ class FileColours:
         return b, torch.logit(self.colours(idx, dirs).clamp(EPS, 1.0 - EPS)) - b
 
     # ------------------------------------------------------------------- edits
+    @staticmethod
+    def edited_logits(base: Tensor, field_diffuse: Tensor, field_edited: Tensor) -> Tensor:
+        """``e = b + (c_d'' - c_d)``: the edits' change of the field's diffuse logits applied to the file's."""
+        return base + (field_edited - field_diffuse)
+
+    def for_edit(self, idx: Optional[Tensor], dirs: Optional[Tensor], field_diffuse: Tensor, k: float
+                 ) -> tuple[Tensor, Tensor]:
+        """``(offset, c_s)`` for an edit engine that fits ``sigmoid(c_d'' + offset + k c_s)`` with the field's
+        ``c_d`` (``field_diffuse`` [M,3] of Gaussians ``idx``) mixed by its edits: ``(0, s + (b - c_d) / k)``,
+        the colour :meth:`edited_colours` shows; with ``k = 0`` the offset ``b - c_d`` is added to ``c_d''``
+        itself (exact for every Gaussian outside the new edit's segmentation)."""
+        b, s = self.logits(idx, dirs)
+        o = b - field_diffuse.to(b)
+        if k != 0.0:
+            return torch.zeros_like(o), s + o / k
+        return o, s
+
     def touched(self, base: Tensor, edited: Tensor, k: float) -> Tensor:
         """Bool [M]: the Gaussians whose colour the edits (diffuse logits ``edited`` from ``base``)
         or the specular strength ``k`` change (see the module doc)."""
@@ -140,8 +163,8 @@ class FileColours:
 
     def edited_colours(self, idx: Optional[Tensor], dirs: Optional[Tensor], edited: Tensor, k: float
                        ) -> Float[Tensor, "M 3"]:
-        """``C'_g(d)`` of Gaussians ``idx`` whose edited diffuse logits are ``edited`` [M,3]:
-        exactly the file's colour where untouched."""
+        """``C'_g(d)`` of Gaussians ``idx`` whose edited diffuse logits are ``edited`` [M,3] (``e``, see
+        :meth:`edited_logits`): exactly the file's colour where untouched."""
         colour = self.colours(idx, dirs)
         b, s = self.logits(idx, dirs)
         touched = self.touched(b, edited, k)

@@ -7,8 +7,10 @@ with its reason):
 
 1. **Weights.** A Gaussian counts by its opacity: fog and near-transparent floaters hardly show in
    any render, so they should hardly move the rig.
-2. **Centre**: the opacity-weighted median of the means, axis by axis. A median ignores a minority
-   of far floaters however far away they are, where a mean follows them.
+2. **Centre**: axis by axis, the midpoint of the opacity-weighted 2% and 98% quantiles of the means
+   (the centre of the box holding the middle 96% of the opacity). A minority of far floaters (under
+   2% on a side) does not move it however far away they are, where a mean follows them; and a scene
+   of two objects is centred between them, where a median would sit at the edge of the gap.
 3. **Extent**: ``radius``, the opacity-weighted 95% quantile of the distances to the centre (the
    sphere holding 95% of the opacity; the outer 5%, stray background and floaters, may leave the
    frame), and ``far_radius``, the 99.9% quantile (the content's outer edge: the near/far bounds and
@@ -69,8 +71,8 @@ BYTES_PER_GAUSSIAN = 4096
 and caches, contribution lists of whole views): the bound for "more Gaussians than the device holds"."""
 BACKGROUNDS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0)}
 
-__all__ = ["Rig", "ViewSettings", "cache_root", "check_splat", "ensure_views", "place_cameras", "render_view_images",
-           "splat_digest"]
+__all__ = ["Rig", "ViewSettings", "cache_root", "check_splat", "ensure_views", "photo_reader", "place_cameras",
+           "render_view_images", "splat_digest"]
 
 
 @dataclass(frozen=True)
@@ -216,7 +218,8 @@ def place_cameras(g: Gaussians, settings: ViewSettings, where: str = "splat") ->
     w = torch.sigmoid(g.opacities.detach().double().cpu()).reshape(-1)
     if not bool(w.sum() > 0):
         w = torch.ones_like(w)
-    centre = torch.tensor([weighted_quantile(means[:, a], w, 0.5) for a in range(3)], dtype=torch.float64)
+    centre = torch.tensor([0.5 * (weighted_quantile(means[:, a], w, 0.02) + weighted_quantile(means[:, a], w, 0.98))
+                           for a in range(3)], dtype=torch.float64)
     dist = (means - centre).norm(dim=-1)
     radius = weighted_quantile(dist, w, 0.95)
     far_radius = max(weighted_quantile(dist, w, 0.999), radius)
@@ -356,3 +359,31 @@ def ensure_views(g: Gaussians, settings: ViewSettings, source: str, cache_dir: O
                                        "source": str(source), "settings": asdict(settings), "rig": rig.to_json(),
                                        "train": train_names, "eval": eval_names}, indent=1))
     return folder, rig, [folder / n for n in train_names], [folder / n for n in eval_names]
+
+
+def photo_reader(views, parser: dict) -> Callable[[int], np.ndarray]:
+    """A reader of ``views``' images (uint8 [H,W,3]) for a saved run on a splat, whose dataparser
+    settings ``parser`` (plain values of :class:`~virgi_ns.data.splat.SplatDataParserConfig`) tell how
+    to render them again where the cache no longer holds them (a cleared cache, another machine)."""
+
+    def read(i: int) -> np.ndarray:
+        from PIL import Image
+
+        path = Path(views.filenames[i])
+        if not path.is_file():
+            from virgi_ns.io import load_splat
+
+            data = Path(str(parser.get("data", "")))
+            settings = ViewSettings(**{k: parser[k] for k in ("views", "eval_views", "fov_degrees", "min_resolution",
+                                                              "max_resolution", "background") if k in parser})
+            g = load_splat(data, drop_invalid=bool(parser.get("drop_invalid", False)))
+            cache = parser.get("cache_dir")
+            folder, *_ = ensure_views(g, settings, str(data), Path(str(cache)) if cache else None)
+            path = folder / path.name
+        try:
+            with Image.open(path) as im:
+                return np.array(im.convert("RGB"), dtype=np.uint8)
+        except OSError as e:
+            raise InputError(f"cannot read the view {path} ({type(e).__name__})") from None
+
+    return read

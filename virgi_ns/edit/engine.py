@@ -536,13 +536,13 @@ class EditEngine:
         self.h_diff = h2
         c_d = fld.diffuse(h2).float()
         self.c_d_base = c_d
-        dirs = view_directions(means, cams.camera_centers()[0].to(means).expand_as(means))
-        c_s = fld.specular(self.feats, dirs, h1, h2).float()
-        if sc.file_colours is not None:  # the Gaussians' own colours are the base; the field serves the edit
-            c_d, c_s = (t.float() for t in sc.file_colours.logits(g, dirs))
         self.c_d = self.stack.diffuse(self.feats, self.h_diff, c_d) if self.stack is not None else c_d
-        self.c_s = c_s
+        dirs = view_directions(means, cams.camera_centers()[0].to(means).expand_as(means))
+        self.c_s = fld.specular(self.feats, dirs, h1, h2).float()
         self.k = self.stack.specular_strength if self.stack is not None else 1.0
+        if sc.file_colours is not None:  # the Gaussians' own colours under the field's change
+            offset, c_s = sc.file_colours.for_edit(g, dirs, c_d, self.k)
+            self.c_d, self.c_s = self.c_d + offset.float(), c_s.float()
         self.background = sc.background.to(dev, torch.float32).reshape(3)
         # the view's render through the stack [H,W,3]: what unchanged pixels keep
         self.current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), contrib, self.background)[0]

@@ -107,11 +107,9 @@ def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional
     m = scene.means[g].float()
     f, h1, h2 = scene.gaussian_features(g)
     c_d = fld.diffuse(h2).float()
+    c_field = c_d
     dirs = view_directions(m, cams.camera_centers()[0].to(m).expand_as(m))
     c_s = fld.specular(f, dirs, h1, h2).float()
-    own = scene.file_colours
-    if own is not None:  # the file's own colours under the edits
-        c_d, c_s = (t.float() for t in own.logits(g, dirs))
     k = 1.0
     seg = torch.zeros_like(c_d[:, :1])
     if stack is not None:
@@ -119,12 +117,18 @@ def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional
         k = stack.specular_strength
         if len(stack):
             seg = stack.segmentation(f, h2.float(), seg_index).float()
+    own = scene.file_colours
+    edited = None
+    if own is not None:  # the file's own colours under the field's change
+        edited = own.edited_logits(own.base_logits(g), c_field, c_d).float()
+        offset, c_s = own.for_edit(g, dirs, c_field, k)
+        c_d, c_s = c_d + offset.float(), c_s.float()
     bg = scene.background.to(scene.device, torch.float32)
     if diffuse_map is not None:
         c_d = torch.logit(diffuse_map(torch.sigmoid(c_d)).clamp(1e-6, 1.0 - 1e-6))
     colours = torch.sigmoid(c_d + k * c_s)
-    if own is not None and diffuse_map is None:  # as the model renders them: exact where no edit touches
-        colours = own.edited_colours(g, dirs, c_d, k).float()
+    if edited is not None and diffuse_map is None:  # as the model renders them: exact where no edit touches
+        colours = own.edited_colours(g, dirs, edited, k).float()
     rgb = composite(colours if colour_map is None else colour_map(colours), contrib, bg)[0]
     diff = composite(torch.sigmoid(c_d), contrib, bg)[0]
     return {"rgb": rgb, "diffuse": diff, "specular": rgb - diff, "segmentation": composite(seg, contrib)[0]}

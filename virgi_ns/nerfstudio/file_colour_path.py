@@ -124,12 +124,13 @@ class FileColourPath:
         for s in range(0, means.shape[0], CHUNK):
             f = fld.encode(means[s : s + CHUNK])
             _, h2 = fld.diffuse_hidden(f)
-            e = b_all[s : s + CHUNK].to(h2.dtype)
+            c = fld.diffuse(h2)
+            e = c
             if stack is not None:
                 e = stack.diffuse(f, h2, e)
             if live is not None:
                 e = live.over(f, h2, e)
-            edited.append(e)
+            edited.append(fc.edited_logits(b_all[s : s + CHUNK], c, e))
         e_all = torch.cat(edited) if edited else b_all
         touched = fc.touched(b_all, e_all, k)
         idx = touched.nonzero().flatten()
@@ -149,7 +150,8 @@ class FileColourPath:
 # ------------------------------------------------------------------------------ export
 @torch.no_grad()
 def edited_diffuse_logits(model, fc: FileColours, stack) -> Tensor:
-    """Every Gaussian's diffuse logit after the stack's enabled edits, from the file's base."""
+    """Every Gaussian's diffuse logit ``e`` after the stack's enabled edits: the file's, moved by the
+    change the edits make to the field's (:meth:`FileColours.edited_logits`)."""
     b = fc.base_logits()
     if stack is None or not len(stack.active):
         return b
@@ -159,7 +161,8 @@ def edited_diffuse_logits(model, fc: FileColours, stack) -> Tensor:
     for s in range(0, means.shape[0], CHUNK):
         f = fld.encode(means[s : s + CHUNK])
         _, h2 = fld.diffuse_hidden(f)
-        out.append(stack.diffuse(f, h2, b[s : s + CHUNK].to(h2.dtype)))
+        c = fld.diffuse(h2)
+        out.append(fc.edited_logits(b[s : s + CHUNK], c, stack.diffuse(f, h2, c)))
     return torch.cat(out) if out else b
 
 
@@ -177,6 +180,10 @@ def bake_file_colours(model, fc: FileColours, stack, k: float, frame, cameras, c
     dev = means.device
     fc = fc.to(dev)
     n = means.shape[0]
+    own_rot = fc.rotation.double().cpu() if fc.rotation is not None else torch.eye(3, dtype=torch.float64)
+    if fc.view_dependent and not torch.allclose(frame.rotation.double().cpu(), own_rot, atol=1e-6):
+        raise InputError("this run shows its splat file's own view-dependent colours, whose coefficients hold in "
+                         "the file's frame only: export it in the capture frame (--frame capture)")
     K = (degree + 1) ** 2
     sh = torch.zeros(n, K, 3, device=dev, dtype=torch.float32)
     sh[:, 0] = fc.dc.float()

@@ -129,6 +129,9 @@ class RunSettings:
     specular_gating: bool = True
     base_colours: str = "field"
     """'field' or 'file' (the model's ``base_colours``, 'auto' resolved as the model resolves it)."""
+    splat_views: Optional[dict] = None
+    """The splat dataparser's settings (plain values) of a run on a splat file: its views can be
+    rendered again where their cache is gone (:func:`virgi_ns.data.splat_views.photo_reader`)."""
 
 
 def run_settings(path: Path) -> RunSettings:
@@ -153,17 +156,17 @@ def run_settings(path: Path) -> RunSettings:
         base = Path("/".join(map(str, parts)))
     else:
         raise FullLoadNeeded()
+    dm = pipeline.get("datamanager") if isinstance(pipeline, dict) else None
+    parser = dm.get("dataparser") if isinstance(dm, dict) else None
+    splat = parser if isinstance(parser, dict) and parser.get("__class__") in SPLAT_PARSER_CLASSES else None
     base_colours = str(model.get("base_colours", "field"))
     if base_colours == "auto":  # (a run saved before the model resolved it) the splat dataparser's runs: 'file'
-        dm = pipeline.get("datamanager") if isinstance(pipeline, dict) else None
-        parser = dm.get("dataparser") if isinstance(dm, dict) else None
-        base_colours = "file" if isinstance(parser, dict) and parser.get("__class__") in SPLAT_PARSER_CLASSES \
-            else "field"
+        base_colours = "file" if splat is not None else "field"
     try:
         return RunSettings(base / Path(str(rel)), str(doc.get("method_name")),
                            {k: v for k, v in field_cfg.items() if k != "__class__"},
                            str(model.get("raster_backend", "auto")), float(model.get("gate_threshold", 1.0 / 255.0)),
-                           bool(model.get("specular_gating", True)), base_colours)
+                           bool(model.get("specular_gating", True)), base_colours, splat)
     except (TypeError, ValueError):
         raise FullLoadNeeded() from None
 
@@ -479,6 +482,12 @@ def load_saved_run(config_path: Path, device: Optional[torch.device] = None) -> 
     if device is None:
         device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     model = SavedModel.from_state(model_state(_load_state(ckpt)), settings, info, device, str(ckpt))
+    if settings.splat_views is not None:  # views rendered from the splat: rendered again if their cache is gone
+        from virgi_ns.data.splat_views import photo_reader
+
+        for views in (info.train, info.eval):
+            if views is not None:
+                views.read_photo = photo_reader(views, settings.splat_views)
     if not math.isfinite(info.capture_scale) or info.capture_scale <= 0:
         raise FullLoadNeeded(f"{RUN_INFO}: capture scale {info.capture_scale} is not a positive number")
     return SavedRun(config_path, ckpt, settings, info, model)

@@ -125,18 +125,25 @@ def _describe(cfg: TrainerConfig, world: int) -> str:
 class VirgiTrainerConfig(TrainerConfig):
     _target: Type = field(default_factory=lambda: VirgiTrainer)
 
-    def save_config(self) -> None:
-        """nerfstudio's, after a run on a splat file is made one (:func:`virgi_ns.data.splat.prepare_splat_run`:
-        ``ns-train`` calls this before anything else is written, so bad input is one line and exit 2 with
-        nothing written)."""
+    def _prepare(self) -> None:
+        """A run on a splat file made one (:func:`virgi_ns.data.splat.prepare_splat_run`); bad input is
+        one line on stderr and exit 2. ``ns-train`` prints the config and then saves it before anything
+        else: both come after this, so nothing is printed or written for bad input."""
         from virgi_ns.data.splat import prepare_splat_run
-        from virgi_ns.errors import VirgiError
+        from virgi_ns.errors import EXIT_USER_ERROR, VirgiError
 
         try:
             prepare_splat_run(self)
         except VirgiError as e:
             print(f"error: {e}", file=sys.stderr)
-            sys.exit(2)
+            sys.exit(EXIT_USER_ERROR)
+
+    def print_to_terminal(self) -> None:
+        self._prepare()
+        super().print_to_terminal()
+
+    def save_config(self) -> None:
+        self._prepare()
         super().save_config()
 
 
