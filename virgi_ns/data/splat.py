@@ -77,9 +77,10 @@ class SplatDataParserConfig(DataParserConfig):
 _LOADED: Dict[tuple, Gaussians] = {}
 
 
-def load_checked_splat(path: Path, config: SplatDataParserConfig) -> Gaussians:
-    """The splat at ``path``, checked (:func:`~virgi_ns.data.splat_views.check_splat` and a degenerate
-    extent); the last one read is kept for the process (training reads it more than once)."""
+def load_checked_splat(path: Path, config: SplatDataParserConfig, device: Optional[torch.device] = None) -> Gaussians:
+    """The splat at ``path``, checked (:func:`~virgi_ns.data.splat_views.check_splat` against ``device``'s
+    memory, default a GPU where there is one, and a degenerate extent); the last one read is kept for
+    the process (training reads it more than once)."""
     from virgi_ns.io import load_splat
 
     path = Path(path)
@@ -92,7 +93,7 @@ def load_checked_splat(path: Path, config: SplatDataParserConfig) -> Gaussians:
     g = _LOADED.get(key)
     if g is None:
         g = load_splat(path, drop_invalid=config.drop_invalid)
-        check_splat(g, str(path), config.max_gaussians)
+        check_splat(g, str(path), config.max_gaussians, device)
         place_cameras(g, config.view_settings(), str(path))  # refuses a degenerate extent
         _LOADED.clear()
         _LOADED[key] = g
@@ -165,7 +166,9 @@ def prepare_splat_run(config) -> bool:
         raise InputError("the splat dataparser needs the splat file: ns-train virgi --data FILE splat")
     path = Path(data).expanduser().resolve()
     parser.view_settings().check()
-    load_checked_splat(path, parser)
+    machine = getattr(config, "machine", None)
+    on_gpu = getattr(machine, "device_type", "cuda") == "cuda" and torch.cuda.is_available()
+    load_checked_splat(path, parser, torch.device("cuda" if on_gpu else "cpu"))
     dm.data = path
     parser.data = path
     model = pipeline.model

@@ -76,6 +76,8 @@ class SplatDemoConfig:
     """log2 of the hash table; default the model's (19) on a GPU, 17 on a CPU."""
     pixel_budget: Optional[int] = None
     """Pixels per colour step; default the recipe's on a GPU, 10240 on a CPU."""
+    reuse_run: bool = False
+    """Keep ``OUT/run`` when it holds a trained run (another click on the same run); its edits are reset first."""
     seed: int = 0
 
 
@@ -305,7 +307,14 @@ def run(cfg: SplatDemoConfig, console: Optional[Console] = None) -> Dict[str, ob
         raise InputError(f"no such splat file: {cfg.splat}")
     torch.manual_seed(cfg.seed)
     t_all = time.perf_counter()
-    config, times = train_run(cfg, dev, console)
+    config = cfg.out / "run" / "config.yml"
+    if cfg.reuse_run and config.is_file():
+        from virgi_ns.cli.edit import Reset
+
+        edit_run(Reset(config))  # the demo's click is the run's only edit
+        times: Dict[str, float] = {"reused_run": 1.0}
+    else:
+        config, times = train_run(cfg, dev, console)
 
     t0 = time.perf_counter()
     if cfg.pixel is None:
