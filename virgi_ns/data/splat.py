@@ -89,7 +89,7 @@ def load_checked_splat(path: Path, config: SplatDataParserConfig, device: Option
     if not path.exists():
         raise InputError(f"no such file: {path}")
     st = path.stat()
-    key = (str(path.resolve()), st.st_mtime_ns, st.st_size, config.drop_invalid)
+    key = (str(path.resolve()), st.st_mtime_ns, st.st_size, config.drop_invalid, config.max_gaussians)
     g = _LOADED.get(key)
     if g is None:
         g = load_splat(path, drop_invalid=config.drop_invalid)
