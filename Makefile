@@ -19,8 +19,16 @@ test: $(STAMP)
 	$(PY) -m pytest -q
 
 # `make demo`: VIRGi on the bundled capture (CPU: a few minutes); `make demo FULL=1`: full resolution (GPU).
+# `make demo SPLAT=path/to/scene.ply`: recolour any splat file with no photos (demo_out/splat/).
+ifndef SPLAT
 demo: $(STAMP)
 	$(PY) -m virgi_ns.demo --out demo_out $(if $(FULL),--full,)
+endif
+
+ifdef SPLAT
+demo: $(STAMP)
+	$(PY) -m virgi_ns.demo.splat --splat $(SPLAT) --out demo_out/splat
+endif
 
 clean:
 	rm -rf $(VENV) demo_out

@@ -22,8 +22,7 @@ import json
 import math
 import statistics
 import sys
-import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Optional, Union
 

@@ -28,10 +28,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import tyro
 from rich.progress import track
 
-from virgi_ns.errors import InputError, atomic_path, cli_entry
+from virgi_ns.errors import InputError, atomic_path
 
 REPO = Path(__file__).resolve().parents[2]
 DEFAULT_SOURCE = REPO.parent / "shared" / "data" / "beercan"

@@ -127,6 +127,9 @@ class EditEngine:
         self.feats, self.h_diff, self.c_s = view.feats, view.h_diff, view.c_s
         self.c_d = self.stack.diffuse(self.feats, self.h_diff, view.c_d) if self.stack is not None else view.c_d
         self.k = self.stack.specular_strength if self.stack is not None else 1.0
+        if sc.file_colours is not None:  # the Gaussians' own colours under the field's change
+            offset, c_s = sc.file_colours.for_edit(view.gaussians, view.dirs, view.c_d, self.k)
+            self.c_d, self.c_s = self.c_d + offset.float(), c_s.float()
         self.background = sc.background.to(dev, torch.float32).reshape(3)
         # the view's render through the stack [H,W,3]: what unchanged pixels keep
         self.current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), self.contrib, self.background)[0]

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from virgi_ns.colour.field import DecoupledColourField, view_directions
+from virgi_ns.colour.file_colours import FileColours
 from virgi_ns.edit.stack import EditStack
 from virgi_ns.fingerprint import field_fingerprint
 from virgi_ns.raster import Cameras, Contributions, Request, composite, rasterize
@@ -23,8 +24,8 @@ from virgi_ns.raster import Cameras, Contributions, Request, composite, rasteriz
 class SceneView:
     """What one view sees of a :class:`FrozenScene`: ``contrib``, its contribution lists; ``gaussians``
     [U], the Gaussian of each of its (view, Gaussian) pairs; per pair, the features ``feats`` [U,F] and
-    ``h_diff`` [U,H], the base diffuse logits ``c_d`` [U,3] and the specular logits ``c_s`` [U,3] for the
-    view's camera."""
+    ``h_diff`` [U,H], the base diffuse logits ``c_d`` [U,3], the specular logits ``c_s`` [U,3] and the unit
+    directions ``dirs`` [U,3] from the view's camera to the Gaussian."""
 
     contrib: Contributions
     gaussians: Tensor
@@ -32,6 +33,7 @@ class SceneView:
     h_diff: Tensor
     c_d: Tensor
     c_s: Tensor
+    dirs: Tensor
 
 
 @dataclass
@@ -49,6 +51,10 @@ class FrozenScene:
     features: Optional[tuple[Tensor, Tensor, Tensor]] = None
     """Optional cache of every Gaussian's (f, h1, h_diff) (:meth:`precompute_features`); edits
     then gather them instead of running the hash grid and MLP_diff's first layers."""
+    file_colours: Optional[FileColours] = None
+    """The Gaussians' own colours when they are the base under edits (a run with
+    ``base_colours="file"``): edits then start from the file's logits instead of the field's
+    ``c_d`` and ``c_s`` (:mod:`virgi_ns.colour.file_colours`)."""
 
     @property
     def device(self) -> torch.device:
@@ -60,9 +66,11 @@ class FrozenScene:
         ``means/quats/scales/opacities``, a ``field`` and a ``background_color``)."""
         dev = model.means.device
         backend = getattr(getattr(model, "config", None), "raster_backend", "auto")
+        own = getattr(model, "file_colours", None)
         return FrozenScene(model.means.detach(), model.quats.detach(), torch.exp(model.scales.detach()),
                            torch.sigmoid(model.opacities.detach()).reshape(-1), model.field,
-                           torch.as_tensor(model.background_color, dtype=torch.float32).to(dev).reshape(3), backend)
+                           torch.as_tensor(model.background_color, dtype=torch.float32).to(dev).reshape(3), backend,
+                           file_colours=own() if callable(own) else None)
 
     @torch.no_grad()
     def precompute_features(self, chunk: int = 1 << 18) -> "FrozenScene":
@@ -97,7 +105,7 @@ class FrozenScene:
         c_d = self.field.diffuse(h2).float()
         dirs = view_directions(means, camera.camera_centers()[0].to(means).expand_as(means))
         c_s = self.field.specular(feats, dirs, h1, h2).float()
-        return SceneView(contrib, g, feats, h2, c_d, c_s)
+        return SceneView(contrib, g, feats, h2, c_d, c_s, dirs)
 
     def fingerprint(self) -> str:
         """The base run's fingerprint that every edit of it carries."""
@@ -126,6 +134,7 @@ def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional
     cams = cameras.index(view).to(scene.device, torch.float32)
     seen = scene.view(cams, contrib)
     contrib, f, h2, c_d, c_s = seen.contrib, seen.feats, seen.h_diff, seen.c_d, seen.c_s
+    c_field = c_d
     k = 1.0
     seg = torch.zeros_like(c_d[:, :1])
     if stack is not None:
@@ -133,10 +142,18 @@ def render_view(scene: FrozenScene, cameras: Cameras, view: int, stack: Optional
         k = stack.specular_strength
         if len(stack):
             seg = stack.segmentation(f, h2.float(), seg_index).float()
+    own = scene.file_colours
+    edited = None
+    if own is not None:  # the file's own colours under the field's change
+        edited = own.edited_logits(own.base_logits(seen.gaussians), c_field, c_d).float()
+        offset, c_s = own.for_edit(seen.gaussians, seen.dirs, c_field, k)
+        c_d, c_s = c_d + offset.float(), c_s.float()
     bg = scene.background.to(scene.device, torch.float32)
     if diffuse_map is not None:
         c_d = torch.logit(diffuse_map(torch.sigmoid(c_d)).clamp(1e-6, 1.0 - 1e-6))
     colours = torch.sigmoid(c_d + k * c_s)
+    if edited is not None and diffuse_map is None:  # as the model renders them: exact where no edit touches
+        colours = own.edited_colours(seen.gaussians, seen.dirs, edited, k).float()
     rgb = composite(colours if colour_map is None else colour_map(colours), contrib, bg)[0]
     diff = composite(torch.sigmoid(c_d), contrib, bg)[0]
     return {"rgb": rgb, "diffuse": diff, "specular": rgb - diff, "segmentation": composite(seg, contrib)[0]}

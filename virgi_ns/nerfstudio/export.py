@@ -13,6 +13,9 @@ weighted least squares in the 3DGS convention, ``C(d) ~ SH(d) . coeffs + 0.5`` w
 :func:`virgi_ns.colour.sh.sh_basis` (what ``virgi-render`` and other 3DGS viewers evaluate). Gaussians
 whose colour does not depend on the direction (below the model's specular gate, every Gaussian
 when ``k = 0``) get their exact colour in the DC coefficient alone, as the model renders them.
+A run that shows the splat file's own colours (``base_colours="file"``) exports them: each
+Gaussian's own coefficients, plus a fit of the edits' change where an edit touches it
+(:func:`bake_file_colours`).
 
 Geometry is moved back into the capture's original frame with
 :class:`~virgi_ns.nerfstudio.frames.CaptureFrame`, the inverse of the frame change an imported splat
@@ -34,6 +37,8 @@ from torch import Tensor
 from virgi_ns.colour.sh import sh_basis
 from virgi_ns.errors import InputError
 from virgi_ns.gaussians import SH_C0, Gaussians
+from virgi_ns.colour.file_colours import FileColours
+from virgi_ns.nerfstudio.file_colour_path import edited_diffuse_logits
 from virgi_ns.nerfstudio.frames import CaptureFrame, frame_of_model
 from virgi_ns.raster import Cameras
 
@@ -139,6 +144,10 @@ def bake(
               else (stack.specular_strength if stack is not None else 1.0))
     if not (k >= 0.0 and math.isfinite(k)):
         raise InputError(f"specular strength must be a finite number >= 0, got {k}")
+    own = getattr(model, "file_colours", None)
+    own = own() if callable(own) else None
+    if own is not None:  # the file's own coefficients, with the edits' change added where they touch
+        return bake_file_colours(model, own, stack, k, frame, cameras, cfg, SH_DEGREE, progress)
     active = stack is not None and len(stack.active) > 0
     fld = model.field
     means = model.means.detach()
@@ -232,6 +241,84 @@ def bake(
         if progress is not None:
             progress(done, total)
 
+    m_cap, s_cap, q_cap = frame.gaussians_to_capture(means.float(), model.scales.detach().float(),
+                                                     model.quats.detach().float())
+    return Gaussians(m_cap.contiguous(), s_cap.contiguous(), q_cap.contiguous(),
+                     model.opacities.detach().float().reshape(-1).clone(), sh)
+
+
+@torch.no_grad()
+def bake_file_colours(model, fc: FileColours, stack, k: float, frame, cameras, cfg, degree: int,
+                      progress: Optional[Callable[[int, int], None]] = None) -> Gaussians:
+    """:func:`bake` of a run with the file's colours: every Gaussian
+    starts from the file's own coefficients (padded to ``degree``); a touched one gets the change
+    the edits make (:meth:`FileColours.change`) added, in its DC term exactly when the file is view
+    independent, else as a weighted least-squares SH fit over the directions ``bake`` samples (the
+    training cameras' and a sphere's). Geometry goes back to ``frame``'s capture frame."""
+    means = model.means.detach()
+    dev = means.device
+    fc = fc.to(dev)
+    n = means.shape[0]
+    own_rot = fc.rotation.double().cpu() if fc.rotation is not None else torch.eye(3, dtype=torch.float64)
+    if fc.view_dependent and not torch.allclose(frame.rotation.double().cpu(), own_rot, atol=1e-6):
+        raise InputError("this run shows its splat file's own view-dependent colours, whose coefficients hold in "
+                         "the file's frame only: export it in the capture frame (--frame capture)")
+    K = (degree + 1) ** 2
+    sh = torch.zeros(n, K, 3, device=dev, dtype=torch.float32)
+    sh[:, 0] = fc.dc.float()
+    r = min(fc.rest.shape[1], K - 1)
+    if r:
+        sh[:, 1 : 1 + r] = fc.rest[:, :r].float()
+    if stack is not None:
+        stack.to(dev)
+    b = fc.base_logits()
+    e = edited_diffuse_logits(model, fc, stack)
+    touched = fc.touched(b, e, k)
+    idx = touched.nonzero().flatten()
+    if not fc.view_dependent:
+        # the change is view independent: the DC term gives C + change exactly (above 0)
+        colour = fc.dc_colours(idx) + torch.sigmoid(e[idx]) - torch.sigmoid(b[idx])
+        sh[idx, 0] = ((colour - 0.5) / SH_C0).float()
+    elif idx.numel():
+        sphere_cap = fibonacci_sphere(max(cfg.directions, 1), device=dev)
+        sphere_run = frame.directions_to_run(sphere_cap.double()).float()
+        cams = None
+        if cameras is not None and len(cameras) > 0:
+            sel = torch.linspace(0, len(cameras) - 1, min(cfg.max_cameras, len(cameras))).round().long().unique()
+            cams = cameras.index(sel).to(dev, torch.float32)
+        centres = cams.camera_centers().to(means.dtype) if cams is not None else None
+        P = (len(cams) if cams is not None else 0) + sphere_cap.shape[0]
+        budget = cfg.pairs_per_chunk or ((4 << 20) if dev.type == "cuda" else (512 << 10))
+        chunk = max(1, budget // max(P, 1))
+        for s in range(0, idx.numel(), chunk):
+            part = idx[s : s + chunk]
+            m = means[part]
+            nb = part.numel()
+            dparts, wparts = [], []
+            if cams is not None:
+                dparts.append(torch.nn.functional.normalize(m[:, None, :] - centres[None], dim=-1))
+                w_cam = _camera_weights(m, cams, cfg.unseen_weight)
+                wparts.append(w_cam)
+            sph = sphere_run[None].expand(nb, -1, -1).to(m.dtype)
+            dparts.append(sph)
+            w_s = torch.full((nb, sph.shape[1]), cfg.sphere_floor if cams is not None else 1.0, device=dev)
+            if cams is not None:
+                cos = sph @ dparts[0].transpose(1, 2)
+                near = (torch.exp((cos - 1.0) / max(cfg.kernel, 1e-6)) * w_cam[:, None, :]).amax(-1)
+                w_s = torch.maximum(w_s, near.to(w_s))
+            wparts.append(w_s)
+            d_run = torch.cat(dparts, dim=1)  # [nb,P,3]
+            w = torch.cat(wparts, dim=1)
+            P_ = d_run.shape[1]
+            rep = part.repeat_interleave(P_)
+            bb, ss = fc.logits(rep, d_run.reshape(-1, 3))
+            change = fc.change(bb, ss, e[rep], k).reshape(nb, P_, 3)
+            d_cap = frame.directions_to_capture(d_run.double()).float()
+            sh[part] += fit_sh(d_cap, change.float() + 0.5, w.float(), degree, cfg.ridge)
+            if progress is not None:
+                progress(min(s + chunk, idx.numel()), idx.numel())
+    if progress is not None:
+        progress(n, n)
     m_cap, s_cap, q_cap = frame.gaussians_to_capture(means.float(), model.scales.detach().float(),
                                                      model.quats.detach().float())
     return Gaussians(m_cap.contiguous(), s_cap.contiguous(), q_cap.contiguous(),

@@ -34,6 +34,7 @@ from virgi_ns.errors import InputError
 from virgi_ns.nerfstudio import distributed
 from virgi_ns.nerfstudio.colour_stage import ColourStage
 from virgi_ns.nerfstudio.datamanager import TileBatch
+from virgi_ns.nerfstudio.file_colour_path import FileColourPath, resolve_base_colours
 from virgi_ns.nerfstudio.geometry_stage import GeometryStage
 from virgi_ns.nerfstudio.render_cache import RenderCache
 from virgi_ns.nerfstudio.render_path import RenderPath
@@ -92,12 +93,19 @@ class VirgiModelConfig(SplatfactoModelConfig):
     geometry_views_per_step: int = 1
     """Training views per geometry step, over all processes: the loss is their mean, and gsplat's
     densification statistics count each of them as one view."""
+    base_colours: Literal["auto", "field", "file"] = "auto"
+    """What Gaussians no edit touches show and export: 'field', the colour field's colours; 'file',
+    their own SH colours, exactly (geometry imported from a splat file in the capture's frame; the
+    field then serves the edits' segmentation and colour change, see
+    :mod:`virgi_ns.colour.file_colours`); 'auto', 'file' for the splat dataparser's runs, else 'field'."""
 
 
-class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
+class VirgiModel(GeometryStage, ColourStage, FileColourPath, RenderPath, SplatfactoModel):
     """Splatfacto's model with VIRGi's stages: :class:`GeometryStage`, :class:`ColourStage` and
-    :class:`RenderPath` hold the methods of each; this class sets them up, dispatches outputs by
-    what it is given (tiles or a camera, before or after freezing) and keeps the parameters."""
+    :class:`RenderPath` hold the methods of each (:class:`FileColourPath` renders a splat's own
+    colours instead of the field's, with ``base_colours="file"``); this class sets them up,
+    dispatches outputs by what it is given (tiles or a camera, before or after freezing) and keeps
+    the parameters."""
 
     config: VirgiModelConfig
 
@@ -109,6 +117,8 @@ class VirgiModel(GeometryStage, ColourStage, RenderPath, SplatfactoModel):
         # coefficients stay in the file's frame; the SH warm start evaluates them there)
         self._sh_rotation: Optional[Tensor] = None
         params = self._initial_gaussians()
+        # resolved once ('auto' by the dataparser's metadata) and kept in the config, which runs save
+        self.base_colours = cfg.base_colours = resolve_base_colours(cfg, self.kwargs.get("metadata"))
         self.gauss_params = torch.nn.ParameterDict({k: Parameter(v) for k, v in params.items()})
         self.camera_optimizer = cfg.camera_optimizer.setup(num_cameras=self.num_train_data, device="cpu")
         from torchmetrics.image import PeakSignalNoiseRatio

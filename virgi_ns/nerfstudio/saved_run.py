@@ -47,6 +47,8 @@ FIELD_CLASSES = ("virgi_ns.colour.field.ColourFieldConfig", "virgi_ns.colour.fie
                  "virgi_ns.field.ColorFieldConfig")
 RUN_DIR_CLASSES = ("virgi_ns.nerfstudio.pipeline.RunDirConfig",)
 """Trainer configs whose run directory is ``output_dir`` itself."""
+SPLAT_PARSER_CLASSES = ("virgi_ns.data.splat.SplatDataParserConfig",)
+"""Dataparser configs of runs on a splat file (:mod:`virgi_ns.data.splat`)."""
 TRAINER_CLASSES = ("nerfstudio.engine.trainer.TrainerConfig", "virgi_ns.nerfstudio.trainer.VirgiTrainerConfig")
 """Trainer configs with nerfstudio's ``output_dir/experiment/method/timestamp`` layout."""
 
@@ -126,6 +128,11 @@ class RunSettings:
     raster_backend: str = "auto"
     gate_threshold: float = 1.0 / 255.0
     specular_gating: bool = True
+    base_colours: str = "field"
+    """'field' or 'file' (the model's ``base_colours``, 'auto' resolved as the model resolves it)."""
+    splat_views: Optional[dict] = None
+    """The splat dataparser's settings (plain values) of a run on a splat file: its views can be
+    rendered again where their cache is gone (:func:`virgi_ns.data.splat_views.photo_reader`)."""
 
 
 def run_settings(path: Path) -> RunSettings:
@@ -150,11 +157,17 @@ def run_settings(path: Path) -> RunSettings:
         base = Path("/".join(map(str, parts)))
     else:
         raise FullLoadNeeded()
+    dm = pipeline.get("datamanager") if isinstance(pipeline, dict) else None
+    parser = dm.get("dataparser") if isinstance(dm, dict) else None
+    splat = parser if isinstance(parser, dict) and parser.get("__class__") in SPLAT_PARSER_CLASSES else None
+    base_colours = str(model.get("base_colours", "field"))
+    if base_colours == "auto":  # (a run saved before the model resolved it) the splat dataparser's runs: 'file'
+        base_colours = "file" if splat is not None else "field"
     try:
         return RunSettings(base / Path(str(rel)), str(doc.get("method_name")),
                            {k: v for k, v in field_cfg.items() if k != "__class__"},
                            str(model.get("raster_backend", "auto")), float(model.get("gate_threshold", 1.0 / 255.0)),
-                           bool(model.get("specular_gating", True)))
+                           bool(model.get("specular_gating", True)), base_colours, splat)
     except (TypeError, ValueError):
         raise FullLoadNeeded() from None
 
@@ -393,6 +406,18 @@ class SavedModel:
     def gate_ready(self) -> bool:
         return self.spec_magnitude.numel() == self.num_points and self.diffuse_cache.shape[0] == self.num_points
 
+    def file_colours(self):
+        """The Gaussians' own colours when the run shows them (``base_colours="file"``; their SH
+        coefficients are in the capture's frame), else None (see :mod:`virgi_ns.colour.file_colours`)."""
+        if getattr(self.config, "base_colours", "field") != "file":
+            return None
+        if getattr(self, "_file_colours", None) is None:
+            from virgi_ns.colour.file_colours import FileColours
+
+            T = torch.as_tensor(self.kwargs["metadata"]["virgi_capture_transform"], dtype=torch.float64)
+            self._file_colours = FileColours(self.features_dc, self.features_rest, T[:3, :3].float().to(self.device))
+        return self._file_colours
+
     @property
     def spec_gate(self) -> Tensor:
         return self.spec_magnitude > self.config.gate_threshold
@@ -425,7 +450,8 @@ class SavedModel:
             raise InputError(f"{where}: not a checkpoint of this virgi run ({type(e).__name__}: "
                              f"{str(e).splitlines()[0][:200] if str(e) else ''})") from None
         config = SimpleNamespace(raster_backend=settings.raster_backend, gate_threshold=settings.gate_threshold,
-                                 specular_gating=settings.specular_gating, color_field=cfg)
+                                 specular_gating=settings.specular_gating, color_field=cfg,
+                                 base_colours=settings.base_colours)
         return SavedModel(gauss, field, info.background.to(device), spec, cache, config,
                           info.capture_transform, info.capture_scale)
 
@@ -457,6 +483,12 @@ def load_saved_run(config_path: Path, device: Optional[torch.device] = None) -> 
     if device is None:
         device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     model = SavedModel.from_state(model_state(_load_state(ckpt)), settings, info, device, str(ckpt))
+    if settings.splat_views is not None:  # views rendered from the splat: rendered again if their cache is gone
+        from virgi_ns.data.splat_views import photo_reader
+
+        for views in (info.train, info.eval):
+            if views is not None:
+                views.read_photo = photo_reader(views, settings.splat_views)
     if not math.isfinite(info.capture_scale) or info.capture_scale <= 0:
         raise FullLoadNeeded(f"{RUN_INFO}: capture scale {info.capture_scale} is not a positive number")
     return SavedRun(config_path, ckpt, settings, info, model)

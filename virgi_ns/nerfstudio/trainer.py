@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import math
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Tuple, Type
@@ -124,11 +125,35 @@ def _describe(cfg: TrainerConfig, world: int) -> str:
 class VirgiTrainerConfig(TrainerConfig):
     _target: Type = field(default_factory=lambda: VirgiTrainer)
 
+    def _prepare(self) -> None:
+        """A run on a splat file made one (:func:`virgi_ns.data.splat.prepare_splat_run`); bad input is
+        one line on stderr and exit 2. ``ns-train`` prints the config and then saves it before anything
+        else: both come after this, so nothing is printed or written for bad input."""
+        from virgi_ns.data.splat import prepare_splat_run
+        from virgi_ns.errors import EXIT_USER_ERROR, VirgiError
+
+        try:
+            prepare_splat_run(self)
+        except VirgiError as e:
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(EXIT_USER_ERROR)
+
+    def print_to_terminal(self) -> None:
+        self._prepare()
+        super().print_to_terminal()
+
+    def save_config(self) -> None:
+        self._prepare()
+        super().save_config()
+
 
 class VirgiTrainer(Trainer):
     """nerfstudio's trainer; on several processes as the module doc says."""
 
     def __init__(self, config: TrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        from virgi_ns.data.splat import prepare_splat_run
+
+        prepare_splat_run(config)  # (already done where ns-train saved the config)
         threads = distributed.share_cpu_threads(world_size, config.machine.device_type)
         if world_size > 1:
             config = for_processes(config, world_size)
