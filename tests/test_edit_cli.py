@@ -22,8 +22,10 @@ from virgi_ns.errors import InputError
 from viewer_run import train_tiny
 from virgi_scene import make_scene
 
+from conftest import venv_command
+
 REPO = Path(__file__).resolve().parents[1]
-EXE = REPO / ".venv" / "bin" / "virgi-edit"
+VIRGI_EDIT = venv_command("virgi-edit", "virgi_ns.cli.edit")
 RULE = RecolorRule(h0=0, h1=360, shift=120, s_min=0.2, v_min=0.05)
 
 
@@ -72,14 +74,14 @@ def _apply(saved, **kw) -> Apply:
 def test_apply_list_undo_through_the_console_script(saved):
     cfg = str(saved["config"])
     before = _run_hash(saved["config"])
-    p = subprocess.run([str(EXE), "apply", "--load-config", cfg, "--image", str(saved["png"]), "--camera-index", "0",
+    p = subprocess.run([*VIRGI_EDIT, "apply", "--load-config", cfg, "--image", str(saved["png"]), "--camera-index", "0",
                         "--steps", "15"], capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stderr
     assert "edit 1 saved" in p.stdout and "setup" in p.stdout
     assert _listing(saved["config"]) == ["edit_0001.pt", "stack.json"]
-    p = subprocess.run([str(EXE), "list", "--load-config", cfg], capture_output=True, text=True, timeout=600)
+    p = subprocess.run([*VIRGI_EDIT, "list", "--load-config", cfg], capture_output=True, text=True, timeout=600)
     assert p.returncode == 0 and "1 edit(s)" in p.stdout and "edited.png" in p.stdout
-    p = subprocess.run([str(EXE), "undo", "--load-config", cfg], capture_output=True, text=True, timeout=600)
+    p = subprocess.run([*VIRGI_EDIT, "undo", "--load-config", cfg], capture_output=True, text=True, timeout=600)
     assert p.returncode == 0 and "0 edit(s) left" in p.stdout
     assert _listing(saved["config"]) == ["stack.json"]
     assert _run_hash(saved["config"]) == before  # the run itself is never written
@@ -89,7 +91,7 @@ def test_bad_input_is_one_line_and_exit_2(saved, tmp_path):
     txt = tmp_path / "notes.png"
     txt.write_text("not an image")
     listing = _listing(saved["config"])
-    p = subprocess.run([str(EXE), "apply", "--load-config", str(saved["config"]), "--image", str(txt),
+    p = subprocess.run([*VIRGI_EDIT, "apply", "--load-config", str(saved["config"]), "--image", str(txt),
                         "--camera-index", "0"], capture_output=True, text=True, timeout=600)
     assert p.returncode == 2
     assert p.stderr.strip().count("\n") == 0 and "is not an image" in p.stderr, p.stderr
