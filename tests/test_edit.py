@@ -747,7 +747,7 @@ def _on_gpu(scene):
                        copy.deepcopy(scene.field).cuda(), scene.background.cuda(), backend="auto")
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.gpu
 @pytest.mark.parametrize("recipe,lr_schedule,lr_hold,seg_scale", [
     ("joint", "constant", 0.0, 1.0), ("staged", "constant", 0.0, 1.0), ("joint", "cosine", 0.0, 1.0),
     ("joint", "cosine", 0.5, 1.0), ("joint", "cosine", 0.5, 2.0), ("joint", "constant", 0.0, 2.0)])
@@ -775,7 +775,7 @@ def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe, lr_schedule, 
     assert not torch.equal(e_g.head_weight, torch.as_tensor(sc.field.diffuse_head.weight).cuda())  # it trained
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.gpu
 def test_written_out_heads_give_the_autograd_edit(world):
     """``fused_heads`` (virgi_ns.edit.heads): from the same state, a step with the heads' backward
     written out gives every parameter autograd's gradient (on a target every pixel is far from: where
