@@ -113,7 +113,11 @@ def test_python_api_apply_moves_the_render_and_undo_restores_it(saved):
     err_after = float((after - saved["edited"]).abs().mean())
     assert err_after < 0.5 * err_before, (err_before, err_after)
     assert "edit 1 disabled" == run(Disable(saved["config"], 1), _quiet(), pl)
+    model.set_edit_stack(EditStack.open(saved["config"].parent, model.fingerprint()))  # as stack.json says
+    assert torch.equal(model.get_outputs_for_camera(cam)["rgb"], base)  # a disabled edit does not render
     assert "edit 1 enabled" == run(Enable(saved["config"], 1), _quiet(), pl)
+    model.set_edit_stack(EditStack.open(saved["config"].parent, model.fingerprint()))
+    torch.testing.assert_close(model.get_outputs_for_camera(cam)["rgb"], after, atol=1e-6, rtol=0)
     assert run(Specular(saved["config"], 1.5), _quiet(), pl) == "specular strength 1.5"
     assert "specular strength 1.5" in run(List(saved["config"]), _quiet(), pl)
     run(Undo(saved["config"]), _quiet(), pl)

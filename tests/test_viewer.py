@@ -224,7 +224,7 @@ def test_panel_pick_live_commit_replace_undo(run, tmp_path):
     assert files() in ([], ["stack.json"])
 
     panel.pick_colour.value = (32, 192, 64)
-    panel.commit_after_s = 60.0  # hold the release: the live edit first
+    panel.commit_after_s = 600.0  # hold the release: the live edit first
     panel.pick_at(cam, int(xs[k]), int(ys[k]), wait=True)
     assert not panel.status_is_error, panel.status
     assert model.live_edit is not None and len(model.edit_stack) == 0 and "edit_0001.pt" not in files()
@@ -233,8 +233,8 @@ def test_panel_pick_live_commit_replace_undo(run, tmp_path):
     assert session.steps_done == session.engine.cfg.steps
     live = render(model, cam)
     assert live[red][:, 1].mean() > before[red][:, 1].mean() + 0.1  # turning green while "dragged"
-    panel.commit_after_s = 0.05
-    panel.wait_pick(commit=True)
+    panel.commit_after_s = 0.05  # wakes the worker, asleep until a commit due in 600 s
+    panel.wait_pick(commit=True, timeout=30)
     assert model.live_edit is None and len(model.edit_stack) == 1, panel.status
     assert files() == ["edit_0001.pt", "edit_0001_edited.png", "edit_0001_selection.png", "stack.json"]
     np.testing.assert_array_equal(model.edit_stack.entries[0].edit.head_weight.cpu().numpy(),
@@ -435,7 +435,7 @@ def test_viewer_pick_click_live_commit_recolour(run, served):
 
     client.set(ids["pick"], True)
     client.wait_for(lambda: client.pointer_enabled, 30, "scene clicks enabled in the browser")
-    panel.commit_after_s = 30.0  # hold the release: the live edit first
+    panel.commit_after_s = 600.0  # hold the release: the live edit first
     client.set(ids["colour"], (32, 192, 64))
     client.wait_for(lambda: tuple(panel.pick_colour.value) == (32, 192, 64), 30, "the colour reaching the panel")
     n = client.frame_count()
@@ -448,8 +448,8 @@ def test_viewer_pick_click_live_commit_recolour(run, served):
     assert model.live_edit is not None and len(panel._stack()) == 0
     assert not (panel.run_dir / "edits" / "edit_0001.pt").exists()
 
-    panel.commit_after_s = 0.05  # a pause: the pick is committed
-    client.wait_for(lambda: "edit 1 committed" in _status(client, ids), 60, "the commit's status")
+    panel.commit_after_s = 0.05  # a pause: the pick is committed (the worker, asleep for 600 s, wakes)
+    client.wait_for(lambda: "edit 1 committed" in _status(client, ids), 30, "the commit's status")
     assert model.live_edit is None and len(model.edit_stack) == 1
     assert (panel.run_dir / "edits" / "edit_0001_selection.png").is_file()
     n = client.frame_count()
