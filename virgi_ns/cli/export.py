@@ -1,4 +1,5 @@
-"""``virgi-export --load-config CFG --out OUT.ply``: bake a trained VIRGi run into a standard splat.
+"""``virgi-export --load-config CFG --out OUT.ply``: bake a trained VIRGi run into a standard splat
+(INRIA ``.ply``, ``.spz`` or PlayCanvas ``.sog``).
 
 The run's edits (``<run>/edits``, as the viewer panel and the edit tools keep them) and its
 specular strength are applied unless ``--no-edits``; ``--specular-strength`` overrides ``k``.
@@ -24,12 +25,12 @@ from virgi_ns.errors import InputError
 
 @dataclass
 class Export:
-    """Bake a VIRGi run (with its edits) into an INRIA .ply (SH degree 3) or .spz."""
+    """Bake a VIRGi run (with its edits) into an INRIA .ply (SH degree 3), .spz or .sog."""
 
     load_config: Path
     """The run's config.yml."""
     out: Path
-    """Output splat: .ply (INRIA layout) or .spz."""
+    """Output splat: .ply (INRIA layout), .spz or .sog (PlayCanvas SOG version 2, zip)."""
     specular_strength: Optional[float] = None
     """k, the factor on the specular colour (default: the edit stack's, else 1; 0 removes highlights)."""
     no_edits: bool = False

@@ -25,10 +25,10 @@ OUT_SUFFIXES = (".npy", ".png")
 
 @dataclass
 class Render:
-    """Render a splat (.ply, .compressed.ply, .spz, splatfacto .ckpt or config.yml) from a camera."""
+    """Render a splat (.ply, .compressed.ply, .spz, .sog, splatfacto .ckpt or config.yml) from a camera."""
 
     splat: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="SPLAT")]
-    """Input splat file."""
+    """Input splat: .ply, .compressed.ply, .spz, .sog (zip or folder), a splatfacto .ckpt or its config.yml."""
     camera: Path
     """CAM.json: width, height, fx, fy, cx, cy and world_to_camera (4x4, OpenCV axes)."""
     out: Path

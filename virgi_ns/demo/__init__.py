@@ -6,15 +6,17 @@
    geometry's own colours (the model's ``colour_init``), then trained on multi-view tile batches.
    On a CPU every training view is rasterized once
    (:class:`~virgi_ns.nerfstudio.contrib_cache.ContributionCache`) and the tiles are sliced from those lists.
-3. **Edit**: the recolour rule (:mod:`virgi_ns.edit.recolor`, the can's blue to red) applied to the
-   photo of one training view (the one where the rule selects most pixels) is the edited image;
-   :class:`~virgi_ns.edit.engine.EditEngine` fits the edit.
-4. **Outputs**: ``grid.png`` (held-out views: photo, render, recoloured render, segmentation,
-   diffuse, specular), ``metrics.json`` (reconstruction, recolour and propagation PSNR, edit
-   time, stage times) and ``edited_scene.ply`` (the edited scene baked to SH, capture frame);
+3. **Edit**: a click, as ``virgi-edit pick`` makes one (:class:`~virgi_ns.edit.pick.PickSession`):
+   in the training view whose photo shows most of the object's colour (the can's blue), at the
+   pixel of the render deepest inside it, the object takes the asked colour (``--colour``,
+   ``--mode``) and the edit is fitted.
+4. **Outputs**: ``grid.png`` (held-out views: photo, render, recoloured render, segmentation, the
+   highlight layer scaled to be seen), ``metrics.json`` (reconstruction PSNR; the edit's leak away
+   from the object, how much of the object took the colour's hue; pick and stage times) and
+   ``edited_scene.ply`` (the edited scene baked to SH, capture frame);
 5. **The run**: ``run/config.yml`` and its checkpoint (the trained colour field, unedited), which
    ``ns-viewer --load-config`` and every ``virgi-*`` command open; a new demo replaces it (and the
-   edits made on it). The demo prints the next commands, a pick of the edited object among them.
+   edits made on it). The demo prints the next commands, the same click among them.
 
 ``python -m virgi_ns.demo --help`` lists the knobs; ``--full`` rebuilds the capture at full
 resolution from the shared COLMAP data and is meant for a GPU.

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal, Optional, Tuple
 
 from virgi_ns.data.bundle import BUNDLED_SCENE
 from virgi_ns.edit.recolor import RecolorRule
@@ -50,30 +50,40 @@ class DemoConfig:
     hash_log2: int = 17
     """log2 of the hash table size (the paper's 19 is for GPUs and large scenes)."""
     edit_steps: Optional[int] = None
-    """Edit steps; default: the edit engine's (its measured knee; longer fits leak the recolour)."""
-    edit_source: Literal["photo", "render"] = "photo"
-    """The image the rule recolours for the edit: the view's photo (as the benchmark does) or the
-    model's own render of it (no reconstruction error in the edit's target)."""
+    """Edit steps; default: the pick's (the edit engine's)."""
+    colour: str = "#e0141e"
+    """The colour the clicked object takes (#RRGGBB)."""
+    mode: Literal["hue", "shift", "colour"] = "hue"
+    """How the selection takes the colour (``virgi-edit pick --mode``): ``hue`` gives it the colour's hue
+    and saturation and keeps each pixel's brightness, so shading stays and white highlights stay white."""
+    tolerance: float = 0.2
+    """The pick's tolerance (``virgi-edit pick --tolerance``)."""
     edit_view: Optional[int] = None
-    """Training view to edit (index among training views); default: where the rule selects most."""
+    """Training view to click in (index among training views); default: where the can shows most."""
+    pixel: Optional[Tuple[int, int]] = None
+    """X Y of the click in that view; default: the pixel deepest inside the can."""
     hue_from: float = 190.0
-    """Rule: hue range start (degrees)."""
+    """The object's colour, which finds it for the default click and marks it in the measures: the
+    start of its hue range (degrees; the can's blue)."""
     hue_to: float = 260.0
-    """Rule: hue range end (degrees)."""
-    hue_shift: float = 130.0
-    """Rule: hue shift (degrees); blue + 130 is red."""
+    """The end of its hue range (degrees)."""
     sat_min: float = 0.25
+    """Its least saturation."""
     val_min: float = 0.1
+    """Its least value."""
     grid_views: int = 4
     """Held-out views shown in grid.png."""
+    grid_scale: int = 2
+    """grid.png shows each view this many times its render size (nearest neighbour: no detail made up)."""
     export: bool = True
     """Bake the edited scene to edited_scene.ply."""
     export_directions: int = 64
     """Sphere directions per Gaussian when baking SH."""
     seed: int = 0
 
-    def rule(self) -> RecolorRule:
-        return RecolorRule(self.hue_from, self.hue_to, self.hue_shift, self.sat_min, self.val_min)
+    def object_rule(self) -> RecolorRule:
+        """The pixels of the object's colour (a rule that selects them; its shift is unused)."""
+        return RecolorRule(self.hue_from, self.hue_to, 0.0, self.sat_min, self.val_min)
 
 
 __all__ = ["DemoConfig", "SHARED_BEERCAN"]

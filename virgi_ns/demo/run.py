@@ -19,11 +19,11 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from virgi_ns.data.bundle import bundled_geometry
 from virgi_ns.demo.config import DemoConfig
-from virgi_ns.demo.measure import (DEFINITIONS, as_float, held_out_means, psnr, rule_pixel_totals, summary_table,
+from virgi_ns.demo.measure import (DEFINITIONS, as_float, held_out_means, object_mask, psnr, summary_table,
                                    view_metrics)
 from virgi_ns.demo.picture import grid_image, grid_row
 from virgi_ns.demo.training import colour_steps, train, trainer_config
-from virgi_ns.edit.recolor import recolor, rule_mask
+from virgi_ns.edit.recolor import rule_mask
 from virgi_ns.errors import InputError, atomic_path, cli_entry
 
 
@@ -41,10 +41,10 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: no CUDA GPU is available")
     _check_full(cfg, dev)
-    for name in ("edit_steps", "colour_steps", "grid_views"):
+    for name in ("edit_steps", "colour_steps", "grid_views", "grid_scale"):
         if getattr(cfg, name) is not None and getattr(cfg, name) < 1:
             raise InputError(f"--{name.replace('_', '-')} must be >= 1")
-    rule = cfg.rule()
+    rule = cfg.object_rule()
     tmp_dir: Optional[Path] = None
     scene = cfg.scene
     if not (scene / "transforms.json").is_file():
@@ -122,10 +122,10 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                 model.contrib_cache = None  # frees the lists
 
             # ---------------------------------------------------------- evaluation + edit
-            from virgi_ns.edit.engine import EditConfig, EditEngine
             from virgi_ns.edit.scene import FrozenScene, render_view
             from virgi_ns.edit.stack import EditSource, EditStack
             from virgi_ns.nerfstudio.cameras import raster_cameras
+            from virgi_ns.raster import Request
 
             pipeline.eval()
             frozen = FrozenScene.from_model(model)
@@ -137,54 +137,62 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             contribs, base = [], []
             for i in range(n_eval):
                 cam = eval_cams.index(i)
-                from virgi_ns.raster import Request
-
                 c = frozen.contributions(cam, Request.whole_images(cam))
                 contribs.append(c)
                 base.append(render_view(frozen, eval_cams, i, None, contrib=c))
                 progress.update(t_ev, completed=i + 1)
             times["eval_render_s"] = time.perf_counter() - t0
 
-            # photos become floats on the CPU and the rule runs on CPU copies: a photo and a rule then
-            # select the same pixels on any device (a GPU divides by 255 as a multiplication by its
-            # reciprocal, which can flip a pixel at a threshold)
-            train_images = [as_float(im.cpu()).to(dev) for im in dm.train_images()]
+            # the click: in the training view whose photo shows most of the object's colour, at the
+            # pixel of the model's render deepest inside it (unless --edit-view / --pixel say otherwise)
+            from virgi_ns.edit.pick import MIN_COVER, PickSession, parse_colour, pick_config
+
+            colour = parse_colour(cfg.colour)
+            train_photos = [as_float(im.cpu()) for im in dm.train_images()]
             if cfg.edit_view is None:
-                counts = [int(rule_mask(im.cpu(), rule).sum()) for im in train_images]
-                edit_view = int(np.argmax(counts))
+                edit_view = int(np.argmax([int(rule_mask(im, rule).sum()) for im in train_photos]))
             else:
                 edit_view = cfg.edit_view
-                if not 0 <= edit_view < len(train_images):
-                    raise InputError(f"--edit-view {edit_view}: there are {len(train_images)} training views")
-            if cfg.edit_source == "render":
-                source_image = render_view(frozen, train_cams.to(dev), edit_view)["rgb"].clamp(0, 1)
+                if not 0 <= edit_view < len(train_photos):
+                    raise InputError(f"--edit-view {edit_view}: there are {len(train_photos)} training views")
+            cam = train_cams.index(edit_view)
+            cam_dev = cam.to(dev)
+            view_contrib = frozen.contributions(cam_dev, Request.whole_images(cam_dev))
+            view_base = render_view(frozen, cam_dev, 0, contrib=view_contrib)
+            if cfg.pixel is None:  # the photo's object where the Gaussians cover it (a pick refuses background)
+                obj = rule_mask(train_photos[edit_view], rule) & (view_contrib.accumulation()[0].cpu() >= MIN_COVER)
+                if not bool(obj.any()):
+                    raise InputError(f"the object's colour shows nowhere in training view {edit_view}: give --pixel X Y")
+                x, y = inner_pixel(obj)
             else:
-                source_image = train_images[edit_view]
-            edited_photo, edit_mask = (x.to(dev) for x in recolor(source_image.cpu(), rule))
-            if not bool(edit_mask.any()):
-                raise InputError(f"the recolour rule selects no pixel of training view {edit_view}")
-            edit_cfg = EditConfig(seed=cfg.seed)
+                x, y = cfg.pixel
+            edit_cfg = pick_config(dev)
+            edit_cfg.seed = cfg.seed
             if cfg.edit_steps is not None:
                 edit_cfg.steps = cfg.edit_steps
-            t_ed = progress.add_task("edit", total=edit_cfg.steps, info=f"view {edit_view}")
             stack = EditStack(frozen.fingerprint())
             src_name = Path(dm.train_dataset.image_filenames[edit_view]).name
-            cam = train_cams.index(edit_view)
-            engine = EditEngine(frozen, cam, edited_photo, stack,
-                                edit_cfg,
-                                EditSource(f"rule({src_name})", cam.Ks[0], cam.viewmats[0],
-                                           int(cam.widths[0]), int(cam.heights[0]), f"train index {edit_view}"),
-                                original=source_image)
-            edit, timing = engine.fit(progress=lambda d, n: progress.update(t_ed, completed=d))
+            source = EditSource(f"pick({src_name})", cam.Ks[0], cam.viewmats[0], int(cam.widths[0]),
+                                int(cam.heights[0]), f"train index {edit_view}, pixel {x} {y}")
+            t_ed = progress.add_task("pick", total=1, info=f"view {edit_view}, pixel {x} {y}, {cfg.colour}")
+            t0 = time.perf_counter()
+            session = PickSession(frozen, cam_dev, x, y, stack, edit_cfg, source)
+            edit = session.update(colour, cfg.tolerance, cfg.mode)
+            pick_s = time.perf_counter() - t0
             stack.add(edit)
-            # on the pixels the rule changed: elsewhere the edit's target is the unedited render
-            edit_fit_psnr = psnr(engine.preview()["rgb"].clamp(0, 1), edited_photo, edit_mask)
+            progress.update(t_ed, completed=1)
+            # on the selected pixels: elsewhere the edit's target is the unedited render
+            edit_fit_psnr = psnr(session.engine.preview()["rgb"].clamp(0, 1), session.edited, session.mask)
+            click_view = view_metrics(src_name, view_base["rgb"],
+                                      render_view(frozen, cam_dev, 0, stack, contrib=view_contrib)["rgb"],
+                                      train_photos[edit_view].to(dev), session.mask, colour)
 
             rows, per_view = [], []
             for i in range(n_eval):
                 ed = render_view(frozen, eval_cams, i, stack, contrib=contribs[i])
                 name = Path(dm.eval_dataset.image_filenames[i]).name
-                per_view.append(view_metrics(name, base[i]["rgb"], ed["rgb"], eval_images[i], rule))
+                obj = object_mask(base[i]["rgb"], contribs[i].accumulation()[0], rule, MIN_COVER)
+                per_view.append(view_metrics(name, base[i]["rgb"], ed["rgb"], eval_images[i], obj, colour))
                 if len(rows) < cfg.grid_views:
                     rows.append(grid_row(eval_images[i], base[i], ed))
 
@@ -213,14 +221,13 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             "geometry_steps": g_steps, "colour_steps": n_colour,
             "colour_init": {"mode": cfg.colour_init, "steps": int(model.config.colour_init_steps),
                             "batch": int(model.config.colour_init_batch)},
-            "rule": rule.to_dict(),
-            "edit_view": {"index": edit_view, "image": src_name, "source": cfg.edit_source,
-                          "rule_pixels": int(edit_mask.sum())},
+            "click": {"view_index": edit_view, "image": src_name, "pixel": [int(x), int(y)], "colour": cfg.colour,
+                      "mode": cfg.mode, "tolerance": cfg.tolerance, "selected_share": session.settings["selected"]},
+            "object_rule": rule.to_dict(),
             **held_out_means(per_view),
             "edit_fit_psnr": edit_fit_psnr,
-            "rule_pixels": rule_pixel_totals(per_view),
-            "edit_time_s": {"setup": timing.setup_s, "steps": timing.steps_s, "total": timing.total_s,
-                            "steps_count": timing.steps},
+            "click_view": click_view,
+            "edit_time_s": {"total": pick_s, "steps_count": edit_cfg.steps},
             "times_s": times,
             "per_view": per_view,
             "definitions": dict(DEFINITIONS),
@@ -229,7 +236,8 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
         from PIL import Image
 
         with atomic_path(cfg.out / "grid.png") as tmp:
-            Image.fromarray(grid_image(rows, [v["view"] for v in per_view[: len(rows)]])).save(tmp, format="PNG")
+            Image.fromarray(grid_image(rows, [v["view"] for v in per_view[: len(rows)]], cfg.grid_scale)).save(
+                tmp, format="PNG")
         if exported is not None:
             from virgi_ns.io import save_ply
 
@@ -244,7 +252,8 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
                 shutil.rmtree(run_dir)
             save_run(tc, pipeline, optimizers, total - 1, run_dir)
             metrics["run"] = {"config": str(run_dir / "config.yml"),
-                              "pick": {"camera_index": edit_view, "pixel": list(inner_pixel(edit_mask.cpu()))}}
+                              "pick": {"camera_index": edit_view, "pixel": [int(x), int(y)], "colour": cfg.colour,
+                                       "mode": cfg.mode}}
         with atomic_path(cfg.out / "metrics.json") as tmp:
             tmp.write_text(json.dumps(metrics, indent=1) + "\n")
         return metrics
@@ -275,7 +284,7 @@ def next_commands(metrics: Dict[str, object], out: Path) -> list[str]:
     x, y = pick["pixel"]
     return [f"ns-viewer --load-config {config}",
             f"virgi-edit pick --load-config {config} --camera-index {pick['camera_index']} --pixel {x} {y} "
-            "--colour '#d02020'",
+            f"--colour '{pick['colour']}' --mode {pick['mode']}",
             f"virgi-export --load-config {config} --out {out / 'recoloured.ply'}"]
 
 

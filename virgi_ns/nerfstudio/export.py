@@ -252,18 +252,18 @@ def bake_pipeline(pipeline, stack=None, specular_strength: Optional[float] = Non
 
 
 def write_splat(g: Gaussians, out: str | Path) -> Path:
-    """Write ``.ply`` (INRIA) or ``.spz`` by the name's suffix, atomically."""
-    from virgi_ns.io import save_ply, save_spz
+    """Write ``.ply`` (INRIA), ``.spz`` or ``.sog`` by the name's suffix, atomically."""
+    from virgi_ns.io import save_splat
 
     out = Path(out)
     check_output_path(out)
-    (save_spz if out.suffix.lower() == ".spz" else save_ply)(g, out)
+    save_splat(g, out)
     return out
 
 
 def check_output_path(out: Path) -> None:
-    if out.suffix.lower() not in (".ply", ".spz") or out.name.lower().endswith(".compressed.ply"):
-        raise InputError(f"output {out} must end in .ply (INRIA layout) or .spz")
+    if out.suffix.lower() not in (".ply", ".spz", ".sog") or out.name.lower().endswith(".compressed.ply"):
+        raise InputError(f"output {out} must end in .ply (INRIA layout), .spz or .sog")
     if out.is_dir():
         raise InputError(f"output {out} is a directory")
 
@@ -274,7 +274,7 @@ _MODEL_STACK = "model"
 def export_model(model_or_pipeline, out: str | Path, stack=_MODEL_STACK, specular_strength: Optional[float] = None,
                  frame: Optional[CaptureFrame] = None, cfg: Optional[BakeConfig] = None,
                  progress: Optional[Callable[[int, int], None]] = None) -> Gaussians:
-    """Bake a model (or a pipeline's) and write it to ``out`` (.ply or .spz); returns the Gaussians.
+    """Bake a model (or a pipeline's) and write it to ``out`` (.ply, .spz or .sog); returns the Gaussians.
 
     ``stack`` defaults to the edit stack the model renders with (``model.edit_stack``); None
     exports the base colours. With a pipeline the training cameras' directions are sampled and the

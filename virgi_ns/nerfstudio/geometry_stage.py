@@ -67,7 +67,8 @@ class GeometryStage:
             raise InputError(f"{path}: the splat holds no Gaussians")
         frame = self.config.geometry_frame
         if frame == "auto":
-            frame = "dataparser" if path.suffix.lower() in (".ckpt", ".yml", ".yaml", ".pt", ".pth") or path.is_dir() \
+            run_dir = path.is_dir() and not (path / "meta.json").is_file()  # a splatfacto run, not a SOG folder
+            frame = "dataparser" if path.suffix.lower() in (".ckpt", ".yml", ".yaml", ".pt", ".pth") or run_dir \
                 else "capture"
         means, scales, quats = g.means.float(), g.scales.float(), g.quats.float()
         if frame == "capture":

@@ -46,7 +46,7 @@ class VirgiModelConfig(SplatfactoModelConfig):
 
     _target: Type = field(default_factory=lambda: VirgiModel)
     geometry_from: Optional[Path] = None
-    """Import the geometry from a splat (.ply, .compressed.ply, .spz, splatfacto .ckpt/config.yml)
+    """Import the geometry from a splat (.ply, .compressed.ply, .spz, .sog, splatfacto .ckpt/config.yml)
     instead of training it."""
     geometry_frame: Literal["auto", "capture", "dataparser"] = "auto"
     """Frame of the imported splat: 'capture' (the capture's original frame: the dataparser's
