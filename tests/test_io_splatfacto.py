@@ -147,14 +147,20 @@ def splatfacto_run(tmp_path_factory):
     from virgi_ns.metrics import offline_splatfacto_lpips
     from virgi_scene import make_scene
 
-    offline_splatfacto_lpips()
+    import torchmetrics.image.lpip as lp
+
     root = tmp_path_factory.mktemp("splatfacto_run")
     scene = make_scene(root / "scene", n_per_sphere=20, views=8)
     torch.manual_seed(0)
     cfg = _splatfacto_config(scene.root, root / "outputs", sh_degree=3)
     cfg.save_only_latest_checkpoint = False  # keep both: the reader must pick the newest
     trainer = Trainer(cfg)
-    trainer.pipeline = cfg.pipeline.setup(device="cpu", test_mode="val", world_size=1, local_rank=0)
+    lpips_class = lp.LearnedPerceptualImagePatchSimilarity
+    try:
+        offline_splatfacto_lpips()  # swaps torchmetrics' LPIPS class for the process: put it back after
+        trainer.pipeline = cfg.pipeline.setup(device="cpu", test_mode="val", world_size=1, local_rank=0)
+    finally:
+        lp.LearnedPerceptualImagePatchSimilarity = lpips_class
     trainer.optimizers = trainer.setup_optimizers()
     cfg.save_config()
     params = trainer.pipeline.model.gauss_params
