@@ -639,7 +639,7 @@ def _on_gpu(scene):
                        copy.deepcopy(scene.field).cuda(), scene.background.cuda(), backend="auto")
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.gpu
 @pytest.mark.parametrize("recipe,most", [("joint", False), ("staged", False), ("joint", True)])
 def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe, most):
     """``cuda_graphs``: the recorded steps replay the eager steps' kernels in the eager order, so the
@@ -671,7 +671,7 @@ def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe, most):
     assert not torch.equal(e_g.head_weight, torch.as_tensor(sc.field.diffuse_head.weight).cuda())  # it trained
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.gpu
 def test_written_out_heads_give_the_autograd_edit(world):
     """``fused_heads`` (virgi_ns.edit.heads): from the same state, a step with the heads' backward
     written out gives every parameter autograd's gradient (on a target every pixel is far from: where

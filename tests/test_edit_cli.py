@@ -22,8 +22,10 @@ from virgi_ns.errors import InputError
 from viewer_run import train_tiny
 from virgi_scene import make_scene
 
+from conftest import venv_command
+
 REPO = Path(__file__).resolve().parents[1]
-EXE = REPO / ".venv" / "bin" / "virgi-edit"
+VIRGI_EDIT = venv_command("virgi-edit", "virgi_ns.cli.edit")
 RULE = RecolorRule(h0=0, h1=360, shift=120, s_min=0.2, v_min=0.05)
 
 
@@ -72,14 +74,14 @@ def _apply(saved, **kw) -> Apply:
 def test_apply_list_undo_through_the_console_script(saved):
     cfg = str(saved["config"])
     before = _run_hash(saved["config"])
-    p = subprocess.run([str(EXE), "apply", "--load-config", cfg, "--image", str(saved["png"]), "--camera-index", "0",
+    p = subprocess.run([*VIRGI_EDIT, "apply", "--load-config", cfg, "--image", str(saved["png"]), "--camera-index", "0",
                         "--steps", "15"], capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stderr
     assert "edit 1 saved" in p.stdout and "setup" in p.stdout
     assert _listing(saved["config"]) == ["edit_0001.pt", "stack.json"]
-    p = subprocess.run([str(EXE), "list", "--load-config", cfg], capture_output=True, text=True, timeout=600)
+    p = subprocess.run([*VIRGI_EDIT, "list", "--load-config", cfg], capture_output=True, text=True, timeout=600)
     assert p.returncode == 0 and "1 edit(s)" in p.stdout and "edited.png" in p.stdout
-    p = subprocess.run([str(EXE), "undo", "--load-config", cfg], capture_output=True, text=True, timeout=600)
+    p = subprocess.run([*VIRGI_EDIT, "undo", "--load-config", cfg], capture_output=True, text=True, timeout=600)
     assert p.returncode == 0 and "0 edit(s) left" in p.stdout
     assert _listing(saved["config"]) == ["stack.json"]
     assert _run_hash(saved["config"]) == before  # the run itself is never written
@@ -89,7 +91,7 @@ def test_bad_input_is_one_line_and_exit_2(saved, tmp_path):
     txt = tmp_path / "notes.png"
     txt.write_text("not an image")
     listing = _listing(saved["config"])
-    p = subprocess.run([str(EXE), "apply", "--load-config", str(saved["config"]), "--image", str(txt),
+    p = subprocess.run([*VIRGI_EDIT, "apply", "--load-config", str(saved["config"]), "--image", str(txt),
                         "--camera-index", "0"], capture_output=True, text=True, timeout=600)
     assert p.returncode == 2
     assert p.stderr.strip().count("\n") == 0 and "is not an image" in p.stderr, p.stderr
@@ -111,7 +113,11 @@ def test_python_api_apply_moves_the_render_and_undo_restores_it(saved):
     err_after = float((after - saved["edited"]).abs().mean())
     assert err_after < 0.5 * err_before, (err_before, err_after)
     assert "edit 1 disabled" == run(Disable(saved["config"], 1), _quiet(), pl)
+    model.set_edit_stack(EditStack.open(saved["config"].parent, model.fingerprint()))  # as stack.json says
+    assert torch.equal(model.get_outputs_for_camera(cam)["rgb"], base)  # a disabled edit does not render
     assert "edit 1 enabled" == run(Enable(saved["config"], 1), _quiet(), pl)
+    model.set_edit_stack(EditStack.open(saved["config"].parent, model.fingerprint()))
+    torch.testing.assert_close(model.get_outputs_for_camera(cam)["rgb"], after, atol=1e-6, rtol=0)
     assert run(Specular(saved["config"], 1.5), _quiet(), pl) == "specular strength 1.5"
     assert "specular strength 1.5" in run(List(saved["config"]), _quiet(), pl)
     run(Undo(saved["config"]), _quiet(), pl)

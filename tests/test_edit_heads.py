@@ -75,6 +75,7 @@ def _gpu_kernels() -> bool:
     return cuda.available()[0]
 
 
+@pytest.mark.gpu
 @pytest.mark.skipif(not _gpu_kernels(), reason="needs a CUDA GPU and the extension")
 def test_the_kernels_match_the_float64_reference_on_a_gpu():
     seg, weight, bias, inp, grad_c = _heads(torch.float32, "cuda")

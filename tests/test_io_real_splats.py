@@ -3,8 +3,6 @@ independent encodings of one scene, in the same order; guitar as .compressed.ply
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -12,8 +10,6 @@ import torch
 from virgi_ns.io import load_splat
 from virgi_ns.io.compressed_ply import CHUNK
 from virgi_ns.io.plyfmt import read_ply_bytes
-
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
 def _check_sane(g, n):
@@ -23,10 +19,8 @@ def _check_sane(g, n):
 
 
 @pytest.fixture(scope="module")
-def biker():
-    d = SHARED_DATA / "splats"
-    if not (d / "biker.spz").is_file():
-        pytest.skip(f"real data not found at {d}")
+def biker(shared_data):
+    d = shared_data.need("splats", "splats/biker.spz", "splats/biker.compressed.ply")
     cply = load_splat(d / "biker.compressed.ply")
     spz = load_splat(d / "biker.spz")
     chunk = read_ply_bytes((d / "biker.compressed.ply").read_bytes()).get("chunk").data
@@ -72,6 +66,6 @@ def test_biker_other_attributes_agree_within_quantization(biker):
 
 
 def test_guitar_loads(shared_data):
-    g = load_splat(shared_data / "splats" / "guitar.compressed.ply")
+    g = load_splat(shared_data.need("splats/guitar.compressed.ply"))
     _check_sane(g, 90_854)
     assert g.sh_degree == 0

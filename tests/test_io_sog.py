@@ -490,10 +490,11 @@ def test_virgi_export_accepts_sog_and_still_refuses_other_names(tmp_path):
 # ------------------------------------------------------------------------------- a real splat
 def test_real_splat_round_trip(shared_data, tmp_path):
     """biker (152,746 Gaussians, SH degree 0) -> .sog -> decoded by the spec's decoder, within bounds."""
-    src = load_splat(shared_data / "splats" / "biker.compressed.ply")
+    biker = shared_data.need("splats/biker.compressed.ply")
+    src = load_splat(biker)
     write_sog(src, tmp_path / "biker.sog")
     dec = spec_decode(unzip_like_playcanvas((tmp_path / "biker.sog").read_bytes()))
     out = check_within_bounds(dec, src.index(torch.from_numpy(sog_order(src.means))))
     print("biker .sog worst errors:", {k: f"{v:.3g}" for k, v in out.items()})
     size = (tmp_path / "biker.sog").stat().st_size
-    assert size < (shared_data / "splats" / "biker.compressed.ply").stat().st_size
+    assert size < biker.stat().st_size

@@ -15,7 +15,8 @@ from PIL import Image
 from virgi_ns.data.llff import LLFFDataParserConfig
 from virgi_ns.errors import InputError
 
-REPO = Path(__file__).resolve().parents[1]
+from conftest import venv_command
+
 FULL_H, FULL_W, FULL_F = 60.0, 80.0, 70.0  # the hwf row: poses "solved" on 80x60 images
 SMALL_W, SMALL_H = 20, 15  # the images we write: 4x smaller
 
@@ -149,8 +150,8 @@ def test_bad_input_is_one_clear_error(tmp_path: Path, damage: str, message: str)
         _parse(tmp_path, "train")
 
 
-def test_fern(shared_data: Path) -> None:
-    fern = shared_data / "fern"
+def test_fern(shared_data) -> None:
+    fern = shared_data.need("fern", "fern/poses_bounds.npy", "fern/images_8")
     hwf = np.load(fern / "poses_bounds.npy")[0, :15].reshape(3, 5)[:, 4]
     cfg = LLFFDataParserConfig(data=fern, images_dir="images_8")
     train = cfg.setup().get_dataparser_outputs("train")
@@ -165,12 +166,13 @@ def test_fern(shared_data: Path) -> None:
         assert im.size == (504, 378)
 
 
-def test_beercan_matches_its_colmap_model(shared_data: Path) -> None:
+def test_beercan_matches_its_colmap_model(shared_data) -> None:
     """LLFF poses keep COLMAP's world: our cameras equal COLMAP's (OpenCV) cameras, moved by the recorded
     transform, and the seeded points sit where COLMAP puts them relative to each camera."""
     from nerfstudio.data.utils.colmap_parsing_utils import qvec2rotmat, read_images_binary, read_points3D_binary
 
-    scene = shared_data / "beercan"
+    scene = shared_data.need("beercan", "beercan/poses_bounds.npy", "beercan/images",
+                             "beercan/sparse/0/images.bin", "beercan/sparse/0/points3D.bin")
     out = LLFFDataParserConfig(data=scene).setup().get_dataparser_outputs("train")
     images = sorted(read_images_binary(scene / "sparse/0/images.bin").values(), key=lambda im: im.name)
     names = [p.name for p in out.image_filenames]
@@ -192,10 +194,10 @@ def test_beercan_matches_its_colmap_model(shared_data: Path) -> None:
         assert np.allclose(in_cam_ours, in_cam_colmap, atol=1e-3 * np.abs(in_cam_colmap).max())
 
 
-def test_ns_train_help_lists_llff(shared_data: Path, tmp_path: Path) -> None:
-    fern = shutil.copytree(shared_data / "fern", tmp_path / "fern")
+def test_ns_train_help_lists_llff(shared_data, tmp_path: Path) -> None:
+    fern = shutil.copytree(shared_data.need("fern", "fern/poses_bounds.npy"), tmp_path / "fern")
     out = subprocess.run(
-        [str(REPO / ".venv/bin/ns-train"), "splatfacto", "llff", "--data", str(fern), "--help"],
+        [*venv_command("ns-train", "nerfstudio.scripts.train"), "splatfacto", "llff", "--data", str(fern), "--help"],
         capture_output=True,
         text=True,
         timeout=300,

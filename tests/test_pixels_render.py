@@ -72,7 +72,7 @@ def test_composite_without_entries():
     assert bool((grad == 0).all())
 
 
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.gpu)]
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -119,7 +119,7 @@ def test_fused_sets_match_a_dense_oracle(device, gathered):
     assert bool((grad.cpu()[cols.bincount(minlength=U) == 0] == 0).all())
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.gpu
 def test_the_gathered_gradient_over_long_and_short_runs_of_one_gaussian():
     """The gathered gradient (GPU) where one Gaussian is in every pixel (a run of thousands of entries
     over many warps' chunks), a few in many and most in few, over sets whose entries start anywhere
@@ -322,7 +322,7 @@ def _gpu_scene(scene):
                        copy.deepcopy(scene.field).cuda(), scene.background.cuda(), backend="auto")
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.gpu
 def test_recorded_steps_are_replayed_after_a_warm_retarget(tiny):
     """A warm retarget keeps the recorded steps, and replaying them fits the new target as eager steps
     after the same warm retarget do."""
@@ -343,7 +343,7 @@ def test_recorded_steps_are_replayed_after_a_warm_retarget(tiny):
     assert t_g.final_loss == pytest.approx(t_e.final_loss, rel=1e-4)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.gpu
 @pytest.mark.parametrize("kind", KINDS)
 def test_every_kind_records_as_cuda_graphs(tiny, kind):
     """On a GPU each kind's steps record as CUDA graphs (no host sync, no fallback warning) and give
@@ -365,7 +365,7 @@ def test_every_kind_records_as_cuda_graphs(tiny, kind):
     assert t_g.final_loss == pytest.approx(t_e.final_loss, rel=1e-4)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a GPU")
+@pytest.mark.gpu
 def test_the_fused_kernel_fits_as_csr_does_on_a_gpu(tiny):
     """The fused kind's CUDA kernel (graphed) fits the edit csr fits on the same GPU, and so does a warm
     re-fit of a new target: the counter starts each fit at the first pixel set."""

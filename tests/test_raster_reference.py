@@ -405,3 +405,52 @@ def test_reference_on_gpu_matches_cpu():
     assert torch.equal(c_gpu.pixel.cpu(), c_cpu.pixel) and torch.equal(c_gpu.pair_gaussian.cpu(), c_cpu.pair_gaussian)
     assert torch.allclose(c_gpu.weight.cpu(), c_cpu.weight, atol=1e-10)
     assert torch.allclose(c_gpu.transmittance.cpu(), c_cpu.transmittance, atol=1e-10)
+
+
+# ------------------------------------------------------- gsplat's own pieces, on a CPU
+# gsplat's projection and tile sort have pure-torch versions that run without CUDA (tests/gsplat_cpu.py):
+# the reference is held to them here on every scene, so the rules it shares with the GPU path are
+# checked where CI runs; only gsplat's compositing kernel needs the GPU tests above.
+@pytest.mark.parametrize("name", list(SCENES))
+def test_gsplat_projection_on_the_cpu_matches_the_reference(name):
+    import gsplat_cpu
+
+    cams = make_cams(70, 45, views=2)
+    means, quats, scales, _ = SCENES[name]()
+    radii, means2d, depths, conics, _ = gsplat_cpu.fully_fused_projection(
+        means, None, quats, scales, cams.viewmats, cams.Ks, 70, 45)
+    p = reference.project(means, quats, scales, cams)
+    assert torch.equal(radii, p.radii), int((radii != p.radii).sum())
+    seen = p.radii > 0
+    assert seen.sum() > 10
+    torch.testing.assert_close(means2d[seen], p.means2d[seen], rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(depths[seen], p.depths[seen], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(conics[seen], p.conics[seen], rtol=1e-6, atol=1e-9)
+    # the tiles each Gaussian reaches: gsplat's intersection count and the reference's ranges
+    for v in range(2):
+        tiles, _, _ = gsplat_cpu.isect_tiles(means2d[v:v + 1], radii[v:v + 1], depths[v:v + 1], 16, 5, 3)
+        r = p.tile_ranges()[v]
+        assert torch.equal(tiles[0].long(), (r[:, 2] - r[:, 0]) * (r[:, 3] - r[:, 1]))
+
+
+@pytest.mark.parametrize("name", list(GSPLAT_TOL))
+def test_reference_matches_gsplat_sorted_lists_on_the_cpu(name):
+    """The reference's images against gsplat's projection and depth-sorted tile lists (its torch
+    code) composited by gsplat's classic rules: what the GPU test checks, less gsplat's kernel."""
+    import gsplat_cpu
+
+    cams = make_cams(70, 45, views=2)
+    means, quats, scales, opac = (a.float() for a in SCENES[name]())
+    colors = torch.rand(means.shape[0], 3, generator=torch.Generator().manual_seed(0))
+    c = reference.rasterize(means, quats, scales, opac, cams.to("cpu", torch.float32), Request.whole_images(cams))
+    ours = composite(colors[c.pair_gaussian], c, None)
+    for v in range(2):
+        vm, K = cams.viewmats[v:v + 1].float(), cams.Ks[v:v + 1].float()
+        radii, means2d, depths, conics, _ = gsplat_cpu.fully_fused_projection(means, None, quats, scales, vm, K, 70, 45)
+        _, isect_ids, flatten_ids = gsplat_cpu.isect_tiles(means2d, radii, depths, 16, 5, 3)
+        offsets = gsplat_cpu.isect_offset_encode(isect_ids, 1, 5, 3)
+        img, alpha = gsplat_cpu.composite_tiles(means2d, conics, colors[None], opac[None], 70, 45, 16, offsets,
+                                                flatten_ids)
+        assert (ours[v] - img[0]).abs().max() <= GSPLAT_TOL[name]
+        assert (c.accumulation()[v] - alpha[0, ..., 0]).abs().max() <= GSPLAT_TOL[name]
+    assert alpha.max() > 0.5 or name == "near_plane"

@@ -505,6 +505,41 @@ def test_gpu_outputs_read_lazily_equal_the_contribution_render(spec_model, monke
         model.set_edit_stack(None)
 
 
+@pytest.mark.parametrize("case", ["gated_edits", "matte_edits", "full"])
+def test_the_gsplat_pass_on_a_cpu_shows_what_the_contribution_lists_show(spec_model, monkeypatch, case):
+    """The GPU path end to end, through the model's own gsplat pass (``gsplat_pass.py``), with gsplat's
+    projection and tile sort run on the CPU by gsplat's torch code and only its compositing kernel stood
+    in for (``gsplat_cpu.py``): every output equals the CPU render up to the rasterizers' alpha cut-offs."""
+    import gsplat_cpu
+
+    _, model, cams = spec_model
+    cam = cams[0:1]
+    median = model.config.gate_threshold
+    if "matte" in case:
+        model.config.gate_threshold = float("inf")
+    stack = EditStack(model.fingerprint())
+    stack.add(_edit(model, 19))
+    model.set_edit_stack(stack)
+    old_bg = model.background_color
+    model.set_background(torch.tensor([0.2, 0.5, 0.9]))
+    gated = case != "full"
+    try:
+        want = model.render_camera(cam, gated=gated)
+        gsplat_cpu.use_on_cpu(monkeypatch)
+        monkeypatch.setattr(model, "_renders_with_gsplat", lambda: True)
+        out = model.render_camera(cam, gated=gated)
+        for key in ("rgb", "depth", "accumulation", "diffuse", "specular", "segmentation"):
+            assert out[key].shape == want[key].shape, key
+            diff = (out[key] - want[key]).abs()
+            assert diff.mean() < 1e-4 and diff.max() < 2e-3, (key, float(diff.mean()), float(diff.max()))
+        assert want["accumulation"].max() > 0.9 and (want["accumulation"] < 0.01).any()  # scene and background
+        assert want["segmentation"].max() > 10 * 2e-3  # the edit shows (above the tolerance)
+    finally:
+        model.config.gate_threshold = median
+        model.set_edit_stack(None)
+        model.set_background(old_bg)
+
+
 @pytest.mark.gpu
 def test_gpu_cached_render_equals_the_reference_colours_rendered(spec_model):
     """On a GPU, with gsplat: the cached colours equal the field's forward (to the tolerance of GPU

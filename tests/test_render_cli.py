@@ -201,10 +201,7 @@ def test_render_real_splat_smoke(shared_data, tmp_path):
     """biker.spz from a camera 4 units out, looking at its centre: a finite, non-empty picture."""
     from virgi_ns.io import load_splat
 
-    path = shared_data / "splats" / "biker.spz"
-    if not path.exists():
-        pytest.skip("biker.spz absent")
-    g = load_splat(path)
+    g = load_splat(shared_data.need("splats/biker.spz"))
     keep = torch.randperm(len(g), generator=torch.Generator().manual_seed(0))[:20000]
     lo, hi = g.means.quantile(0.05, dim=0), g.means.quantile(0.95, dim=0)
     centre = ((lo + hi) / 2).double().numpy()

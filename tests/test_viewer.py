@@ -1,5 +1,6 @@
-"""The viewer panel's actions called directly (no browser): save a view, upload, apply, toggle,
-undo, reset, errors. A tiny trained run on the CPU."""
+"""The viewer panel on a tiny trained run (CPU): its actions called directly (save a view, upload,
+apply, toggle, undo, reset, pick, errors), then the same through nerfstudio's viewer on a real viser
+server, driven by a client that sends what the browser sends (``viser_client.py``)."""
 
 from __future__ import annotations
 
@@ -223,7 +224,7 @@ def test_panel_pick_live_commit_replace_undo(run, tmp_path):
     assert files() in ([], ["stack.json"])
 
     panel.pick_colour.value = (32, 192, 64)
-    panel.commit_after_s = 60.0  # hold the release: the live edit first
+    panel.commit_after_s = 600.0  # hold the release: the live edit first
     panel.pick_at(cam, int(xs[k]), int(ys[k]), wait=True)
     assert not panel.status_is_error, panel.status
     assert model.live_edit is not None and len(model.edit_stack) == 0 and "edit_0001.pt" not in files()
@@ -232,8 +233,8 @@ def test_panel_pick_live_commit_replace_undo(run, tmp_path):
     assert session.steps_done == session.engine.cfg.steps
     live = render(model, cam)
     assert live[red][:, 1].mean() > before[red][:, 1].mean() + 0.1  # turning green while "dragged"
-    panel.commit_after_s = 0.05
-    panel.wait_pick(commit=True)
+    panel.commit_after_s = 0.05  # wakes the worker, asleep until a commit due in 600 s
+    panel.wait_pick(commit=True, timeout=30)
     assert model.live_edit is None and len(model.edit_stack) == 1, panel.status
     assert files() == ["edit_0001.pt", "edit_0001_edited.png", "edit_0001_selection.png", "stack.json"]
     np.testing.assert_array_equal(model.edit_stack.entries[0].edit.head_weight.cpu().numpy(),
@@ -256,3 +257,215 @@ def test_panel_pick_live_commit_replace_undo(run, tmp_path):
     panel.wait_pick()
     assert panel.status_is_error and "tolerance" in panel.status and files() == ["stack.json"]
     panel.set_pick_mode(False)
+
+
+# --------------------------------------------------------------------------------------------------
+# The panel inside nerfstudio's viewer on a real viser server, driven by a websocket client that
+# speaks viser's protocol as the browser does (tests/viser_client.py): the viewer finds the panel on
+# the model, installs it and sets it up; the client sends its camera, presses the panel's buttons,
+# sets its dropdowns, checkboxes and colour, uploads, clicks in the scene, and reads back the panel's
+# status line, the files it is sent and the frames the viewer renders for it.
+
+PANEL = "VIRGi edit"
+
+
+@pytest.fixture(scope="module")
+def served(run, tmp_path_factory):
+    """(viewer, panel, client, cam): ``ns-viewer``'s set-up (``_start_viewer``) over the tiny run on a
+    free port, frames as PNG at the training views' size, and a client whose camera is training view
+    0's (``cam``)."""
+    import viser.transforms  # noqa: F401  (the client converts its camera with it)
+    from nerfstudio.configs.base_config import ViewerConfig
+    from nerfstudio.viewer.viewer import Viewer
+
+    from virgi_ns.nerfstudio.distributed import _free_port
+    from viser_client import ViserClient
+
+    _, pipeline = run
+    model = pipeline.model
+    model.set_edit_stack(None)
+    root = tmp_path_factory.mktemp("served")
+    config = ViewerConfig(websocket_host="127.0.0.1", websocket_port=_free_port(), image_format="png")
+    viewer = Viewer(config, log_filename=root / "run" / config.relative_log_filename,
+                    datapath=pipeline.datamanager.get_datapath(), pipeline=pipeline, train_lock=threading.Lock())
+    client = None
+    try:
+        viewer.init_scene(train_dataset=pipeline.datamanager.train_dataset, train_state="completed",
+                          eval_dataset=pipeline.datamanager.eval_dataset)
+        viewer.control_panel._max_res.value = 48  # frames at the training views' 48x40
+        cam = pipeline.datamanager.train_dataset.cameras[0:1]
+        client = ViserClient(viewer.viser_server.get_port())
+        H, W, fy = int(cam.height), int(cam.width), float(cam.fy)
+        client.send_camera(cam.camera_to_worlds[0].double().numpy(), 2 * np.arctan(H / 2 / fy), W / H)
+        client.wait_frame(lambda f: f.shape == (H, W, 3), message="a first frame of the client's view")
+        panels = [c for c in viewer.viewer_controls if isinstance(c, VirgiPanel)]
+        assert panels == [model.viewer_panel], "the viewer did not find the model's panel"
+        yield viewer, panels[0], client, cam
+    finally:
+        if client is not None:
+            client.close()
+        viewer.viser_server.stop()
+        model.set_edit_stack(None)
+
+
+def _frame_render(viewer, model, cam) -> np.ndarray:
+    """What the client's frames should show: the model's render of ``cam`` over the viewer's
+    background, as 8 bits."""
+    with viewer.train_lock:
+        rgb = model.get_outputs_for_camera(cam)["rgb"].detach().cpu().numpy()
+    return (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def _near(frame: np.ndarray, want: np.ndarray) -> bool:
+    d = np.abs(frame.astype(int) - want.astype(int))
+    return frame.shape == want.shape and d.mean() < 1.0 and d.max() <= 8
+
+
+def _status(client, panel_ids) -> str:
+    return client.text(panel_ids["status"])
+
+
+def _panel_ids(client) -> dict:
+    """The panel's components as the browser sees them, by label inside the panel's folder."""
+    ids = {k: client.find(label, inside=PANEL) for k, label in (
+        ("display", "Display"), ("pick", "Pick mode"), ("colour", "New colour"), ("tolerance", "Tolerance"),
+        ("save", "Save this view"), ("upload", "Upload edited image"), ("apply", "Apply edit"),
+        ("undo", "Undo"), ("reset", "Reset"), ("specular", "Specular strength"))}
+    folder = client.find(PANEL)
+    ids["status"] = client.wait_for(lambda: next((i for i, c in client.gui.items() if c["kind"] == "GuiAddMarkdownMessage"
+                                                  and c.get("container_id") == folder), None), 30, "the status line")
+    return ids
+
+
+def test_viewer_save_upload_apply_display_toggle_undo(run, served):
+    """Through the browser's messages: save the view (the files come to the client), upload an edited
+    copy, apply it (the frame turns, the stack grows, an edit toggle appears), show the segmentation
+    (the viewer's output type follows), toggle the edit off and on, undo (back to the render)."""
+    viewer, panel, client, cam = served
+    model = run[1].model
+    ids = _panel_ids(client)
+    before = _frame_render(viewer, model, cam)
+    client.wait_frame(lambda f: _near(f, before), message="a frame of the unedited render")
+
+    client.click(ids["save"])
+    client.wait_for(lambda: "view_001.png" in client.downloads and "view_001.json" in client.downloads, 60,
+                    "the saved view's download")
+    saved = np.asarray(Image.open(io.BytesIO(client.downloads["view_001.png"])).convert("RGB"))
+    assert saved.shape == before.shape and np.abs(saved.astype(int) - before.astype(int)).max() <= 8
+    assert json.loads(client.downloads["view_001.json"])["frame"] == "capture"
+    assert (panel.run_dir / "views" / "view_001.png").is_file()
+
+    # paint the red sphere green, upload, apply
+    image = saved.astype(np.float32) / 255
+    red = (image[..., 0] > image[..., 2] + 0.2) & (image[..., 0] > 0.35)
+    blue = (image[..., 2] > image[..., 0] + 0.2)
+    assert red.sum() > 20 and blue.sum() > 20
+    edited = image.copy()
+    edited[red] = (0.1, 0.8, 0.15)
+    client.upload(ids["upload"], "view_001 edited.png", png(edited))
+    client.wait_for(lambda: "ready for view_001" in _status(client, ids), 60, "the upload's status")
+    assert panel.pending is not None
+    client.click(ids["apply"])
+    client.wait_for(lambda: "edit 1 applied" in _status(client, ids), 120, "the applied edit's status")
+    assert len(model.edit_stack) == 1 and (panel.run_dir / "edits" / "stack.json").is_file()
+    edited_frame = client.wait_frame(lambda f: f[red][:, 1].mean() > f[red][:, 0].mean() + 40,
+                                     message="a frame with the red sphere turned green")
+    assert np.abs(edited_frame[blue].astype(int) - before[blue].astype(int)).mean() < 8  # the blue one stays
+    toggle = client.find("1: view_001 edited.png (view_001)", inside=PANEL)
+    assert client.value(toggle) is True
+
+    # the segmentation display: the viewer's own output selector follows, the frame shows the mask
+    output_type = client.find("Output type")
+    client.set(ids["display"], "segmentation")
+    client.wait_for(lambda: client.value(output_type) == "segmentation", 60, "the viewer's output type")
+    seg = client.wait_frame(lambda f: np.abs(f.astype(int) - edited_frame.astype(int)).mean() > 20,
+                            message="a segmentation frame")
+    assert np.abs(seg[red].astype(float).mean(0) - seg[blue].astype(float).mean(0)).max() > 60
+    client.set(ids["display"], "rgb")
+    client.wait_for(lambda: client.value(output_type) == "rgb", 60, "the output type back to rgb")
+
+    # the edit's toggle: off shows the render, on the edit again
+    n = client.frame_count()
+    client.set(toggle, False)
+    client.wait_frame(lambda f: _near(f, before), after=n, message="the unedited frame with the edit off")
+    assert not model.edit_stack.entries[0].enabled
+    n = client.frame_count()
+    client.set(toggle, True)
+    client.wait_frame(lambda f: f[red][:, 1].mean() > f[red][:, 0].mean() + 40, after=n,
+                      message="the edited frame with the edit on")
+
+    # the specular strength slider reaches the stack and its file
+    client.set(ids["specular"], 0.0)
+    client.wait_for(lambda: model.edit_stack.specular_strength == 0.0, 30, "k = 0 in the stack")
+    assert json.loads((panel.run_dir / "edits" / "stack.json").read_text())["specular_strength"] == 0.0
+    client.set(ids["specular"], 1.0)
+    client.wait_for(lambda: model.edit_stack.specular_strength == 1.0, 30, "k = 1 in the stack")
+
+    # undo: the stack empties, its toggle leaves the browser, the frame is the render again
+    n = client.frame_count()
+    client.click(ids["undo"])
+    client.wait_for(lambda: "0 edit(s) left" in _status(client, ids), 60, "undo's status")
+    assert len(model.edit_stack) == 0
+    client.wait_for(lambda: toggle not in client.gui, 30, "the edit's toggle removed")
+    client.wait_frame(lambda f: _near(f, before), after=n, message="the unedited frame after undo")
+
+    # a file that is no image: an error in the status line, the viewer keeps serving
+    client.upload(ids["upload"], "notes.txt", b"hello, not a picture", "text/plain")
+    client.wait_for(lambda: "not an image" in _status(client, ids), 60, "the bad upload's error")
+    assert panel.status_is_error and panel.pending is None
+
+
+def test_viewer_pick_click_live_commit_recolour(run, served):
+    """Pick mode through the browser's messages: ticking it enables scene clicks in the browser; a
+    click on the red sphere (at a pixel whose transpose is not on it) turns what was clicked green
+    live, nothing written; a pause commits it; a new colour replaces it; a click on the background is
+    a status-line error; unticking disables clicks."""
+    viewer, panel, client, cam = served
+    model = run[1].model
+    ids = _panel_ids(client)
+    before = _frame_render(viewer, model, cam)
+    image = before.astype(np.float32) / 255
+    red = (image[..., 0] > image[..., 2] + 0.2) & (image[..., 0] > 0.35)
+    H, W = red.shape
+    ys, xs = np.nonzero(red)
+    order = np.argsort((ys - ys.mean()) ** 2 + (xs - xs.mean()) ** 2)
+    # the clicked pixel: near the sphere's centre, where (y, x) would land off it
+    k = next(i for i in order if not red[min(xs[i], H - 1), min(ys[i], W - 1)])
+    x, y = int(xs[k]), int(ys[k])
+
+    client.set(ids["pick"], True)
+    client.wait_for(lambda: client.pointer_enabled, 30, "scene clicks enabled in the browser")
+    panel.commit_after_s = 600.0  # hold the release: the live edit first
+    client.set(ids["colour"], (32, 192, 64))
+    client.wait_for(lambda: tuple(panel.pick_colour.value) == (32, 192, 64), 30, "the colour reaching the panel")
+    n = client.frame_count()
+    client.click_scene((x + 0.5) / W, (y + 0.5) / H)
+    client.wait_for(lambda: f"pick at {x} {y}" in _status(client, ids) and "live" in _status(client, ids), 120,
+                    "the live pick's status")
+    live = client.wait_frame(lambda f: int(f[y, x, 1]) > int(f[y, x, 0]) + 40, after=n,
+                             message="the clicked pixel turned green, live")
+    assert live[red][:, 1].mean() > before[red][:, 1].mean() + 25
+    assert model.live_edit is not None and len(panel._stack()) == 0
+    assert not (panel.run_dir / "edits" / "edit_0001.pt").exists()
+
+    panel.commit_after_s = 0.05  # a pause: the pick is committed (the worker, asleep for 600 s, wakes)
+    client.wait_for(lambda: "edit 1 committed" in _status(client, ids), 30, "the commit's status")
+    assert model.live_edit is None and len(model.edit_stack) == 1
+    assert (panel.run_dir / "edits" / "edit_0001_selection.png").is_file()
+    n = client.frame_count()
+    client.set(ids["colour"], (40, 60, 220))  # a change after the release replaces the pick's edit
+    client.wait_for(lambda: model.edit_stack.entries[0].edit.info["pick"]["colour"] == "#283cdc"
+                    and "edit 1 committed" in _status(client, ids), 60, "the new colour committed")
+    assert len(model.edit_stack) == 1 and model.live_edit is None
+    client.wait_frame(lambda f: int(f[y, x, 2]) > int(f[y, x, 0]) + 40, after=n, message="the clicked pixel blue")
+
+    # the background: an error in the status line, nothing added
+    client.click_scene(0.5 / W, 0.5 / H)
+    client.wait_for(lambda: "background" in _status(client, ids), 60, "the background click's error")
+    assert panel.status_is_error and len(model.edit_stack) == 1
+
+    client.set(ids["pick"], False)
+    client.wait_for(lambda: not client.pointer_enabled, 30, "scene clicks disabled in the browser")
+    client.click(ids["reset"])
+    client.wait_for(lambda: "reset" in _status(client, ids), 60, "reset's status")
+    assert len(model.edit_stack) == 0

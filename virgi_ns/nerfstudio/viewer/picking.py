@@ -45,8 +45,8 @@ class PickActions:
     """Pick mode (see the module docstring); its state starts in :meth:`_init_pick`."""
 
     def _init_pick(self) -> None:
-        self.commit_after_s = COMMIT_AFTER_S
         self._pick_cond = threading.Condition()
+        self.commit_after_s = COMMIT_AFTER_S
         self._pick_click: Optional[tuple] = None  # (camera, x, y) not yet handled
         self._pick_version = 0  # bumped by every colour / tolerance / mode change
         self._pick_last_change = 0.0
@@ -59,6 +59,18 @@ class PickActions:
         self._pick_live = None  # the live edit, not yet committed
         self._pick_committed: Optional[int] = None  # the stack number of this pick's commit
         self._pick_registered = False  # the click callback is on viser's scene
+
+    @property
+    def commit_after_s(self) -> float:
+        """Seconds without a change after which the live edit is committed."""
+        return self._commit_after_s
+
+    @commit_after_s.setter
+    def commit_after_s(self, seconds: float) -> None:
+        # wake the worker: it may be sleeping until a commit due under the previous value
+        with self._pick_cond:
+            self._commit_after_s = float(seconds)
+            self._pick_cond.notify_all()
 
     # ---------------------------------------------------------------------- requests
     def set_pick_mode(self, on: bool) -> None:
