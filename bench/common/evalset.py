@@ -68,6 +68,18 @@ REAL: tuple[EvalScene, ...] = (
     EvalScene("cup", "cup", RecolorRule(0.0, 80.0, 120.0, 0.02, 0.02),
               "every warm tone -> green (shelf and cup, beige and print): thresholds near zero leave no "
               "saturation or value edge across the cup"),
+    # Captures the engine was never run on, each rule written from the photos' hue histograms before any
+    # training or edit of the capture (saturation >= 0.25, value >= 0.15 over every 5th photo):
+    EvalScene("fruit", "fruit", RecolorRule(340.0, 30.0, 200.0, 0.25, 0.15),
+              "the apple -> blue, touching the banana: the apple's hue mode is 8-24 degrees, the banana's 36-48; "
+              "the rule cuts the empty valley between them at 30"),
+    EvalScene("blowtorch", "blowtorch", RecolorRule(316.0, 356.0, 230.0, 0.25, 0.1),
+              "the crimson rug -> blue, a large textured surface: its hue mode spans 316-356 degrees with empty tails "
+              "on both sides; the brass and wood sit at 8-40, the pale stripes below s 0.25"),
+    EvalScene("fox", "fox", RecolorRule(330.0, 8.0, 230.0, 0.25, 0.15),
+              "the wallpaper's pink and crimson roses -> blue: their hues run 330-8 degrees; the fox's orange fur "
+              "peaks at 28-40 with no valley between, so its reddest hairs may fall in the rule (a rule limit, "
+              "reported as such)"),
 )
 EVAL_SET: tuple[EvalScene, ...] = REAL + _synthetic_rows()
 """The whole set, real captures first."""
