@@ -1,7 +1,7 @@
 #!/bin/bash
 # The GPU benchmarks (raster / train / several GPUs / export / edit / demo geometry) in calls on the GPU machine.
 # Run from the repo root with .whl (../shared/device/wheels.sh) and .data/beercan carried;
-# STAGE picks the work: "raster" (the rasterizer's GPU tests, then bench/raster.py), "train" (bench/train.py),
+# STAGE picks the work: "suite" (the GPU suite and the splat path's wall), "raster" (the rasterizer's GPU tests, then bench/raster.py), "train" (bench/train.py),
 # "multi" (bench/multi_gpu.py), "rest" (export, edit, demo geometry), or any single one of export|edit|demo. Runs go under /tmp/runs (kept while the machine is warm);
 # tables, JSON, pictures and logs are packed into $OUT. Environment knobs: STEPS, COLOUR_STEPS,
 # DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE, EDIT_SCENES (rows of the evaluation set), SEED (one
@@ -53,6 +53,28 @@ if stage raster; then
   python3 bench/raster.py --out $RUNS/raster ${RASTER_ARGS:-} > $OUT/raster.log 2>&1; el "raster bench rc=$?"
   tail -n 30 $OUT/raster.log
   cp $RUNS/raster/*.json $OUT/ 2>/dev/null
+fi
+
+if stage suite; then
+  # the GPU suite (pytest -m gpu) without its slow tests, then each bundled splat from `ns-train virgi --data SPLAT
+  # splat` to a trained run (views rendered into an empty cache; bytecode cached first, as an install keeps it), then
+  # the slow GPU tests while CALL_BUDGET lasts; .data carries beercan and splats/ (a module this machine cannot
+  # import, such as the CPU tests' independent PLY reader, is left uncollected)
+  export VIRGI_SHARED_DATA=$PWD/.data PYTHONPYCACHEPREFIX=/tmp/pycache; unset PYTHONDONTWRITEBYTECODE
+  python3 -m pytest -m "gpu and not slow" -q -rfE --tb=short -p no:cacheprovider --continue-on-collection-errors ${PYTEST_ARGS:-} > $OUT/gpu_suite.log 2>&1
+  el "GPU suite rc=$?"; grep -E "^(FAILED|ERROR)|passed|failed" $OUT/gpu_suite.log | tail -n 30
+  python3 -c "import nerfstudio.scripts.train, method_configs.virgi, virgi_ns.data.splat, virgi_ns.nerfstudio.model, gsplat"
+  for s in .data/splats/*.compressed.ply; do
+    n=$(basename $s .compressed.ply); rm -rf /tmp/splat_cache /tmp/splat_runs
+    s0=$(date +%s.%N)
+    VIRGI_NS_CACHE=/tmp/splat_cache NERFSTUDIO_DATAPARSER_CONFIGS="splat=virgi_ns.data.splat:splat_dataparser" \
+      python3 -c "from nerfstudio.scripts.train import entrypoint; entrypoint()" virgi --data $s --vis tensorboard \
+      --output-dir /tmp/splat_runs splat > $OUT/splat_train_$n.log 2>&1
+    rc=$?; el "splat $n: ns-train to a trained run $(python3 -c "import sys; print(f'{float(sys.argv[2]) - float(sys.argv[1]):.1f}')" $s0 $(date +%s.%N)) s, rc=$rc"
+  done
+  timeout $(( ${CALL_BUDGET:-585} - $(date +%s) + t0 )) python3 -m pytest -m "gpu and slow" -q -rfE --tb=short --continue-on-collection-errors \
+    -p no:cacheprovider > $OUT/gpu_suite_slow.log 2>&1
+  el "slow GPU tests rc=$?"; grep -E "^(FAILED|ERROR)|passed|failed" $OUT/gpu_suite_slow.log | tail -n 10
 fi
 
 if stage multi; then

@@ -246,9 +246,9 @@ def test_deferred_lists_equal_eager(d, kind, monkeypatch):
         for g, w in zip(got_g, want_g):
             assert torch.allclose(g, w, atol=1e-4, rtol=1e-5)
     assert lazy.num_entries == eager.weight.numel() and lazy._lists is None
-    keep, keep_end = lazy._state[9:11]
+    keep, keep_end = lazy.deferred.keep, lazy.deferred.keep_end
     if kind == "whole":  # one unit per slot: the walks use the kept elements only, fewer than the lists
-        ranges = lazy._state[2].view(-1, 2)
+        ranges = lazy.deferred.ranges.view(-1, 2)
         kept = int((keep_end.long() - ranges[:, 0].long()).sum())
         assert 0 < kept < int((ranges[:, 1] - ranges[:, 0]).sum()) and keep.numel() > 0
     for name in ("pixel", "pair", "weight", "pixel_offsets"):
