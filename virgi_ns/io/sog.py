@@ -47,9 +47,8 @@ How this writer quantises (the quantities in the file are the format's; how they
   nodes of at most 256 centres. Each k-means is seeded k-means++ style (in 8 rounds, with a fixed
   seed) and runs at most ``iterations`` (5) Lloyd steps on a sample of 8 rows a centre; then every
   row takes its nearest centre and each centre moves to the mean of its rows. One torch thread.
-  Cost: about two passes of ``N x 256 x 3 coeffs`` distances plus the leaves' fits; 1M Gaussians of
-  SH degree 3 take about 12 s of CPU for the whole write, two thirds of it the palette
-  (bench/RESULTS.md, "Export").
+  Cost: about two passes of ``N x 256 x 3 coeffs`` distances plus the leaves' fits (measured in
+  bench/RESULTS.md, "Export").
 """
 
 from __future__ import annotations
@@ -316,8 +315,8 @@ def sh_palette(rest: np.ndarray, palette: int = MAX_PALETTE, seed: int = 0,
     """Palette ``[K, D]`` (``K <= palette``) and labels ``[N]`` for the higher-band vectors ``rest [N, D]``.
 
     Runs on one torch thread: its matrix products are a few thousand rows each, which gain little
-    from more threads, and on a busy machine torch's thread pool stalls on them (100k Gaussians:
-    1.8 s on one thread, 23 s on two, on a 2-core machine running other work)."""
+    from more threads, and on a busy machine torch's thread pool stalls on them (bench/RESULTS.md,
+    "Export")."""
     n = rest.shape[0]
     if n <= palette:
         return rest.astype(np.float64), np.arange(n)
