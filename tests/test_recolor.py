@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import colorsys
+import math
 
 import pytest
 import torch
@@ -75,3 +76,25 @@ def test_bad_rule_values():
         RecolorRule(h0=5, h1=20, shift=10, sat_scale=-1)
     with pytest.raises(ValueError):
         recolor(torch.zeros(4, 4, 4), RecolorRule(0, 10, 5))
+
+
+def test_region_colour_error_against_hand_computed_figures():
+    """The recoloured region's colour error: the circular mean hue across 0 degrees, and the mean
+    saturation and value, each against figures computed by hand; pixels outside the mask never count."""
+    from virgi_ns.bench.recolor import region_colour_error
+
+    hsv = torch.tensor([[[350.0, 0.8, 0.6], [10.0, 0.6, 0.8], [120.0, 1.0, 1.0]]])  # one row of three pixels
+    truth_hsv = torch.tensor([[[20.0, 0.9, 0.9], [40.0, 0.9, 0.9], [240.0, 0.0, 0.0]]])
+    mask = torch.tensor([[True, True, False]])
+    got = region_colour_error(hsv_to_rgb(hsv), hsv_to_rgb(truth_hsv), mask)
+    # circular means: 0 degrees (350 and 10), 30 degrees (20 and 40): 0 - 30 = -30
+    assert abs(got["region_hue_error_deg"] + 30.0) < 1e-4
+    assert abs(got["region_saturation_error"] - (0.7 - 0.9)) < 1e-5
+    assert abs(got["region_value_error"] - (0.7 - 0.9)) < 1e-5
+    # across the wrap the other way: 10 against 350 is +20
+    one = torch.tensor([[True, False, False]])
+    got = region_colour_error(hsv_to_rgb(torch.tensor([[[10.0, 1.0, 1.0]] * 3])),
+                              hsv_to_rgb(torch.tensor([[[350.0, 1.0, 1.0]] * 3])), one)
+    assert abs(got["region_hue_error_deg"] - 20.0) < 1e-4
+    assert all(math.isnan(v) for v in region_colour_error(hsv_to_rgb(hsv), hsv_to_rgb(hsv),
+                                                           torch.zeros(1, 3, dtype=torch.bool)).values())

@@ -126,6 +126,28 @@ def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> float:
     return float(x[mask].float().mean()) if bool(mask.any()) else math.nan
 
 
+def region_colour_error(image: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> dict:
+    """How far ``image``'s colour over ``mask`` [H,W] is from ``truth``'s, as a person reads a recolour:
+    the circular mean hue's difference in degrees (in (-180, 180]), and the mean saturation's and
+    value's differences (``image`` minus ``truth``; negative: duller, darker). NaN for an empty mask."""
+    if not bool(mask.any()):
+        return {"region_hue_error_deg": math.nan, "region_saturation_error": math.nan,
+                "region_value_error": math.nan}
+    from virgi_ns.edit.recolor import rgb_to_hsv
+
+    a, b = rgb_to_hsv(image.clamp(0, 1)[mask].double()), rgb_to_hsv(truth.clamp(0, 1)[mask].double())
+
+    def mean_hue(hsv: torch.Tensor) -> torch.Tensor:
+        rad = torch.deg2rad(hsv[:, 0])
+        return torch.atan2(torch.sin(rad).mean(), torch.cos(rad).mean())
+
+    diff = torch.rad2deg(mean_hue(a) - mean_hue(b))
+    diff = float(torch.remainder(diff + 180.0, 360.0) - 180.0)
+    return {"region_hue_error_deg": diff if diff != -180.0 else 180.0,
+            "region_saturation_error": float(a[:, 1].mean() - b[:, 1].mean()),
+            "region_value_error": float(a[:, 2].mean() - b[:, 2].mean())}
+
+
 def _read_image(path: Path, dev) -> torch.Tensor:
     from PIL import Image
 
@@ -315,6 +337,8 @@ class Bench:
                 # the edit's segmentation (composited alpha) where the rule recolours and elsewhere
                 "alpha_in_mask": _masked_mean(out["segmentation"][..., 0], mask),
                 "alpha_out_mask": _masked_mean(out["segmentation"][..., 0], ~mask),
+                # the recoloured region's colour against the rule's (a large edit's dullness shows here)
+                **region_colour_error(after, truth_render, mask),
                 **self._truth_figures(i, after, out["segmentation"][..., 0]),
             })
             if i < keep:
