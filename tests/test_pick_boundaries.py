@@ -1,7 +1,8 @@
-"""A click stays on its object (issue 41): on a tiny procedural scene of touching spheres, a saturated
-red one in front of a near-neutral warm grey one (steel, whose hue happens to lie within the pick's
-hue window of red) and a yellow one, the selection grown from a click on the red sphere takes none
-of its neighbours, and the fitted edit leaves them unchanged (>= 30 dB) in every other view.
+"""A click stays on its object (issue 41): on a tiny procedural scene of spheres, a saturated red one
+touching a near-neutral warm grey one (steel, whose hue happens to lie within the pick's hue window of
+red) and a yellow one, and in front of a brick-red one (the red's hue and a chroma close to it, well
+behind it), the selection grown from a click on the red sphere takes none of its neighbours, and the
+fitted edit leaves them unchanged (>= 30 dB) in every other view.
 
 The spheres' Gaussians are large enough for their edges to blend over a few pixels of the renders,
 as a capture's soft edges do. The objects' pixels come from the per-Gaussian labels, not from the
@@ -26,11 +27,13 @@ from virgi_ns.edit.scene import render_view  # noqa: E402
 from virgi_ns.edit.stack import EditStack  # noqa: E402
 from virgi_ns.raster import Request, composite  # noqa: E402
 
-RED, STEEL, YELLOW = 0, 1, 2
-ALBEDO = torch.tensor([[0.80, 0.15, 0.12], [0.56, 0.50, 0.49], [0.85, 0.75, 0.15]])
-# touching: each neighbour's centre is the sum of the radii from the red sphere's, behind it from view 0
-CENTRES = torch.tensor([[0.0, -0.3, 0.0], [0.55, 0.45, 0.0], [-0.62, 0.42, 0.0]])
-RADII = (0.45, 0.5, 0.5)
+RED, STEEL, YELLOW, BRICK = 0, 1, 2, 3
+OTHERS = (STEEL, YELLOW, BRICK)
+ALBEDO = torch.tensor([[0.80, 0.15, 0.12], [0.56, 0.50, 0.49], [0.85, 0.75, 0.15], [0.70, 0.30, 0.22]])
+# steel and yellow touch the red sphere (their centres the sum of the radii from its), behind it from
+# view 0; the brick one shows above it there, about a fifth further from the camera
+CENTRES = torch.tensor([[0.0, -0.3, 0.0], [0.55, 0.45, 0.0], [-0.62, 0.42, 0.0], [0.0, 1.3, 0.55]])
+RADII = (0.45, 0.5, 0.5, 0.5)
 EDIT_VIEW = 0
 GREEN = "#20c040"
 TOLERANCE = 0.2  # the viewer's and virgi-edit pick's default
@@ -42,7 +45,7 @@ def world():
     with es.one_thread():
         S = es.build(albedo=ALBEDO, centres=CENTRES, radii=RADII, glossy=RED, scale=0.12)
         cams = S.cameras
-        onehot = torch.nn.functional.one_hot(S.labels, 3).float()
+        onehot = torch.nn.functional.one_hot(S.labels, len(RADII)).float()
         cover, before = [], []
         for v in range(len(cams)):
             c = S.scene.contributions(cams.index(v), Request.whole_images(cams.index(v)))
@@ -65,19 +68,22 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
 def test_the_scene_has_the_touching_neighbours_it_is_about(world):
     cov = world["cover"][EDIT_VIEW]
     red = cov[..., RED] > 0.5
-    for other in (STEEL, YELLOW):  # each neighbour shows beside the red sphere, edge to edge
+    for other in OTHERS:  # each neighbour shows beside the red sphere, edge to edge
         near = torch.nn.functional.max_pool2d(red[None, None].float(), 3, 1, 1)[0, 0] > 0
         assert int((near & (cov[..., other] > 0.5)).sum()) >= 3, other
         assert int((cov[..., other] > 0.95).sum()) > 40, other
-    # the steel's hue is within the default hue window (18 degrees) of the red: only its chroma tells it apart
-    hue = lambda c: 360.0 * colorsys.rgb_to_hsv(*c.tolist())[0]  # noqa: E731
-    assert abs(hue(ALBEDO[STEEL]) - hue(ALBEDO[RED])) < 90.0 * TOLERANCE
+    # the steel's and the brick's hues are within the default hue window (18 degrees) of the red's: the
+    # steel is told apart by its chroma, the brick (its chroma within a factor 2 of the red's) by depth only
+    hsv = lambda c: colorsys.rgb_to_hsv(*c.tolist())  # noqa: E731
+    for other in (STEEL, BRICK):
+        assert abs(360.0 * (hsv(ALBEDO[other])[0] - hsv(ALBEDO[RED])[0])) < 90.0 * TOLERANCE
+    assert 0.5 < hsv(ALBEDO[BRICK])[1] / hsv(ALBEDO[RED])[1] < 1.0
 
 
 def test_a_click_on_the_red_sphere_selects_it_and_none_of_its_touching_neighbours(world):
     s = world["session"]
     cov = world["cover"][EDIT_VIEW]
-    for other in (STEEL, YELLOW):
+    for other in OTHERS:
         taken = int((s.mask & (cov[..., other] > 0.5)).sum())
         assert taken == 0, f"the selection takes {taken} pixels of object {other}"
     inner = (cov[..., RED] > 0.9) & (s.maps.accumulation > 0.5)
@@ -98,7 +104,7 @@ def test_the_fit_leaves_the_touching_neighbours_unchanged_in_every_other_view(wo
     S = world["S"]
     cov, before = world["cover"][v], world["before"][v]
     after = render_view(S.scene, S.cameras, v, world["stack"])["rgb"]
-    for other in (STEEL, YELLOW):
+    for other in OTHERS:
         pixels = cov[..., other] > 0.99
         if int(pixels.sum()) < 20:  # hidden in this view
             continue
@@ -109,3 +115,33 @@ def test_the_fit_leaves_the_touching_neighbours_unchanged_in_every_other_view(wo
     if red.sum() >= 20:
         hues = np.array([360.0 * colorsys.rgb_to_hsv(*p)[0] for p in after.numpy()[red]])
         assert np.median(np.minimum(np.abs(hues - 132.0), 360.0 - np.abs(hues - 132.0))) < 30.0
+
+
+def test_surface_depth_is_each_pixel_s_median_contributor_s_depth(world):
+    """Against a pixel-by-pixel walk of the contributions, front to back."""
+    from virgi_ns.edit.pick import surface_depth
+
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    c = S.scene.contributions(cam, Request.whole_images(cam))
+    got = surface_depth(c).reshape(-1)
+    w, pixel, depth = c.weight.double(), c.pixel.long(), c.pair_depth[c.pair.long()]
+    want = torch.zeros_like(got)
+    for p in torch.unique(pixel).tolist():
+        entries = (pixel == p).nonzero()[:, 0]
+        run = torch.cumsum(w[entries], 0)
+        want[p] = depth[entries[int((run >= 0.5 * run[-1]).nonzero()[0])]]
+    torch.testing.assert_close(got, want, atol=0, rtol=0)
+
+
+def test_connected_to_cuts_links_across_a_depth_jump():
+    """A link joins neighbours whose depths differ by at most ``jump`` of the nearer one: a plateau
+    one step behind stays apart, a gentle slope stays whole."""
+    from virgi_ns.edit.pick import DEPTH_JUMP, connected_to
+
+    allowed = torch.ones(5, 8, dtype=torch.bool)
+    slope = 2.0 * (1.0 + 0.5 * DEPTH_JUMP) ** torch.arange(8.0).expand(5, 8)
+    assert bool(connected_to(allowed, 0, 0, depth=slope).all())
+    step = torch.where(torch.arange(8) < 4, 2.0, 2.0 * (1.0 + 1.5 * DEPTH_JUMP)).expand(5, 8)
+    near = connected_to(allowed, 0, 2, depth=step)
+    assert bool(near[:, :4].all()) and not bool(near[:, 4:].any())
