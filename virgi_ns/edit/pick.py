@@ -135,14 +135,16 @@ def surface_depth(contrib: Contributions) -> Tensor:
     out = torch.zeros(H * W, dtype=torch.float32, device=w.device)
     if M == 0:
         return out.reshape(H, W)
-    run = torch.cumsum(w, 0)
+    run = torch.cumsum(w, 0)  # entries are grouped by pixel, front to back
     first = torch.ones(M, dtype=torch.bool, device=w.device)
-    first[1:] = pixel[1:] != pixel[:-1]  # entries are grouped by pixel
-    start = torch.cummax(torch.where(first, torch.arange(M, device=w.device), 0), 0).values
-    inside = run - (run[start] - w[start])  # each pixel's accumulated opacity through this entry
-    total = torch.zeros(contrib.num_pixels, dtype=torch.float64, device=w.device).index_add_(0, pixel, w)
-    reached = inside >= 0.5 * total[pixel]
-    # within a pixel the accumulated opacity only grows: its reached entries are its last ones
+    first[1:] = pixel[1:] != pixel[:-1]
+    starts = torch.nonzero(first).squeeze(1)
+    ends = torch.cat([starts[1:], starts.new_tensor([M])]) - 1
+    before = run[starts] - w[starts]  # the running sum before each pixel's first entry
+    half = torch.zeros(contrib.num_pixels, dtype=torch.float64, device=w.device)
+    half[pixel[starts]] = before + 0.5 * (run[ends] - before)
+    reached = run >= half[pixel]
+    # within a pixel the running sum only grows: its reached entries are its last ones
     median = reached.clone()
     median[1:] &= first[1:] | ~reached[:-1]
     median = torch.nonzero(median).squeeze(1)
