@@ -145,3 +145,20 @@ def test_connected_to_cuts_links_across_a_depth_jump():
     step = torch.where(torch.arange(8) < 4, 2.0, 2.0 * (1.0 + 1.5 * DEPTH_JUMP)).expand(5, 8)
     near = connected_to(allowed, 0, 2, depth=step)
     assert bool(near[:, :4].all()) and not bool(near[:, 4:].any())
+
+
+def test_an_edge_pixel_belongs_to_the_object_covering_most_of_it(world):
+    """``ViewMaps.surface``: each covered pixel takes the diffuse colour of the object covering most of
+    it, where the blended diffuse mixes the two at an edge."""
+    s = world["session"]
+    cov = world["cover"][EDIT_VIEW]
+    covered = s.maps.accumulation > 0.5
+    share, owner = cov.max(-1)
+    clear = covered & (share > 0.6)
+    colour = ALBEDO[owner[clear]]
+    assert float((s.maps.surface[clear] - colour).abs().max(-1).values.quantile(0.95)) < 0.08
+    edge = clear & (share < 0.8)
+    assert int(edge.sum()) > 20  # the scene's edges are soft
+    own = ALBEDO[owner[edge]]
+    mixed = (s.maps.diffuse[edge] - own).abs().max(-1).values
+    assert float(mixed.median()) > 2.0 * float((s.maps.surface[edge] - own).abs().max(-1).values.median())

@@ -4,17 +4,18 @@ it, and fit that as an edit.
 The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain torch, no viewer):
 
 - :func:`view_maps`: the view's render, its diffuse render, the colour field's per-Gaussian
-  features composited per pixel, its coverage (accumulation) and its surface depth
-  (:func:`surface_depth`), from an :class:`~virgi_ns.edit.engine.EditEngine` set up on the view;
+  features composited per pixel, its coverage (accumulation), and the depth and diffuse colour of
+  each pixel's median contributor (:func:`median_contributor`), from an
+  :class:`~virgi_ns.edit.engine.EditEngine` set up on the view;
 - :func:`select`: the selection grown from the clicked pixel over covered pixels (accumulation >=
   :data:`MIN_COVER`) connected to it (or, ``contiguous=False``, every covered pixel of the view that
   passes the same colour tests), never across a depth edge (:data:`DEPTH_JUMP`). By default
   (``chroma_steps``) a pixel joins when the hue of its diffuse colour (the direction of its
   chromaticity, which shading does not move; the highlight is not in the diffuse render) is within
-  ``tolerance`` x 90 degrees of the click's, its chroma is within a factor of the click's
-  (:data:`CHROMA_BAND`: a near-neutral surface's hue is noise), and it is reached through
-  neighbours whose chroma changes gradually: an object's pale and deep tones meet through blends,
-  another object of the same hue meets it at a step. ``colour_features`` asks both the
+  ``tolerance`` x 90 degrees of the click's, its chroma and its median contributor's are within a
+  factor of the click's (:data:`CHROMA_BAND`: a near-neutral surface's hue is noise), and it is
+  reached through neighbours whose chroma changes gradually: an object's pale and deep tones meet
+  through blends, another object of the same hue meets it at a step. ``colour_features`` asks both the
   diffuse colour and the colour field's features to point within that angle of the click's (stricter:
   it stops where shading or texture turns the features);
 - :func:`recolour`: the edited image: ``hue`` gives the selection the colour's hue and saturation
@@ -111,28 +112,30 @@ def pick_config(device: torch.device, recipe: str = PICK_RECIPE) -> EditConfig:
 class ViewMaps:
     """Per-pixel maps of one view [H,W,*]: ``rgb`` (the render through the stack), ``diffuse``
     and ``features`` (the diffuse colour and the colour field's ``h_diff``, divided by coverage),
-    ``accumulation`` [H,W] and ``depth`` [H,W] (:func:`surface_depth`; None: :func:`select` cuts no
-    link by depth)."""
+    ``accumulation`` [H,W], ``depth`` [H,W] and ``surface`` [H,W,3] (the depth and the diffuse colour
+    of each pixel's median contributor, :func:`median_contributor`; None: :func:`select` does without
+    them)."""
 
     rgb: Tensor
     diffuse: Tensor
     features: Tensor
     accumulation: Tensor
     depth: Optional[Tensor] = None
+    surface: Optional[Tensor] = None
 
 
 @torch.no_grad()
-def surface_depth(contrib: Contributions) -> Tensor:
-    """[H,W] each pixel's surface depth in the first view of ``contrib``: the camera-space depth of
-    its median contributor, the first Gaussian (front to back) at which the pixel's accumulated
-    opacity reaches half of its coverage; 0 where nothing contributes. Unlike the expected depth,
-    which blends the front and the back object across an occlusion edge into a ramp, it steps from
-    one object's depth to the other's between two neighbouring pixels."""
+def median_contributor(contrib: Contributions) -> Tensor:
+    """Long [H,W]: each pixel's median contributor in the first view of ``contrib``, as an index of its
+    pairs: the first Gaussian (front to back) at which the pixel's accumulated opacity reaches half of
+    its coverage; -1 where nothing contributes. Unlike the blended render, which mixes the front and
+    the back object over the pixels an edge's splats overlap, it switches from one object to the other
+    between two neighbouring pixels: the pixel belongs to the object that covers most of it."""
     _, H, W = contrib.shape
     w = contrib.weight.detach().double()
     pixel = contrib.pixel.long()
     M = int(w.numel())
-    out = torch.zeros(H * W, dtype=torch.float32, device=w.device)
+    out = torch.full((H * W,), -1, dtype=torch.long, device=w.device)
     if M == 0:
         return out.reshape(H, W)
     run = torch.cumsum(w, 0)  # entries are grouped by pixel, front to back
@@ -148,8 +151,17 @@ def surface_depth(contrib: Contributions) -> Tensor:
     median = reached.clone()
     median[1:] &= first[1:] | ~reached[:-1]
     median = torch.nonzero(median).squeeze(1)
-    out[pixel[median]] = contrib.pair_depth[contrib.pair[median].long()].float()
+    out[pixel[median]] = contrib.pair[median].long()
     return out.reshape(H, W)
+
+
+def surface_depth(contrib: Contributions, median: Optional[Tensor] = None) -> Tensor:
+    """[H,W] the camera-space depth of each pixel's median contributor (``median``: the
+    :func:`median_contributor` of ``contrib``, computed when not given); 0 where nothing contributes.
+    It steps at an occlusion edge where the expected depth ramps."""
+    median = median_contributor(contrib) if median is None else median
+    depth = contrib.pair_depth.float()[median.clamp_min(0)]
+    return torch.where(median >= 0, depth, torch.zeros_like(depth))
 
 
 @torch.no_grad()
@@ -158,9 +170,13 @@ def view_maps(engine: EditEngine) -> ViewMaps:
     c = engine.contrib
     acc = c.accumulation()[0].to(engine.current)
     cover = acc[..., None].clamp_min(1e-6)
-    diffuse = composite(torch.sigmoid(engine.c_d), c)[0] / cover
+    colours = torch.sigmoid(engine.c_d)
+    diffuse = composite(colours, c)[0] / cover
     features = composite(engine.h_diff.float(), c)[0] / cover
-    return ViewMaps(engine.current, diffuse, features, acc, surface_depth(c).to(engine.current.device))
+    median = median_contributor(c)
+    surface = torch.where((median >= 0)[..., None], colours.float()[median.clamp_min(0)], torch.zeros(()).to(colours))
+    dev = engine.current.device
+    return ViewMaps(engine.current, diffuse, features, acc, surface_depth(c, median).to(dev), surface.to(dev))
 
 
 def _angle(a: Tensor, b: Tensor) -> Tensor:
@@ -187,14 +203,15 @@ NEUTRAL_CHROMA = 0.02
 """``chroma_steps``: chromaticity offsets shorter than this have no hue (about 6% HSV saturation, where
 one 8-bit step of one channel of a mid grey turns the offset's direction by about 7.5 degrees, under
 half the default 18-degree limit)."""
-CHROMA_BAND = 5.0
-"""``chroma_steps``: a pixel joins only if its chroma is within a factor ``1 + CHROMA_BAND x tolerance``
-of the click's, either way (2 at the default tolerance 0.2). A near-neutral surface (steel, grey
-plastic) has a hue that is noise and may fall within a saturated click's hue window by chance, and a
-saturated object may fall within a near-neutral click's: their chromas are an order of magnitude
-apart, where one object's pale and deep tones stay within a few times of each other. At the default,
-an edge pixel that is half the clicked surface and half a neutral one (about half the click's
-chroma) is where the selection ends; a larger tolerance takes paler and deeper tones."""
+CHROMA_BAND = 15.0
+"""``chroma_steps``: a pixel joins only if its chroma, and that of its median contributor's diffuse
+colour (``ViewMaps.surface``), are within a factor ``1 + CHROMA_BAND x tolerance`` of the click's,
+either way (4 at the default tolerance 0.2). A near-neutral surface (steel, grey plastic) has a hue
+that is noise and may fall within a saturated click's hue window by chance, and a saturated object
+may fall within a near-neutral click's: their chromas are an order of magnitude apart, where one
+object's pale and deep tones stay within a few times of each other. The median contributor's colour
+is that of the object covering most of the pixel, so an edge pixel mostly of a neutral neighbour
+fails the band even where the blend keeps much of the click's chroma."""
 DEPTH_JUMP = 0.1
 """Two neighbouring pixels whose surface depths (:func:`surface_depth`) differ by more than this share
 of the nearer one are not connected: an occlusion edge, where the selection stops whatever the
@@ -225,8 +242,8 @@ def select(maps: ViewMaps, x: int, y: int, tolerance: float, criterion: str = DE
     ``colour_features``: a pixel joins when its diffuse colour and its features both point within
     ``tolerance`` x 90 degrees of the clicked pixel's (see the module docstring). ``chroma_steps``:
     when its diffuse chromaticity's hue is within that angle of the click's, its chroma is at least
-    :data:`NEUTRAL_CHROMA` and within a factor ``1 + CHROMA_BAND x tolerance`` of the click's, and it is
-    reached from the click through neighbours whose chromas differ by at most a factor
+    :data:`NEUTRAL_CHROMA` and, with its median contributor's (``maps.surface``), within a factor
+    ``1 + CHROMA_BAND x tolerance`` of the click's, and it is reached from the click through neighbours whose chromas differ by at most a factor
     ``1 + 4 tolerance`` step by step (an object's pale and deep tones meet through gradual blends,
     another object of its hue meets it at an abrupt step); a click on a neutral colour falls back to
     ``colour_features``."""
@@ -254,12 +271,19 @@ def _select_chroma_steps(maps: ViewMaps, x: int, y: int, tolerance: float, conti
         return None
     band = 1.0 + CHROMA_BAND * tolerance
     allowed = ((maps.accumulation >= MIN_COVER) & (_angle(ch, ch[y, x]) <= 90.0 * tolerance)
-               & (chroma >= max(NEUTRAL_CHROMA, at / band)) & (chroma <= at * band))
+               & _in_band(chroma, at, band))
+    if maps.surface is not None:  # and the colour of the object that covers most of the pixel
+        allowed &= _in_band(chromaticity(maps.surface).norm(dim=-1), at, band)
     allowed[y, x] = True
     if not contiguous:
         return allowed
     log_chroma = torch.log(chroma.clamp_min(1e-6))
     return connected_to(allowed, x, y, log_chroma, math.log(1.0 + 4.0 * tolerance), maps.depth)
+
+
+def _in_band(chroma: Tensor, at: float, band: float) -> Tensor:
+    """Chromas with a hue (:data:`NEUTRAL_CHROMA`) within a factor ``band`` of ``at``, either way."""
+    return (chroma >= max(NEUTRAL_CHROMA, at / band)) & (chroma <= at * band)
 
 
 def connected_to(allowed: Tensor, x: int, y: int, value: Optional[Tensor] = None, step: float = 0.0,
@@ -507,4 +531,4 @@ def commit(stack: EditStack, session: PickSession, edit: Edit, replace: Optional
 __all__ = ["CHROMA_BAND", "CRITERIA", "DEFAULT_CRITERION", "DEFAULT_REFERENCE", "DEPTH_JUMP", "MIN_COVER", "MODES",
            "NEUTRAL_CHROMA", "PICK_RECIPE", "REFERENCES", "PickSession", "ViewMaps", "check_criterion", "check_mode",
            "check_pixel", "check_tolerance", "chromaticity", "colour_hex", "commit", "connected_to", "parse_colour", "pick_config", "recolour", "select",
-           "surface_depth", "view_maps"]
+           "median_contributor", "surface_depth", "view_maps"]
