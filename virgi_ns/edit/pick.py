@@ -243,10 +243,10 @@ def select(maps: ViewMaps, x: int, y: int, tolerance: float, criterion: str = DE
     ``tolerance`` x 90 degrees of the clicked pixel's (see the module docstring). ``chroma_steps``:
     when its diffuse chromaticity's hue is within that angle of the click's, its chroma is at least
     :data:`NEUTRAL_CHROMA` and, with its median contributor's (``maps.surface``), within a factor
-    ``1 + CHROMA_BAND x tolerance`` of the click's, and it is reached from the click through neighbours whose chromas differ by at most a factor
-    ``1 + 4 tolerance`` step by step (an object's pale and deep tones meet through gradual blends,
-    another object of its hue meets it at an abrupt step); a click on a neutral colour falls back to
-    ``colour_features``."""
+    ``1 + CHROMA_BAND x tolerance`` of the click's, and it is reached from the click through
+    neighbours whose chromas differ by at most a factor ``1 + 4 tolerance`` step by step (an object's
+    pale and deep tones meet through gradual blends, another object of its hue meets it at an abrupt
+    step); a click on a neutral colour falls back to ``colour_features``."""
     check_pixel(maps, x, y)
     tolerance = check_tolerance(tolerance)
     if check_criterion(criterion) == "chroma_steps":
@@ -530,5 +530,5 @@ def commit(stack: EditStack, session: PickSession, edit: Edit, replace: Optional
 
 __all__ = ["CHROMA_BAND", "CRITERIA", "DEFAULT_CRITERION", "DEFAULT_REFERENCE", "DEPTH_JUMP", "MIN_COVER", "MODES",
            "NEUTRAL_CHROMA", "PICK_RECIPE", "REFERENCES", "PickSession", "ViewMaps", "check_criterion", "check_mode",
-           "check_pixel", "check_tolerance", "chromaticity", "colour_hex", "commit", "connected_to", "parse_colour", "pick_config", "recolour", "select",
-           "median_contributor", "surface_depth", "view_maps"]
+           "check_pixel", "check_tolerance", "chromaticity", "colour_hex", "commit", "connected_to",
+           "median_contributor", "parse_colour", "pick_config", "recolour", "select", "surface_depth", "view_maps"]
