@@ -58,26 +58,30 @@ def ring_cameras(n: int = 8, radius: float = 4.0, height: float = 1.2) -> Camera
     return Cameras.from_params(F, F, W / 2, H / 2, torch.stack(mats), W, H)
 
 
-def specular_logit(means: torch.Tensor, normals: torch.Tensor, labels: torch.Tensor, centre: torch.Tensor
-                   ) -> torch.Tensor:
-    """The true pre-sigmoid specular term [N] for a camera at ``centre`` (blue sphere only)."""
+def specular_logit(means: torch.Tensor, normals: torch.Tensor, labels: torch.Tensor, centre: torch.Tensor,
+                   glossy: int = BLUE) -> torch.Tensor:
+    """The true pre-sigmoid specular term [N] for a camera at ``centre`` (the ``glossy`` sphere only)."""
     v = torch.nn.functional.normalize(centre - means, dim=-1)
     refl = 2 * (normals @ LIGHT)[:, None] * normals - LIGHT
     s = SPEC_GAIN * torch.clamp((refl * v).sum(-1), min=0) ** SPEC_POWER
-    return torch.where(labels == BLUE, s, torch.zeros_like(s))
+    return torch.where(labels == glossy, s, torch.zeros_like(s))
 
 
-def build(seed: int = 0, per_object: int = 400, fit_steps: int = 150) -> EditScene:
+def build(seed: int = 0, per_object: int = 400, fit_steps: int = 150, albedo: torch.Tensor = ALBEDO,
+          centres: torch.Tensor = CENTRES, radii: tuple = RADII, glossy: int = BLUE, scale: float = 0.07) -> EditScene:
+    """The scene; ``albedo``, ``centres``, ``radii`` [objects, ...] set other spheres, and ``glossy``
+    is the label of the one sphere with the highlight (-1: none); ``scale``: the Gaussians' size
+    (larger: softer edges between the spheres in the renders)."""
     g = torch.Generator().manual_seed(seed)
     means, normals, labels = [], [], []
-    for obj in range(3):
+    for obj in range(len(radii)):
         d = torch.nn.functional.normalize(torch.randn(per_object, 3, generator=g), dim=-1)
-        means.append(CENTRES[obj] + RADII[obj] * d)
+        means.append(centres[obj] + radii[obj] * d)
         normals.append(d)
         labels.append(torch.full((per_object,), obj))
     means, normals, labels = torch.cat(means), torch.cat(normals), torch.cat(labels)
     n = means.shape[0]
-    scales = torch.full((n, 3), 0.07)
+    scales = torch.full((n, 3), scale)
     quats = torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1)
     opac = torch.full((n,), 0.9)
     cams = ring_cameras()
@@ -85,11 +89,11 @@ def build(seed: int = 0, per_object: int = 400, fit_steps: int = 150) -> EditSce
     cfg = ColourFieldConfig(levels=6, log2_hashmap_size=12, base_res=8, growth=1.7, sh_dir_degree=4)
     torch.manual_seed(seed)
     field = DecoupledColourField(cfg, torch.tensor([[-2.0, -2.0, -1.0], [2.0, 2.0, 1.0]]))
-    c_d_true = torch.logit(ALBEDO[labels])
-    centres = cams.camera_centers()
-    spec_true = torch.stack([specular_logit(means, normals, labels, c) for c in centres])  # [V,N]
+    c_d_true = torch.logit(albedo[labels])
+    eyes = cams.camera_centers()
+    spec_true = torch.stack([specular_logit(means, normals, labels, c, glossy) for c in eyes])  # [V,N]
     opt = torch.optim.Adam(field.parameters(), lr=3e-2)
-    dirs = torch.cat([view_directions(means, c.expand_as(means)) for c in centres])  # [V*N,3]
+    dirs = torch.cat([view_directions(means, c.expand_as(means)) for c in eyes])  # [V*N,3]
     V = len(cams)
     for _ in range(fit_steps):
         f = field.encode(means)

@@ -127,6 +127,13 @@ BREAKS = [
     Break("pick-background-accepted", "virgi_ns/edit/pick.py",
           "    if cover < MIN_COVER:\n", "    if False:\n",
           ("tests/test_pick.py", "tests/test_edit_cli.py"), "a click on the background is not refused"),
+    Break("pick-crosses-depth-edges", "virgi_ns/edit/pick.py",
+          "math.log(1.0 + 4.0 * tolerance), maps.depth)", "math.log(1.0 + 4.0 * tolerance), None)",
+          ("tests/test_pick_boundaries.py",), "the selection grows across an occlusion edge"),
+    Break("pick-takes-neutral-neighbours", "virgi_ns/edit/pick.py",
+          "return (chroma >= max(NEUTRAL_CHROMA, at / band)) & (chroma <= at * band)",
+          "return chroma >= NEUTRAL_CHROMA",
+          ("tests/test_pick_boundaries.py",), "a saturated click takes a touching near-neutral surface of its hue"),
 ]
 
 

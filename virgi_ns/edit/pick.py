@@ -4,15 +4,18 @@ it, and fit that as an edit.
 The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain torch, no viewer):
 
 - :func:`view_maps`: the view's render, its diffuse render, the colour field's per-Gaussian
-  features composited per pixel, and its coverage (accumulation), from an
+  features composited per pixel, its coverage (accumulation), and the depth and diffuse colour of
+  each pixel's median contributor (:func:`median_contributor`), from an
   :class:`~virgi_ns.edit.engine.EditEngine` set up on the view;
 - :func:`select`: the selection grown from the clicked pixel over covered pixels (accumulation >=
   :data:`MIN_COVER`) connected to it (or, ``contiguous=False``, every covered pixel of the view that
-  passes the same colour tests). By default (``chroma_steps``) a pixel joins when the hue of its
-  diffuse colour (the direction of its chromaticity, which shading does not move; the highlight is
-  not in the diffuse render) is within ``tolerance`` x 90 degrees of the click's and it is reached
-  through neighbours whose chroma changes gradually: an object's pale and deep tones meet through
-  blends, another object of the same hue meets it at a step. ``colour_features`` asks both the
+  passes the same colour tests), never across a depth edge (:data:`DEPTH_JUMP`). By default
+  (``chroma_steps``) a pixel joins when the hue of its diffuse colour (the direction of its
+  chromaticity, which shading does not move; the highlight is not in the diffuse render) is within
+  ``tolerance`` x 90 degrees of the click's, its chroma and its median contributor's are within a
+  factor of the click's (:data:`CHROMA_BAND`: a near-neutral surface's hue is noise), and it is
+  reached through neighbours whose chroma changes gradually: an object's pale and deep tones meet
+  through blends, another object of the same hue meets it at a step. ``colour_features`` asks both the
   diffuse colour and the colour field's features to point within that angle of the click's (stricter:
   it stops where shading or texture turns the features);
 - :func:`recolour`: the edited image: ``hue`` gives the selection the colour's hue and saturation
@@ -55,7 +58,7 @@ from virgi_ns.edit.recolor import hsv_to_rgb, rgb_to_hsv
 from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.edit.stack import Edit, EditSource, EditStack
 from virgi_ns.errors import InputError, atomic_path
-from virgi_ns.raster import Cameras, composite
+from virgi_ns.raster import Cameras, Contributions, composite
 
 MODES = ("hue", "shift", "colour")
 MIN_COVER = 0.5
@@ -108,13 +111,57 @@ def pick_config(device: torch.device, recipe: str = PICK_RECIPE) -> EditConfig:
 @dataclass
 class ViewMaps:
     """Per-pixel maps of one view [H,W,*]: ``rgb`` (the render through the stack), ``diffuse``
-    and ``features`` (the diffuse colour and the colour field's ``h_diff``, divided by coverage) and
-    ``accumulation`` [H,W]."""
+    and ``features`` (the diffuse colour and the colour field's ``h_diff``, divided by coverage),
+    ``accumulation`` [H,W], ``depth`` [H,W] and ``surface`` [H,W,3] (the depth and the diffuse colour
+    of each pixel's median contributor, :func:`median_contributor`; None: :func:`select` does without
+    them)."""
 
     rgb: Tensor
     diffuse: Tensor
     features: Tensor
     accumulation: Tensor
+    depth: Optional[Tensor] = None
+    surface: Optional[Tensor] = None
+
+
+@torch.no_grad()
+def median_contributor(contrib: Contributions) -> Tensor:
+    """Long [H,W]: each pixel's median contributor in the first view of ``contrib``, as an index of its
+    pairs: the first Gaussian (front to back) at which the pixel's accumulated opacity reaches half of
+    its coverage; -1 where nothing contributes. Unlike the blended render, which mixes the front and
+    the back object over the pixels an edge's splats overlap, it switches from one object to the other
+    between two neighbouring pixels: the pixel belongs to the object that covers most of it."""
+    _, H, W = contrib.shape
+    w = contrib.weight.detach().double()
+    pixel = contrib.pixel.long()
+    M = int(w.numel())
+    out = torch.full((H * W,), -1, dtype=torch.long, device=w.device)
+    if M == 0:
+        return out.reshape(H, W)
+    run = torch.cumsum(w, 0)  # entries are grouped by pixel, front to back
+    first = torch.ones(M, dtype=torch.bool, device=w.device)
+    first[1:] = pixel[1:] != pixel[:-1]
+    starts = torch.nonzero(first).squeeze(1)
+    ends = torch.cat([starts[1:], starts.new_tensor([M])]) - 1
+    before = run[starts] - w[starts]  # the running sum before each pixel's first entry
+    half = torch.zeros(contrib.num_pixels, dtype=torch.float64, device=w.device)
+    half[pixel[starts]] = before + 0.5 * (run[ends] - before)
+    reached = run >= half[pixel]
+    # within a pixel the running sum only grows: its reached entries are its last ones
+    median = reached.clone()
+    median[1:] &= first[1:] | ~reached[:-1]
+    median = torch.nonzero(median).squeeze(1)
+    out[pixel[median]] = contrib.pair[median].long()
+    return out.reshape(H, W)
+
+
+def surface_depth(contrib: Contributions, median: Optional[Tensor] = None) -> Tensor:
+    """[H,W] the camera-space depth of each pixel's median contributor (``median``: the
+    :func:`median_contributor` of ``contrib``, computed when not given); 0 where nothing contributes.
+    It steps at an occlusion edge where the expected depth ramps."""
+    median = median_contributor(contrib) if median is None else median
+    depth = contrib.pair_depth.float()[median.clamp_min(0)]
+    return torch.where(median >= 0, depth, torch.zeros_like(depth))
 
 
 @torch.no_grad()
@@ -123,9 +170,13 @@ def view_maps(engine: EditEngine) -> ViewMaps:
     c = engine.contrib
     acc = c.accumulation()[0].to(engine.current)
     cover = acc[..., None].clamp_min(1e-6)
-    diffuse = composite(torch.sigmoid(engine.c_d), c)[0] / cover
+    colours = torch.sigmoid(engine.c_d)
+    diffuse = composite(colours, c)[0] / cover
     features = composite(engine.h_diff.float(), c)[0] / cover
-    return ViewMaps(engine.current, diffuse, features, acc)
+    median = median_contributor(c)
+    surface = torch.where((median >= 0)[..., None], colours.float()[median.clamp_min(0)], torch.zeros(()).to(colours))
+    dev = engine.current.device
+    return ViewMaps(engine.current, diffuse, features, acc, surface_depth(c, median).to(dev), surface.to(dev))
 
 
 def _angle(a: Tensor, b: Tensor) -> Tensor:
@@ -152,6 +203,20 @@ NEUTRAL_CHROMA = 0.02
 """``chroma_steps``: chromaticity offsets shorter than this have no hue (about 6% HSV saturation, where
 one 8-bit step of one channel of a mid grey turns the offset's direction by about 7.5 degrees, under
 half the default 18-degree limit)."""
+CHROMA_BAND = 15.0
+"""``chroma_steps``: a pixel joins only if its chroma, and that of its median contributor's diffuse
+colour (``ViewMaps.surface``), are within a factor ``1 + CHROMA_BAND x tolerance`` of the click's,
+either way (4 at the default tolerance 0.2). A near-neutral surface (steel, grey plastic) has a hue
+that is noise and may fall within a saturated click's hue window by chance, and a saturated object
+may fall within a near-neutral click's: their chromas are an order of magnitude apart, where one
+object's pale and deep tones stay within a few times of each other. The median contributor's colour
+is that of the object covering most of the pixel, so an edge pixel mostly of a neutral neighbour
+fails the band even where the blend keeps much of the click's chroma."""
+DEPTH_JUMP = 0.1
+"""Two neighbouring pixels whose surface depths (:func:`surface_depth`) differ by more than this share
+of the nearer one are not connected: an occlusion edge, where the selection stops whatever the
+colours. Within one surface a pixel's depth moves by its footprint times the surface's slope, a
+small share of the depth at any incline short of grazing."""
 
 
 def check_criterion(criterion: str) -> str:
@@ -172,13 +237,16 @@ def select(maps: ViewMaps, x: int, y: int, tolerance: float, criterion: str = DE
     """Bool [H,W]: the selection grown from pixel (x, y) over covered pixels, 8-connected to it
     (``contiguous=False``: every covered pixel of the view that passes the criterion's colour tests,
     connected or not, as a magic wand's "contiguous" box unticked: leaves all over a plant).
+    Contiguous growth never crosses a depth edge: neighbours whose surface depths (``maps.depth``)
+    differ by more than :data:`DEPTH_JUMP` of the nearer one are not connected.
     ``colour_features``: a pixel joins when its diffuse colour and its features both point within
     ``tolerance`` x 90 degrees of the clicked pixel's (see the module docstring). ``chroma_steps``:
     when its diffuse chromaticity's hue is within that angle of the click's, its chroma is at least
-    :data:`NEUTRAL_CHROMA`, and it is reached from the click through neighbours whose chromas differ
-    by at most a factor ``1 + 4 tolerance`` step by step (an object's pale and deep tones meet through
-    gradual blends, another object of its hue meets it at an abrupt step); a click on a neutral
-    colour falls back to ``colour_features``."""
+    :data:`NEUTRAL_CHROMA` and, with its median contributor's (``maps.surface``), within a factor
+    ``1 + CHROMA_BAND x tolerance`` of the click's, and it is reached from the click through
+    neighbours whose chromas differ by at most a factor ``1 + 4 tolerance`` step by step (an object's
+    pale and deep tones meet through gradual blends, another object of its hue meets it at an abrupt
+    step); a click on a neutral colour falls back to ``colour_features``."""
     check_pixel(maps, x, y)
     tolerance = check_tolerance(tolerance)
     if check_criterion(criterion) == "chroma_steps":
@@ -190,7 +258,7 @@ def select(maps: ViewMaps, x: int, y: int, tolerance: float, criterion: str = DE
                & (_angle(maps.diffuse, maps.diffuse[y, x]) <= limit)
                & (_angle(maps.features, maps.features[y, x]) <= limit))
     allowed[y, x] = True
-    return connected_to(allowed, x, y) if contiguous else allowed
+    return connected_to(allowed, x, y, depth=maps.depth) if contiguous else allowed
 
 
 def _select_chroma_steps(maps: ViewMaps, x: int, y: int, tolerance: float, contiguous: bool = True) -> Optional[Tensor]:
@@ -198,47 +266,77 @@ def _select_chroma_steps(maps: ViewMaps, x: int, y: int, tolerance: float, conti
     pixels of the click's hue with a chroma, wherever they are (no chroma steps: they join no path)."""
     ch = chromaticity(maps.diffuse)
     chroma = ch.norm(dim=-1)
-    if float(chroma[y, x]) < NEUTRAL_CHROMA:
+    at = float(chroma[y, x])
+    if at < NEUTRAL_CHROMA:
         return None
+    band = 1.0 + CHROMA_BAND * tolerance
     allowed = ((maps.accumulation >= MIN_COVER) & (_angle(ch, ch[y, x]) <= 90.0 * tolerance)
-               & (chroma >= NEUTRAL_CHROMA))
+               & _in_band(chroma, at, band))
+    if maps.surface is not None:  # and the colour of the object that covers most of the pixel
+        allowed &= _in_band(chromaticity(maps.surface).norm(dim=-1), at, band)
     allowed[y, x] = True
     if not contiguous:
         return allowed
     log_chroma = torch.log(chroma.clamp_min(1e-6))
-    return connected_to(allowed, x, y, log_chroma, math.log(1.0 + 4.0 * tolerance))
+    return connected_to(allowed, x, y, log_chroma, math.log(1.0 + 4.0 * tolerance), maps.depth)
 
 
-def connected_to(allowed: Tensor, x: int, y: int, value: Optional[Tensor] = None, step: float = 0.0) -> Tensor:
+def _in_band(chroma: Tensor, at: float, band: float) -> Tensor:
+    """Chromas with a hue (:data:`NEUTRAL_CHROMA`) within a factor ``band`` of ``at``, either way."""
+    return (chroma >= max(NEUTRAL_CHROMA, at / band)) & (chroma <= at * band)
+
+
+def connected_to(allowed: Tensor, x: int, y: int, value: Optional[Tensor] = None, step: float = 0.0,
+                 depth: Optional[Tensor] = None, jump: float = DEPTH_JUMP) -> Tensor:
     """Bool [H,W]: the pixels of ``allowed`` [H,W] 8-connected to pixel (x, y) through ``allowed``
     ones (empty when (x, y) is not allowed); with ``value`` [H,W], only through neighbours whose values
-    differ by at most ``step``. Labelled on the host by scipy in one pass, where a flood fill on the
-    GPU takes a dilation per pixel of the object's extent and a sync every few."""
+    differ by at most ``step``; with ``depth`` [H,W], only through neighbours whose depths differ by
+    at most ``jump`` times the nearer one. Labelled on the host by scipy in one pass, where a flood
+    fill on the GPU takes a dilation per pixel of the object's extent and a sync every few."""
     ok = allowed.cpu().numpy()
     if not ok[y, x]:
         return torch.zeros_like(allowed, dtype=torch.bool)
-    if value is None:
-        from scipy import ndimage
+    from scipy import ndimage
 
-        labels, _ = ndimage.label(ok, structure=np.ones((3, 3), dtype=bool))
-        return torch.from_numpy(labels == labels[y, x]).to(allowed.device)
+    labels, _ = ndimage.label(ok, structure=np.ones((3, 3), dtype=bool))
+    component = labels == labels[y, x]
+    if value is None and depth is None:
+        return torch.from_numpy(component).to(allowed.device)
+    # a link test only removes links: the answer lies within the plain component, so the graph is
+    # built over that component's bounding box alone
+    rows, cols = np.flatnonzero(component.any(1)), np.flatnonzero(component.any(0))
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    inner = _linked_component(component[box], y - rows[0], x - cols[0],
+                              None if value is None else value.detach().cpu().double().numpy()[box], step,
+                              None if depth is None else depth.detach().cpu().float().numpy()[box], jump)
+    out = np.zeros_like(ok)
+    out[box] = inner
+    return torch.from_numpy(out).to(allowed.device)
+
+
+def _linked_component(ok: np.ndarray, y: int, x: int, v: Optional[np.ndarray], step: float, z: Optional[np.ndarray],
+                      jump: float) -> np.ndarray:
+    """:func:`connected_to`'s component of (x, y) in ``ok`` through the links its value and depth tests keep."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    v = value.detach().cpu().double().numpy()
     H, W = ok.shape
     index = np.arange(H * W).reshape(H, W)
     src, dst = [], []
     for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):  # each neighbour pair once
         a = (slice(0, H - dy), slice(max(0, -dx), W - max(0, dx)))
         b = (slice(dy, H), slice(max(0, dx), W + min(0, dx)))
-        link = ok[a] & ok[b] & (np.abs(v[a] - v[b]) <= step)
+        link = ok[a] & ok[b]
+        if v is not None:
+            link &= np.abs(v[a] - v[b]) <= step
+        if z is not None:
+            link &= np.abs(z[a] - z[b]) <= jump * np.minimum(z[a], z[b])
         src.append(index[a][link])
         dst.append(index[b][link])
     i, j = np.concatenate(src), np.concatenate(dst)
     graph = coo_matrix((np.ones(len(i), dtype=np.int8), (i, j)), shape=(H * W, H * W))
     _, labels = connected_components(graph, directed=False)
-    return torch.from_numpy((labels == labels[y * W + x]).reshape(H, W)).to(allowed.device)
+    return (labels == labels[y * W + x]).reshape(H, W)
 
 
 def _typical(values: Tensor, mask: Tensor) -> float:
@@ -430,7 +528,7 @@ def commit(stack: EditStack, session: PickSession, edit: Edit, replace: Optional
         raise
 
 
-__all__ = ["CRITERIA", "DEFAULT_CRITERION", "DEFAULT_REFERENCE", "MIN_COVER", "MODES", "NEUTRAL_CHROMA", "PICK_RECIPE",
-           "REFERENCES", "PickSession", "ViewMaps", "check_criterion", "check_mode", "check_pixel", "check_tolerance",
-           "chromaticity", "colour_hex", "commit", "connected_to", "parse_colour", "pick_config", "recolour", "select",
-           "view_maps"]
+__all__ = ["CHROMA_BAND", "CRITERIA", "DEFAULT_CRITERION", "DEFAULT_REFERENCE", "DEPTH_JUMP", "MIN_COVER", "MODES",
+           "NEUTRAL_CHROMA", "PICK_RECIPE", "REFERENCES", "PickSession", "ViewMaps", "check_criterion", "check_mode",
+           "check_pixel", "check_tolerance", "chromaticity", "colour_hex", "commit", "connected_to",
+           "median_contributor", "parse_colour", "pick_config", "recolour", "select", "surface_depth", "view_maps"]
