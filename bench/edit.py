@@ -29,7 +29,10 @@ rule's mask, and (synthetic) on each object's pixels.
 
 ``--pick`` adds, on the same runs, one click per scene on the rule's object with the rule's
 colour (the click and colour by the rule of ``bench/common/clicks.py``), measured as the rule edit
-is: a third table of its propagation against the rule edit's (pass: within 1 dB), its selection's
+is: a third table of its propagation against the rule edit's, judged by the class of the rule's mask
+(``clicks.judge_pick``: one object or many parts, within 1 dB of the rule edit; one of several
+objects, the clicked object's miss and the leak outside it; any click meeting the edit's own targets
+passes), with the class and reason (``pick.judged``), its selection's
 share of the view and IoU with the rule's mask, its fit time (features cached, as the rule edit's
 warm time); and the viewer's pick latency on the synthetic 1M-Gaussian scene at 1280x720 (drag to
 frame, release to frame; target <= 100 ms), in results.json as ``pick`` per row and ``pick_latency``.
@@ -356,7 +359,7 @@ def bench_pick(args: Args, scene: EvalScene, b: Bench, rule_propagation: float) 
     from common.clicks import measure_pick
 
     try:
-        p, pics, picture = measure_pick(b, scene.rule, rule_propagation, keep=args.pictures)
+        p, pics, picture = measure_pick(b, scene.rule, rule_propagation, keep=args.pictures, click=scene.click)
     except InputError as e:
         console.log(f"{scene.name}: the pick failed: {e}")
         return {"error": str(e), "rule_propagation_psnr": rule_propagation, "pass": False}
@@ -464,28 +467,33 @@ def print_tables(rows: List[dict], device: str) -> None:
 
 
 def print_pick(rows: List[dict], latencies: List[dict]) -> None:
-    """The pick table: each scene's pick against its rule edit; then the latency lines."""
-    from common.clicks import WITHIN_DB
+    """The pick table: each scene's pick, its class and what it is judged against (``common.clicks``
+    ``judge_pick``: the rule edit within 1 dB, or the clicked object's miss and leak, or its own
+    targets); then the latency lines."""
+    from common.clicks import WITHIN_DB, judge_pick
 
     picked = [r for r in rows if "pick" in r]
     if picked:
-        t = Table(title=f"one click with the rule's colour vs the rule-edited image (pass: within {WITHIN_DB:g} dB)")
+        t = Table(title=f"one click with the rule's colour: its own targets, or vs the rule edit (within {WITHIN_DB:g} "
+                        "dB), or on one of several objects its object's miss and leak")
         for c in ("scene", "seed", "pixel", "colour", "selected", "IoU with rule mask", "pick propagation (miss, leak)",
-                  "rule propagation", "difference", "pick fit s", "pass"):
+                  "object miss, leak", "rule propagation", "difference", "pick fit s", "class: judged by", "pass"):
             t.add_column(c)
         for r in picked:
             p = r["pick"]
             if "error" in p:
-                t.add_row(r["scene"], str(r["seed"]), "", "", "", "", "", _f(p["rule_propagation_psnr"]), "", "",
-                          f"FAIL: {p['error']}")
+                t.add_row(r["scene"], str(r["seed"]), "", "", "", "", "", "", _f(p["rule_propagation_psnr"]), "", "",
+                          "", f"FAIL: {p['error']}")
                 continue
+            j = p.get("judged") or judge_pick(p)
+            obj = (f"{_f(p['object_miss_psnr'])}, {_f(p['object_leak_psnr'])}" if "object_miss_psnr" in p else "")
             t.add_row(r["scene"], str(r["seed"]), f"{p['pixel'][0]} {p['pixel'][1]}", p["colour"],
                       _f(p["selected"], ".1%"), _f(p["iou"], ".3f"),
-                      f"{_f(p['propagation_psnr'])} ({_f(p['miss_psnr'])}, {_f(p['leak_psnr'])})",
+                      f"{_f(p['propagation_psnr'])} ({_f(p['miss_psnr'])}, {_f(p['leak_psnr'])})", obj,
                       _f(p["rule_propagation_psnr"]), _f(p["difference_db"], "+.2f"), _f(p["fit_s"], ".3f"),
-                      "PASS" if p["pass"] else "FAIL")
+                      j["reason"], ("PASS (" + j["by"] + ")") if p["pass"] else "FAIL")
         w = worst_case(rows)
-        t.add_row("worst case", "", "", "", "", "", "", "", _f(w["pick_difference_db"], "+.2f"), "",
+        t.add_row("worst case", "", "", "", "", "", "", "", "", _f(w["pick_difference_db"], "+.2f"), "", "",
                   f"{w['pick_passed']}/{w['pick_rows']} pass")
         console.print(t)
     for lat in latencies:
@@ -524,7 +532,7 @@ def read_result(path: Path, flag: str) -> dict:
 def merged(paths: List[Path]) -> dict:
     """One result of several calls' results.json (rows concatenated, judged again by today's targets;
     devices and commits listed)."""
-    from common.clicks import pick_passes
+    from common.clicks import judge_pick
 
     rows, devices, commits, sources, latencies = [], [], [], [], []
     for p in paths:
@@ -533,8 +541,9 @@ def merged(paths: List[Path]) -> dict:
             row["targets"] = targets(row, row["timing_warm"]["total_s"], row["synthetic"])
             row["limits"] = limits(row)
             p = row.get("pick", {})
-            if "difference_db" in p:  # the pass mark as today's WITHIN_DB has it
-                p["pass"] = pick_passes(p)
+            if "difference_db" in p:  # the verdict as today's rule has it, from the stored figures
+                p["judged"] = judge_pick(p)
+                p["pass"] = p["judged"]["pass"]
         rows += r["scenes"]
         if "pick_latency" in r:
             latencies.append({"device": r.get("device"), **r["pick_latency"]})
