@@ -15,9 +15,11 @@ recolours most with the scene's rule, fit the edit, and measure the held-out vie
                               features cached (as a viewer session keeps them); cold beside it
 
 Targets: propagation >= 35 dB, miss and leak >= 30, recolour within 0.5 dB of unedited,
-truth >= 35 dB on the synthetic scenes, edit <= 0.25 s warm. The last row is the set's worst case. Beside
-each missed target, its ceiling on that run (:data:`CEILINGS`): "cannot" where even that misses the target
-(the rule's or the reconstruction's limit, not the edit's), "short of" where the edit falls short of it.
+truth >= 35 dB on the synthetic scenes, edit <= 0.25 s warm; a figure with a ceiling on its run
+(:data:`CEILINGS`: the rule per Gaussian, a perfect edit, the reconstruction) also meets its target within
+0.1 dB of that ceiling's figure. The last row is the set's worst case. Beside each missed target, its
+ceiling: "cannot" where even that misses the target (the rule's or the reconstruction's limit, not the
+edit's), "short of" where the edit falls short of it; beside a target met at the ceiling, that ceiling.
 A second table gives the diagnostics that tell the suspects apart: how closely the edited view itself
 reaches the edited photo on the changed pixels, the segmentation's mean alpha inside and outside the
 rule's mask, and (synthetic) on each object's pixels.
@@ -27,7 +29,10 @@ rule's mask, and (synthetic) on each object's pixels.
 
 ``--pick`` adds, on the same runs, one click per scene on the rule's object with the rule's
 colour (the click and colour by the rule of ``bench/common/clicks.py``), measured as the rule edit
-is: a third table of its propagation against the rule edit's (pass: within 1 dB), its selection's
+is: a third table of its propagation against the rule edit's, judged by the class of the rule's mask
+(``clicks.judge_pick``: one object or many parts, within 1 dB of the rule edit; one of several
+objects, the clicked object's miss and the leak outside it; any click meeting the edit's own targets
+passes), with the class and reason (``pick.judged``), its selection's
 share of the view and IoU with the rule's mask, its fit time (features cached, as the rule edit's
 warm time); and the viewer's pick latency on the synthetic 1M-Gaussian scene at 1280x720 (drag to
 frame, release to frame; target <= 100 ms), in results.json as ``pick`` per row and ``pick_latency``.
@@ -143,19 +148,22 @@ def engine_defaults() -> dict:
     return asdict(EditConfig())
 
 
+CEILING_TOLERANCE_DB = 0.1
+"""A figure within this of its ceiling's (:data:`CEILINGS`) meets its target, whatever the threshold."""
+
+
 def targets(m: dict, edit_s: float, synthetic: bool) -> Dict[str, bool]:
     """The set's targets. The recolour figure is judged against the truth where it is known (the
     synthetic scenes, whose reconstruction is far above a real capture's, so that a rule on a photo
-    is no longer the measure) and against the unedited PSNR on the real captures."""
-    out = {
-        "propagation>=35": m["propagation_psnr"] >= TARGETS["propagation"],
-        "miss>=30": m["miss_psnr"] >= TARGETS["miss"],
-        "leak>=30": m["leak_psnr"] >= TARGETS["leak"],
-    }
+    is no longer the measure) and against the unedited PSNR on the real captures. Each figure with a
+    ceiling (:data:`CEILINGS`) meets its target where it reaches the threshold **or** comes within
+    :data:`CEILING_TOLERANCE_DB` of its ceiling's figure on the same run (:func:`meets`): an edit
+    as good as an edit no fit beats is not the edit's miss."""
+    out = {name: meets(m, name) for name in ("propagation>=35", "miss>=30", "leak>=30")}
     if synthetic:
-        out["truth>=35"] = m.get("truth_psnr", math.nan) >= TARGETS["truth"]
+        out["truth>=35"] = meets(m, "truth>=35")
     else:
-        out["recolour within 0.5 dB of unedited"] = m["recolour_psnr"] - m["unedited_psnr"] >= TARGETS["recolour_gap"]
+        out["recolour within 0.5 dB of unedited"] = meets(m, "recolour within 0.5 dB of unedited")
     out["edit <= 0.25 s warm"] = edit_s <= TARGETS["edit_s"]
     return out
 
@@ -175,16 +183,46 @@ CEILINGS = {
 """For each target of :func:`targets` (its short name, its threshold, what the ceiling is, the ceiling's
 figure): the same figure of an edit no fit can beat on this run, from the row's own measures: the
 rule applied to every Gaussian's colour (a scene edit that puts each Gaussian's colour where the rule on a
-pixel of it alone would), the rule on the render scored as the recolour (``perfect_edit_recolour_psnr``), and
-the unedited render against its photo (on a synthetic scene, what any render of the model reaches against a
-photo, the recoloured truth's included). Where that figure misses the target too, the row cannot pass on
-this run: the rule or the reconstruction, not the edit, sets the limit."""
+pixel of it alone would), the rule on the render scored as the recolour (``perfect_edit_recolour_psnr``;
+the figure is the gap to unedited, as the edit's), and the unedited render against its photo (on a
+synthetic scene, what any render of the model reaches against a photo, the recoloured truth's included).
+A row meets a target at its threshold or within :data:`CEILING_TOLERANCE_DB` of that figure; a row that
+meets neither is "cannot" where the ceiling's figure misses the threshold too (the rule or the
+reconstruction, not the edit, sets the limit), "short of" where the ceiling reaches it."""
+
+FIGURES = {
+    "propagation>=35": lambda m: m["propagation_psnr"],
+    "miss>=30": lambda m: m["miss_psnr"],
+    "leak>=30": lambda m: m["leak_psnr"],
+    "recolour within 0.5 dB of unedited": lambda m: m["recolour_psnr"] - m["unedited_psnr"],
+    "truth>=35": lambda m: m.get("truth_psnr", math.nan),
+}
+"""The row's own figure each target of :data:`CEILINGS` judges (the recolour: its gap to unedited)."""
+
+
+def meets(m: dict, name: str) -> bool:
+    """Target ``name`` of :data:`CEILINGS` on row ``m``: its figure at the threshold, or within
+    :data:`CEILING_TOLERANCE_DB` of its ceiling's figure (a NaN ceiling: the threshold alone)."""
+    _, threshold, _, ceiling = CEILINGS[name]
+    value = FIGURES[name](m)
+    return bool(value >= threshold or value >= ceiling(m) - CEILING_TOLERANCE_DB)
+
+
+def at_ceiling(m: dict) -> Dict[str, float]:
+    """The targets of row ``m`` met only through the ceiling's tolerance (below the threshold, within
+    :data:`CEILING_TOLERANCE_DB` of the ceiling): {target: the ceiling's figure}."""
+    out = {}
+    for name, ok in m["targets"].items():
+        if ok and name in CEILINGS and not FIGURES[name](m) >= CEILINGS[name][1]:
+            out[name] = CEILINGS[name][3](m)
+    return out
 
 
 def limits(m: dict) -> Dict[str, dict]:
     """Each missed target of a row (``m`` with its ``targets``): the ceiling's figure, what it is, and
-    whether it passes (``reachable``: False where the target cannot be met on this run). A row measured
-    before a ceiling was recorded gets NaN there, and reachable None."""
+    whether it passes (``reachable``: False where the ceiling's figure misses the threshold too, the
+    row "cannot" meet it on this run). A row measured before a ceiling was recorded gets NaN there,
+    and reachable None."""
     out = {}
     for name, ok in m["targets"].items():
         if ok or name not in CEILINGS:
@@ -197,7 +235,8 @@ def limits(m: dict) -> Dict[str, dict]:
 
 
 def limits_text(m: dict) -> str:
-    """The table's words for :func:`limits`: ``cannot (the reconstruction 32.67)`` or ``short of 36.90``."""
+    """The table's words for :func:`limits` (``cannot (the reconstruction 32.67)``, ``short of 36.90``) and
+    :func:`at_ceiling` (``met within 0.1 dB of a perfect edit -0.62``)."""
     parts = []
     for name, lim in limits(m).items():
         short = CEILINGS[name][0]
@@ -205,6 +244,10 @@ def limits_text(m: dict) -> str:
         verdict = {None: "ceiling unknown", False: f"cannot ({lim['ceiling']} {v})",
                    True: f"short of {lim['ceiling']} {v}"}[lim["reachable"]]
         parts.append(f"{short}: {verdict}")
+    for name, value in at_ceiling(m).items():
+        short = CEILINGS[name][0]
+        v = _f(value, "+.2f" if short == "recolour" else ".2f")
+        parts.append(f"{short}: met within {CEILING_TOLERANCE_DB:g} dB of {CEILINGS[name][2]} {v}")
     return "; ".join(parts)
 
 
@@ -316,7 +359,7 @@ def bench_pick(args: Args, scene: EvalScene, b: Bench, rule_propagation: float) 
     from common.clicks import measure_pick
 
     try:
-        p, pics, picture = measure_pick(b, scene.rule, rule_propagation, keep=args.pictures)
+        p, pics, picture = measure_pick(b, scene.rule, rule_propagation, keep=args.pictures, click=scene.click)
     except InputError as e:
         console.log(f"{scene.name}: the pick failed: {e}")
         return {"error": str(e), "rule_propagation_psnr": rule_propagation, "pass": False}
@@ -424,28 +467,33 @@ def print_tables(rows: List[dict], device: str) -> None:
 
 
 def print_pick(rows: List[dict], latencies: List[dict]) -> None:
-    """The pick table: each scene's pick against its rule edit; then the latency lines."""
-    from common.clicks import WITHIN_DB
+    """The pick table: each scene's pick, its class and what it is judged against (``common.clicks``
+    ``judge_pick``: the rule edit within 1 dB, or the clicked object's miss and leak, or its own
+    targets); then the latency lines."""
+    from common.clicks import WITHIN_DB, judge_pick
 
     picked = [r for r in rows if "pick" in r]
     if picked:
-        t = Table(title=f"one click with the rule's colour vs the rule-edited image (pass: within {WITHIN_DB:g} dB)")
+        t = Table(title=f"one click with the rule's colour: its own targets, or vs the rule edit (within {WITHIN_DB:g} "
+                        "dB), or on one of several objects its object's miss and leak")
         for c in ("scene", "seed", "pixel", "colour", "selected", "IoU with rule mask", "pick propagation (miss, leak)",
-                  "rule propagation", "difference", "pick fit s", "pass"):
+                  "object miss, leak", "rule propagation", "difference", "pick fit s", "class: judged by", "pass"):
             t.add_column(c)
         for r in picked:
             p = r["pick"]
             if "error" in p:
-                t.add_row(r["scene"], str(r["seed"]), "", "", "", "", "", _f(p["rule_propagation_psnr"]), "", "",
-                          f"FAIL: {p['error']}")
+                t.add_row(r["scene"], str(r["seed"]), "", "", "", "", "", "", _f(p["rule_propagation_psnr"]), "", "",
+                          "", f"FAIL: {p['error']}")
                 continue
+            j = p.get("judged") or judge_pick(p)
+            obj = (f"{_f(p['object_miss_psnr'])}, {_f(p['object_leak_psnr'])}" if "object_miss_psnr" in p else "")
             t.add_row(r["scene"], str(r["seed"]), f"{p['pixel'][0]} {p['pixel'][1]}", p["colour"],
                       _f(p["selected"], ".1%"), _f(p["iou"], ".3f"),
-                      f"{_f(p['propagation_psnr'])} ({_f(p['miss_psnr'])}, {_f(p['leak_psnr'])})",
+                      f"{_f(p['propagation_psnr'])} ({_f(p['miss_psnr'])}, {_f(p['leak_psnr'])})", obj,
                       _f(p["rule_propagation_psnr"]), _f(p["difference_db"], "+.2f"), _f(p["fit_s"], ".3f"),
-                      "PASS" if p["pass"] else "FAIL")
+                      j["reason"], ("PASS (" + j["by"] + ")") if p["pass"] else "FAIL")
         w = worst_case(rows)
-        t.add_row("worst case", "", "", "", "", "", "", "", _f(w["pick_difference_db"], "+.2f"), "",
+        t.add_row("worst case", "", "", "", "", "", "", "", "", _f(w["pick_difference_db"], "+.2f"), "", "",
                   f"{w['pick_passed']}/{w['pick_rows']} pass")
         console.print(t)
     for lat in latencies:
@@ -484,7 +532,7 @@ def read_result(path: Path, flag: str) -> dict:
 def merged(paths: List[Path]) -> dict:
     """One result of several calls' results.json (rows concatenated, judged again by today's targets;
     devices and commits listed)."""
-    from common.clicks import pick_passes
+    from common.clicks import judge_pick
 
     rows, devices, commits, sources, latencies = [], [], [], [], []
     for p in paths:
@@ -493,8 +541,9 @@ def merged(paths: List[Path]) -> dict:
             row["targets"] = targets(row, row["timing_warm"]["total_s"], row["synthetic"])
             row["limits"] = limits(row)
             p = row.get("pick", {})
-            if "difference_db" in p:  # the pass mark as today's WITHIN_DB has it
-                p["pass"] = pick_passes(p)
+            if "difference_db" in p:  # the verdict as today's rule has it, from the stored figures
+                p["judged"] = judge_pick(p)
+                p["pass"] = p["judged"]["pass"]
         rows += r["scenes"]
         if "pick_latency" in r:
             latencies.append({"device": r.get("device"), **r["pick_latency"]})

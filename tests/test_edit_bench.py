@@ -198,7 +198,17 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
                                                           default=float))
     m = bench_edit.merged([tmp_path / "a.json", tmp_path / "b.json"])
     p = m["scenes"][0]["pick"]  # judged again on merging
-    assert p["pass"] == (p["difference_db"] >= -1.0)
+    assert p["pass"] == bench_module("clicks").judge_pick(p)["pass"] == p["judged"]["pass"]
+    assert p["pass"] != stale[0]["pick"]["pass"]
+    # a row recorded before the click's class: judged as one object, its class printed as n/a
+    old_pick = {k: v for k, v in stale[0]["pick"].items() if k not in ("class", "largest_share", "judged", "declared")}
+    (tmp_path / "old.json").write_text(json.dumps({"device": "cpu", "scenes": [{**stale[0], "pick": old_pick}]},
+                                                  default=float))
+    j = bench_edit.merged([tmp_path / "old.json"])["scenes"][0]["pick"]["judged"]
+    assert j["class"] == "n/a" and "class n/a" in j["reason"]
+    with bench_edit.console.capture() as said:
+        bench_edit.print_pick(bench_edit.merged([tmp_path / "old.json"])["scenes"], [])
+    assert "class n/a" in said.get()
     assert len(m["scenes"]) == 2 * len(rows) and m["worst_case"]["rows"] == 2
     w = m["worst_case"]
     assert w["pick_rows"] == 2 and w["pick_difference_db"] == rows[0]["pick"]["difference_db"]
@@ -293,17 +303,25 @@ def _check_pick(rows, pipeline, rule, picture_png):
         assert math.isfinite(p[k]), k
     assert p["rule_propagation_psnr"] == rows[0]["propagation_psnr"]
     assert p["difference_db"] == pytest.approx(p["propagation_psnr"] - rows[0]["propagation_psnr"])
-    assert p["pass"] == (p["difference_db"] >= -1.0)
-    assert p["contiguous"] is True  # the product's selection: connected to the click
+    judge_pick, mask_class = bench_module("clicks").judge_pick, bench_module("clicks").mask_class
+    assert p["pass"] == p["judged"]["pass"] == judge_pick(p)["pass"]
+    from virgi_ns.edit.pick import MIN_COVER
+
+    covered = bench_module("clicks").coverage(FrozenScene.from_model(pipeline.model), cams) >= MIN_COVER
+    klass, share = mask_class(rule_mask(render, rule) & covered, "auto")
+    assert (p["class"], p["largest_share"]) == (klass, pytest.approx(share))
+    assert p["class"] in ("one object", "many parts") and p["declared"] == "auto"
+    # the product's selection (connected to the click), or --no-contiguous for many parts
+    assert p["contiguous"] is (p["class"] == "one object")
     assert len(p["per_view_propagation"]) == len(rows[0]["per_view"])
 
 
 def test_a_missed_target_is_judged_against_its_ceiling_on_the_same_run(bench_edit):
     """Each missed target names the same figure of an edit no fit beats on that run: reachable where the
     ceiling passes the target, "cannot" where it misses it too; the worst-case row counts the rows that
-    cannot pass."""
+    cannot pass. A figure within 0.1 dB of its ceiling meets its target."""
     row = {"variant": "engine defaults", "synthetic": True, "propagation_psnr": 40.0, "miss_psnr": 29.0,
-           "leak_psnr": 41.0, "recolour_psnr": 20.0, "unedited_psnr": 32.5, "truth_psnr": 32.9,
+           "leak_psnr": 41.0, "recolour_psnr": 20.0, "unedited_psnr": 32.5, "truth_psnr": 32.3,
            "per_gaussian_rule_propagation_psnr": 50.0, "per_gaussian_rule_miss_psnr": 31.0,
            "per_gaussian_rule_leak_psnr": 52.0, "perfect_edit_recolour_psnr": 33.0,
            "timing_warm": {"total_s": 0.1}}
@@ -326,6 +344,39 @@ def test_a_missed_target_is_judged_against_its_ceiling_on_the_same_run(bench_edi
     assert bench_edit.limits(passing) == {} and bench_edit.limits_text(passing) == ""
     w = bench_edit.worst_case([row, real, passing, old])
     assert (w["rows"], w["passed"], w["cannot"]) == (4, 1, 3)
+
+
+def _recolour_row(bench_edit, gap: float, perfect_gap: float) -> dict:
+    """A real capture's row, every target but the recolour met: unedited 30 dB, the edit's recolour
+    ``gap`` dB from it, a perfect edit's ``perfect_gap``."""
+    m = {"variant": "engine defaults", "synthetic": False, "propagation_psnr": 40.0, "miss_psnr": 35.0,
+         "leak_psnr": 40.0, "unedited_psnr": 30.0, "recolour_psnr": 30.0 + gap,
+         "perfect_edit_recolour_psnr": 30.0 + perfect_gap, "timing_warm": {"total_s": 0.1}}
+    m["targets"] = bench_edit.targets(m, 0.1, False)
+    return m
+
+
+def test_the_recolour_target_is_met_within_half_a_db_of_unedited_or_a_tenth_of_a_perfect_edit(bench_edit):
+    """A real row meets the recolour target where its gap to unedited is >= -0.5 dB, or its recolour is
+    within 0.1 dB of a perfect edit's; failing both, it "cannot" where a perfect edit's own gap is below
+    -0.5 dB, and falls "short of" it where a perfect edit meets the target."""
+    name = "recolour within 0.5 dB of unedited"
+    verdict = lambda r: (r["targets"][name], bench_edit.limits(r).get(name, {}).get("reachable"))  # noqa: E731
+    assert verdict(_recolour_row(bench_edit, -0.4, 0.0)) == (True, None)  # by the gap, far below a perfect edit
+    by_ceiling = _recolour_row(bench_edit, -1.25, -1.2)  # 0.75 dB past the gap, 0.05 dB from a perfect edit
+    assert verdict(by_ceiling) == (True, None)
+    assert bench_edit.at_ceiling(by_ceiling) == {name: pytest.approx(-1.2)}
+    assert "recolour: met within 0.1 dB of a perfect edit -1.20" in bench_edit.limits_text(by_ceiling)
+    assert verdict(_recolour_row(bench_edit, -1.4, -1.2)) == (False, False)  # 0.2 dB from it: cannot
+    assert verdict(_recolour_row(bench_edit, -0.8, -0.2)) == (False, True)  # short of a perfect edit
+    # the other ceilings the same way: a miss 29.95 beside a per-Gaussian rule at 30.0, a truth 31.95
+    # beside a reconstruction at 32.0
+    row = {**_recolour_row(bench_edit, 0.0, 0.0), "miss_psnr": 29.95, "per_gaussian_rule_miss_psnr": 30.0}
+    assert bench_edit.targets(row, 0.1, False)["miss>=30"]
+    assert not bench_edit.targets({**row, "miss_psnr": 29.85}, 0.1, False)["miss>=30"]
+    syn = {**row, "synthetic": True, "truth_psnr": 31.95, "unedited_psnr": 32.0}
+    assert bench_edit.targets(syn, 0.1, True)["truth>=35"]
+    assert not bench_edit.targets({**syn, "truth_psnr": 31.85}, 0.1, True)["truth>=35"]
 
 
 def test_pick_tolerance_is_the_tools_default():
@@ -509,3 +560,148 @@ def test_rows_split_over_gpus_keep_each_capture_together_and_balance_the_work():
     assert split_for_devices(["syn_duck_beak", "beercan_yellow"], 2) == [["beercan_yellow"], ["syn_duck_beak"]]
     with pytest.raises(InputError, match="unknown evaluation scene"):
         split_for_devices(["nope"], 2)
+
+
+# ------------------------------------------------------------------------------ what a click is judged against
+def test_the_mask_class_is_one_object_at_80_percent_else_the_rows_declared_kind():
+    clicks = bench_module("clicks")
+    mask_class = clicks.mask_class
+
+    # one blob of 17 pixels and a speck of 3: the blob holds 85% -> one object, whatever the row declares
+    m = torch.zeros(10, 12, dtype=torch.bool)
+    m[1:5, 1:5] = True
+    m[1, 5] = True  # 17 pixels, 4-connected
+    m[8, 9:12] = True  # 3 pixels apart
+    for declared in ("auto", "parts", "objects"):
+        klass, share = mask_class(m, declared)
+        assert (klass, share) == ("one object", pytest.approx(0.85))
+    # 79%: not one object
+    m[8, 8] = True
+    m[9, 8] = True  # 17 / 22 = 77%
+    assert mask_class(m, "auto")[0] == "many parts"
+    # two equal blobs touching only at a corner (two 4-connected parts, 50% each): the row's declaration
+    two = torch.zeros(8, 8, dtype=torch.bool)
+    two[0:3, 0:3] = True
+    two[3:6, 3:6] = True
+    assert mask_class(two, "auto") == ("many parts", 0.5)
+    assert mask_class(two, "parts") == ("many parts", 0.5)
+    assert mask_class(two, "objects") == ("several objects", 0.5)
+    with pytest.raises(InputError, match="click kind"):
+        mask_class(two, "leaves")
+
+
+def test_the_evaluation_rows_declare_what_their_rule_takes():
+    """Declared from each row's ``why``: the cup's rule takes the shelf and the cup (several objects);
+    the fern's leaves, the wallpaper's roses, the rug, the apple and the can are one kind of thing
+    (their pieces are parts); the synthetic rows recolour one object each (auto)."""
+    rows = {s.name: s for s in bench_module("evalset").EVAL_SET}
+    assert rows["cup"].click == "objects"
+    for name in ("fern", "fox", "blowtorch", "fruit", "beercan", "beercan_yellow"):
+        assert rows[name].click == "parts", name
+    assert all(s.click == "auto" for s in rows.values() if s.synthetic)
+
+
+def _pick(klass, **figures):
+    p = {"class": klass, "largest_share": 0.5, "propagation_psnr": 30.0, "miss_psnr": 25.0, "leak_psnr": 40.0,
+         "difference_db": -3.0}
+    p.update(figures)
+    return p
+
+
+def test_a_click_passes_by_its_own_targets_or_within_a_db_of_the_rule_edit():
+    judge_pick = bench_module("clicks").judge_pick
+
+    for klass in ("one object", "many parts"):
+        assert judge_pick(_pick(klass))["pass"] is False  # 3 dB below the rule edit, its own miss 25
+        near = judge_pick(_pick(klass, difference_db=-0.9))
+        assert near["pass"] and near["by"] == "within 1 dB of the rule edit"
+        assert judge_pick(_pick(klass, difference_db=-1.1))["pass"] is False
+        # both edits far above the targets: 8 dB apart is no miss
+        own = judge_pick(_pick(klass, propagation_psnr=45.0, miss_psnr=41.0, leak_psnr=50.0, difference_db=-8.0))
+        assert own["pass"] and own["by"] == "its own targets"
+        for k, low in (("propagation_psnr", 34.9), ("miss_psnr", 29.9), ("leak_psnr", 29.9)):  # each target counts
+            high = {"propagation_psnr": 45.0, "miss_psnr": 41.0, "leak_psnr": 50.0, "difference_db": -8.0}
+            assert judge_pick(_pick(klass, **{**high, k: low}))["pass"] is False, k
+    assert "--no-contiguous" in judge_pick(_pick("many parts"))["reason"]
+    assert "--no-contiguous" not in judge_pick(_pick("one object"))["reason"]
+    # a row recorded without a class: judged as one object
+    old = judge_pick({k: v for k, v in _pick("x", difference_db=-0.5).items() if k not in ("class", "largest_share")})
+    assert old["pass"] and old["class"] == "n/a" and "class n/a" in old["reason"]
+
+
+def test_a_click_on_one_of_several_objects_is_judged_by_its_objects_miss_and_the_leak_outside_it():
+    judge_pick = bench_module("clicks").judge_pick
+
+    # far from the rule edit (which recolours the shelf too), but the cup itself right and nothing else touched
+    ok = judge_pick(_pick("several objects", difference_db=-12.0, object_miss_psnr=31.0, object_leak_psnr=33.0))
+    assert ok["pass"] and ok["by"] == "the clicked object" and "31.00" in ok["reason"]
+    # within 1 dB of the rule edit is not what it is judged by
+    for figures in ({"object_miss_psnr": 29.0, "object_leak_psnr": 40.0},
+                    {"object_miss_psnr": 40.0, "object_leak_psnr": 29.0}, {}):
+        assert judge_pick(_pick("several objects", difference_db=0.0, **figures))["pass"] is False, figures
+
+
+def test_the_clicked_objects_figures_count_the_other_objects_of_the_rule_as_leak():
+    object_figures = bench_module("clicks").object_figures
+
+    g = torch.Generator().manual_seed(0)
+    base = torch.rand(6, 8, 3, generator=g)
+    truth_render = 1.0 - base  # the rule on the render: here every pixel is in the rule
+    cup = torch.zeros(6, 8, dtype=torch.bool)
+    cup[1:4, 1:4] = True
+    noise = 1e-3 * torch.rand(6, 8, 3, generator=g)
+    only_cup = object_figures(torch.where(cup[..., None], truth_render, base) + noise, base, truth_render, cup)
+    assert only_cup["object_miss_psnr"] > 50 and only_cup["object_leak_psnr"] > 50
+    assert only_cup["object_fraction"] == pytest.approx(9 / 48)
+    everything = object_figures(truth_render + noise, base, truth_render, cup)  # the shelf recoloured too
+    assert everything["object_miss_psnr"] > 50 and everything["object_leak_psnr"] < 20
+    nothing = object_figures(base + noise, base, truth_render, cup)  # the cup missed
+    assert nothing["object_miss_psnr"] < 20 and nothing["object_leak_psnr"] > 50
+
+
+def test_the_clicked_objects_gaussians_carry_it_to_another_view(bench_edit):
+    """The clicked object's Gaussians (at least half their weight inside it on the edit view) cover it
+    there, and nothing of the view outside the Gaussians' own footprint."""
+    clicks = bench_module("clicks")
+    scene, cams = bench_edit.million_scene(600, 24, 16, "cpu")
+    obj = torch.zeros(16, 24, dtype=torch.bool)
+    obj[4:12, 6:14] = True
+    gs = clicks.object_gaussians(scene, cams, obj)
+    assert 0 < int(gs.sum()) < gs.numel()
+    cover = clicks.object_cover(scene, cams, gs)
+    assert float(cover[obj].mean()) > float(cover[~obj].mean()) + 0.3
+    assert torch.equal(clicks.object_cover(scene, cams, torch.zeros_like(gs)), torch.zeros(16, 24))
+
+
+def test_a_pick_on_a_split_mask_runs_and_is_judged_as_its_class_says(pipeline, bench_edit, tmp_path, monkeypatch):
+    """On the tiny run, with every mask counted as split: a row declaring ``parts`` picks with
+    ``contiguous=False`` and is compared with the rule edit; one declaring ``objects`` picks contiguously
+    and records the clicked object's held-out figures, which judge it."""
+    clicks, EvalScene = bench_module("clicks"), bench_module("evalset").EvalScene
+    import virgi_ns.nerfstudio.runs as runs
+
+    monkeypatch.setattr(runs, "load_run", lambda cfg: (None, pipeline))
+    monkeypatch.setattr(clicks, "ONE_OBJECT_SHARE", 1.01)
+    (tmp_path / "data" / "tiny").mkdir(parents=True)
+    args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": tmp_path / "config.yml"}, out=tmp_path / "out",
+                           steps=10, repeats=1, pictures=0, pick=True)
+    args.out.mkdir(parents=True)
+    rows = []
+    for kind, klass in (("objects", "several objects"), ("parts", "many parts")):
+        scene = EvalScene("tiny", "tiny", BROAD.rule(), "every saturated pixel", click=kind)
+        b, _, _ = bench_edit.scene_bench(args, scene, {})
+        p = bench_edit.bench_pick(args, scene, b, 30.0)
+        assert (p["class"], p["declared"]) == (klass, kind)
+        assert p["contiguous"] is (kind == "objects")
+        assert p["judged"] == clicks.judge_pick(p) and p["pass"] == p["judged"]["pass"]
+        if kind == "objects":
+            assert math.isfinite(p["object_miss_psnr"]) and 0.0 < p["object_fraction"] < 1.0
+            assert p["judged"]["by"] in ("the clicked object", "neither")
+        else:
+            assert "object_miss_psnr" not in p and "--no-contiguous" in p["judged"]["reason"]
+        rows.append({"scene": "tiny", "seed": 0, "variant": "engine defaults", "synthetic": False, "targets": {},
+                     "propagation_psnr": 30.0, "miss_psnr": 30.0, "leak_psnr": 30.0, "recolour_psnr": 30.0,
+                     "unedited_psnr": 30.0, "timing_warm": {"total_s": 0.1}, "pick": p})
+    with bench_edit.console.capture() as said:
+        bench_edit.print_pick(rows, [])
+    assert "several objects" in said.get() and "many parts" in said.get()

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Literal, Optional
 
 from virgi_ns.edit.recolor import RecolorRule
 from virgi_ns.errors import InputError
@@ -45,6 +45,12 @@ class EvalScene:
     ``common.synthetic.SCENES``."""
     rule: RecolorRule
     why: str
+    click: Literal["auto", "parts", "objects"] = "auto"
+    """What the rule is meant to select, for judging a click (``bench/common/clicks.py``) where the rule's
+    mask on the edited view is not one object: ``parts`` (many separate parts of one kind: the leaves of
+    a plant, the pieces of one object its texture or highlights cut apart), ``objects`` (several
+    different objects: a cup and the shelf it stands on), ``auto`` (``parts``). Declared from the row's
+    ``why`` (what the rule is written to take), never from a result."""
 
     @property
     def synthetic(self) -> Optional[str]:
@@ -60,26 +66,26 @@ def _synthetic_rows() -> tuple[EvalScene, ...]:
 REAL: tuple[EvalScene, ...] = (
     EvalScene("beercan", "beercan", RecolorRule(190.0, 250.0, 150.0, 0.1, 0.15),
               "the can's blue -> red, the whole can (s 0.1 takes its pale blue back); near-white highlights and "
-              "the grey-white floor are outside the rule"),
+              "the grey-white floor are outside the rule", click="parts"),
     EvalScene("beercan_yellow", "beercan", RecolorRule(190.0, 250.0, 180.0, 0.1, 0.15),
-              "the same can -> yellow: a rule not used while the engine was built (a 180-degree shift)"),
+              "the same can -> yellow: a rule not used while the engine was built (a 180-degree shift)", click="parts"),
     EvalScene("fern", "fern", RecolorRule(60.0, 160.0, 120.0, 0.12, 0.1),
-              "the fern's leaves -> blue; s 0.12 takes the pale leaves too (0.25 split the fern)"),
+              "the fern's leaves -> blue; s 0.12 takes the pale leaves too (0.25 split the fern)", click="parts"),
     EvalScene("cup", "cup", RecolorRule(0.0, 80.0, 120.0, 0.02, 0.02),
               "every warm tone -> green (shelf and cup, beige and print): thresholds near zero leave no "
-              "saturation or value edge across the cup"),
+              "saturation or value edge across the cup", click="objects"),
     # Captures the engine was never run on, each rule written from the photos' hue histograms before any
     # training or edit of the capture (saturation >= 0.25, value >= 0.15 over every 5th photo):
     EvalScene("fruit", "fruit", RecolorRule(340.0, 30.0, 200.0, 0.25, 0.15),
               "the apple -> blue, touching the banana: the apple's hue mode is 8-24 degrees, the banana's 36-48; "
-              "the rule cuts the empty valley between them at 30"),
+              "the rule cuts the empty valley between them at 30", click="parts"),
     EvalScene("blowtorch", "blowtorch", RecolorRule(316.0, 356.0, 230.0, 0.25, 0.1),
               "the crimson rug -> blue, a large textured surface: its hue mode spans 316-356 degrees with empty tails "
-              "on both sides; the brass and wood sit at 8-40, the pale stripes below s 0.25"),
+              "on both sides; the brass and wood sit at 8-40, the pale stripes below s 0.25", click="parts"),
     EvalScene("fox", "fox", RecolorRule(330.0, 8.0, 230.0, 0.25, 0.15),
               "the wallpaper's pink and crimson roses -> blue: their hues run 330-8 degrees; the fox's orange fur "
               "peaks at 28-40 with no valley between, so its reddest hairs may fall in the rule (a rule limit, "
-              "reported as such)"),
+              "reported as such)", click="parts"),
 )
 EVAL_SET: tuple[EvalScene, ...] = REAL + _synthetic_rows()
 """The whole set, real captures first."""
