@@ -98,3 +98,25 @@ def test_region_colour_error_against_hand_computed_figures():
     assert abs(got["region_hue_error_deg"] - 20.0) < 1e-4
     assert all(math.isnan(v) for v in region_colour_error(hsv_to_rgb(hsv), hsv_to_rgb(hsv),
                                                            torch.zeros(1, 3, dtype=torch.bool)).values())
+
+
+def test_edit_figures_against_hand_computed_psnr():
+    """The bench's per-view figures on a hand-made case: a 4-pixel view whose left half the rule
+    recolours; the edit is exact inside the mask and off by 0.1 on one pixel outside it, so the miss is
+    perfect, the leak and the propagation are the PSNR of that error over 2 and over 4 pixels."""
+    from virgi_ns.bench.recolor import edit_figures
+
+    rule = RecolorRule(0.0, 30.0, 120.0, 0.25, 0.1)
+    base = torch.tensor([[[0.8, 0.1, 0.1], [0.8, 0.1, 0.1], [0.2, 0.2, 0.9], [0.2, 0.2, 0.9]]])
+    truth, mask = recolor(base, rule)
+    assert mask.tolist() == [[True, True, False, False]]
+    after = truth.clone()
+    after[0, 3, 0] += 0.1
+    photo = base.clone()
+    photo[0, 2] += 0.05  # the unedited render's error: one pixel, all three channels
+    got = edit_figures(after, base, photo, rule)
+    assert got["miss_psnr"] >= 119.0  # exact (the PSNR's floor of 1e-12)
+    assert abs(got["leak_psnr"] - -10.0 * math.log10(0.01 / 6)) < 1e-3  # one channel off of 2 pixels x 3
+    assert abs(got["propagation_psnr"] - -10.0 * math.log10(0.01 / 12)) < 1e-3
+    assert abs(got["unedited_psnr"] - -10.0 * math.log10(3 * 0.0025 / 12)) < 1e-3
+    assert got["mask_fraction"] == 0.5
