@@ -19,6 +19,7 @@ from virgi_ns.edit.engine import EditConfig, EditEngine
 from virgi_ns.edit.recolor import RecolorRule, recolor
 from virgi_ns.edit.scene import FrozenScene, render_view
 from virgi_ns.edit.stack import EditStack
+from virgi_ns.edit.targets import unchanged_pixel_weights
 from virgi_ns.raster import Request, composite
 
 from edit_scene import one_thread
@@ -125,6 +126,22 @@ def test_a_part_of_another_colour_keeps_it_while_its_object_is_recoloured(settin
     assert _mean_abs(after, truth, toy) < TOL_EDITED
     assert _mean_abs(after, before, spots) < TOL_KEPT
     assert _mean_abs(after, before, masks["ball"]) < TOL_KEPT
+
+
+def test_unchanged_pixel_weights_give_half_to_the_colours_shown_only_unchanged():
+    """By hand: a yellow Gaussian dominates two changed pixels and one unchanged (its rim), a red one and a
+    white one one unchanged pixel each, and no Gaussian reaches the last. Of the unchanged pixels' weight
+    half goes to all four alike, half to red and white alike (yellow is mostly changed)."""
+    colours = torch.tensor([[0.9, 0.8, 0.1], [0.8, 0.1, 0.1], [0.95, 0.95, 0.95]])
+    pixel = torch.tensor([0, 1, 2, 3, 3, 4])
+    gaussian = torch.tensor([0, 0, 0, 1, 0, 2])
+    weight = torch.tensor([0.9, 0.9, 0.6, 0.7, 0.2, 0.9])
+    changed = torch.tensor([True, True, False, False, False, False])
+    w = unchanged_pixel_weights(pixel, gaussian, weight, colours, changed)
+    torch.testing.assert_close(w, torch.tensor([0.0, 0.0, 0.125, 0.375, 0.375, 0.125]))
+    # no colour shown only unchanged: every unchanged pixel the same
+    w = unchanged_pixel_weights(pixel, torch.zeros_like(gaussian), weight, colours, changed)
+    torch.testing.assert_close(w, torch.tensor([0.0, 0.0, 0.25, 0.25, 0.25, 0.25]))
 
 
 def test_small_parts_packed_among_the_recoloured_bodys_gaussians_keep_their_colour():
