@@ -92,6 +92,16 @@ def test_sparse_pixel_batches_reproduce_composite(world):
             assert int(is_changed.sum()) in (9 // n, 9 // n + 1)
             assert abs(float(b.weight.sum()) - 1.0) < 1e-5
             assert abs(float(b.weight[is_changed].sum()) - 0.5) < 1e-5
+    # with weights for the unchanged pixels: within every set they split their half in proportion to them
+    keep = torch.rand(c.num_pixels, generator=g) + 0.1
+    for n, kind in ((1, "csr"), (4, "csr"), (4, "fused")):
+        sets = pixel_batches(c, target, bg, n, seed=2, changed=changed, share=0.5, composite=kind, n_changed=9,
+                             keep=keep)
+        for b in sets:
+            pix = torch.arange(c.num_pixels) if b.pixels is None else b.pixels
+            ch = changed[pix]
+            assert abs(float(b.weight[ch].sum()) - 0.5) < 1e-5
+            torch.testing.assert_close(b.weight[~ch], 0.5 * keep[pix][~ch] / keep[pix][~ch].sum())
 
 
 def test_colour_map_recolours_each_gaussian_before_compositing(world):

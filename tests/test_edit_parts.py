@@ -19,13 +19,15 @@ from virgi_ns.edit.engine import EditConfig, EditEngine
 from virgi_ns.edit.recolor import RecolorRule, recolor
 from virgi_ns.edit.scene import FrozenScene, render_view
 from virgi_ns.edit.stack import EditStack
+from virgi_ns.edit.targets import unchanged_pixel_weights
 from virgi_ns.raster import Request, composite
 
+from edit_scene import one_thread
 from script_module import bench_module
 
 _synthetic = bench_module("synthetic")
 Part, SceneSpec, gaussians_of = _synthetic.Part, _synthetic.SceneSpec, _synthetic.gaussians_of
-scene_cameras, surface_points = _synthetic.scene_cameras, _synthetic.surface_points
+scene_cameras, surface_points, studs = _synthetic.scene_cameras, _synthetic.surface_points, _synthetic.studs
 
 YELLOW, RED, BLUE, WHITE = (0.88, 0.76, 0.10), (0.80, 0.10, 0.08), (0.15, 0.30, 0.70), (0.90, 0.90, 0.88)
 PARTS = SceneSpec(
@@ -40,16 +42,26 @@ SMALL = SceneSpec(
            Part("handle", "torus", (0.26, 0.0, 0.3), (0.16, 0.05), RED, arc=(-80.0, 80.0)),
            Part("ball", "sphere", (-0.6, 0.45, 0.2), (0.2,), BLUE)),
     rule=RecolorRule(340.0, 20.0, 120.0, 0.4, 0.15), why="test", cam_radius=2.0, look_at=(0.0, 0.0, 0.3))
+PACKED = SceneSpec(
+    name="packed", target="toy",
+    parts=(Part("toy", "box", (0.0, 0.0, 0.3), (0.3, 0.3, 0.3), YELLOW),)
+    + studs("studs", "bolts", (0.0, 0.0, 0.3), (0.3, 0.3, 0.3), 0.05, 0.15, RED, (0.50, 0.50, 0.52)),
+    rule=RecolorRule(35.0, 75.0, 180.0, 0.35, 0.2), why="test", cam_radius=1.3, look_at=(0.0, 0.0, 0.3),
+    fov_deg=108.0)
+"""A yellow box with small red and grey studs sunk into its four sides, seen by wide views whose pixels are
+mostly background: as in a capture with a floor and a backdrop, the studs are a small share of the pixels
+the edit leaves unchanged."""
 VIEWS, W, H = 8, 128, 96
 TOL_EDITED, TOL_KEPT = 0.06, 0.03
 
 
-def _scene(spec: SceneSpec):
-    """(FrozenScene with a field fitted to the true diffuse colours, cameras, per-Gaussian labels)."""
-    pts = surface_points(spec, 0.025)
+def _scene(spec: SceneSpec, spacing: float = 0.025, fit_steps: int = 300, size: tuple[int, int] = (W, H)):
+    """(FrozenScene with a field fitted to the true diffuse colours, cameras of ``size``, per-Gaussian
+    labels)."""
+    pts = surface_points(spec, spacing)
     keep = torch.tensor([lab not in ("floor", "backdrop") for lab in pts.labels])
     labels = [lab for lab, k in zip(pts.labels, keep.tolist()) if k]
-    g = gaussians_of(pts, 0.025).index(keep)
+    g = gaussians_of(pts, spacing).index(keep)
     normals = pts.normals[keep].float()
     light = torch.nn.functional.normalize(torch.tensor(spec.light), dim=0)
     diffuse = pts.albedo[keep].float() * (0.45 + 0.55 * (normals @ light).clamp_min(0.0))[:, None]
@@ -59,7 +71,7 @@ def _scene(spec: SceneSpec):
                                 torch.stack([lo, hi]))
     target = torch.logit(diffuse.clamp(0.02, 0.98))
     opt = torch.optim.Adam(field.parameters(), lr=3e-2)
-    for _ in range(300):
+    for _ in range(fit_steps):
         loss = (field.diffuse(field.diffuse_hidden(field.encode(g.means))[1]) - target).abs().mean()
         opt.zero_grad()
         loss.backward()
@@ -68,7 +80,7 @@ def _scene(spec: SceneSpec):
         p.requires_grad_(False)
     scene = FrozenScene(g.means, g.quats, torch.exp(g.scales), torch.sigmoid(g.opacities), field,
                         torch.ones(3), backend="reference")
-    return scene, scene_cameras(spec, VIEWS, W, H), labels
+    return scene, scene_cameras(spec, VIEWS, *size), labels
 
 
 def _label_mask(scene, cams, view: int, labels, name: str) -> torch.Tensor:
@@ -81,8 +93,8 @@ def _label_mask(scene, cams, view: int, labels, name: str) -> torch.Tensor:
     return -torch.nn.functional.max_pool2d(-mostly[None, None], 3, 1, 1)[0, 0] > 0
 
 
-def _edit(spec, cfg: EditConfig, edit_view: int = 0, held_out: int = 3):
-    scene, cams, labels = _scene(spec)
+def _edit(spec, cfg: EditConfig, edit_view: int = 0, held_out: int = 3, **scene_args):
+    scene, cams, labels = _scene(spec, **scene_args)
     photo = render_view(scene, cams, edit_view)["rgb"].clamp(0, 1)
     edited, mask = recolor(photo, spec.rule)
     assert bool(mask.any())
@@ -114,6 +126,48 @@ def test_a_part_of_another_colour_keeps_it_while_its_object_is_recoloured(settin
     assert _mean_abs(after, truth, toy) < TOL_EDITED
     assert _mean_abs(after, before, spots) < TOL_KEPT
     assert _mean_abs(after, before, masks["ball"]) < TOL_KEPT
+
+
+def test_unchanged_pixel_weights_give_half_to_the_colours_shown_only_unchanged():
+    """By hand: a yellow Gaussian dominates two changed pixels and one unchanged (its rim), a red one and a
+    white one one unchanged pixel each, and no Gaussian reaches the last. Of the unchanged pixels' weight
+    half goes to all four alike, half to red and white alike (yellow is mostly changed)."""
+    colours = torch.tensor([[0.9, 0.8, 0.1], [0.8, 0.1, 0.1], [0.95, 0.95, 0.95]])
+    pixel = torch.tensor([0, 1, 2, 3, 3, 4])
+    gaussian = torch.tensor([0, 0, 0, 1, 0, 2])
+    weight = torch.tensor([0.9, 0.9, 0.6, 0.7, 0.2, 0.9])
+    changed = torch.tensor([True, True, False, False, False, False])
+    w = unchanged_pixel_weights(pixel, gaussian, weight, colours, changed)
+    torch.testing.assert_close(w, torch.tensor([0.0, 0.0, 0.125, 0.375, 0.375, 0.125]))
+    # no colour shown only unchanged: every unchanged pixel the same
+    w = unchanged_pixel_weights(pixel, torch.zeros_like(gaussian), weight, colours, changed)
+    torch.testing.assert_close(w, torch.tensor([0.0, 0.0, 0.25, 0.25, 0.25, 0.25]))
+
+
+def test_small_parts_packed_among_the_recoloured_bodys_gaussians_keep_their_colour():
+    """The box's yellow turns blue; its red and grey studs, unchanged in the edited photo and a small share
+    of its unchanged pixels, keep their colours in held-out views that see other sides of the box (with
+    :attr:`EditConfig.unchanged_weights` ``colour``)."""
+    cfg = EditConfig(unchanged_weights="colour")
+    with one_thread():
+        scene, cams, labels = _scene(PACKED, spacing=0.03, fit_steps=200, size=(384, 288))
+        photo = render_view(scene, cams, 0)["rgb"].clamp(0, 1)
+        edited, _ = recolor(photo, PACKED.rule)
+        stack = EditStack(scene.fingerprint())
+        edit, _ = EditEngine(scene, cams.index(0), edited, stack, cfg, original=photo).fit()
+        stack.add(edit)
+        for view in (3, 5):
+            before = render_view(scene, cams, view)["rgb"].clamp(0, 1)
+            after = render_view(scene, cams, view, stack)["rgb"].clamp(0, 1)
+            truth, _ = recolor(before, PACKED.rule)
+            toy = _label_mask(scene, cams, view, labels, "toy")
+            assert _mean_abs(truth, before, toy) > 3 * TOL_EDITED
+            assert _mean_abs(after, truth, toy) < TOL_EDITED
+            for part in ("studs", "bolts"):
+                mask = _label_mask(scene, cams, view, labels, part)
+                assert _mean_abs(after, before, mask) < TOL_KEPT, (view, part)
+                off = (after - before).abs().amax(-1)[mask] > 0.08
+                assert float(off.float().mean()) < 0.05, (view, part)
 
 
 @pytest.mark.parametrize("recipe", ["joint", "staged"])

@@ -99,6 +99,35 @@ def _hue_rule(h0: float, h1: float, shift: float, s_min: float, v_min: float) ->
     return RecolorRule(h0, h1, shift, s_min, v_min)
 
 
+def studs(label: str, grey_label: str, body_centre: tuple[float, float, float],
+          half: tuple[float, float, float], radius: float, pitch: float, albedo: tuple[float, float, float],
+          grey: tuple[float, float, float], grey_every: int = 4, ks: float = 0.25, power: float = 25.0
+          ) -> tuple[Part, ...]:
+    """Small spheres of ``radius`` packed on the four vertical faces of a box (``body_centre``, half
+    extents ``half``), ``pitch`` apart on a grid over each face, each centre ``0.4 radius`` outside
+    the face, so a stud sinks into the body and its Gaussians sit among the body's. Every
+    ``grey_every``-th stud is ``grey`` (label ``grey_label``), the rest ``albedo`` (``label``)."""
+    cx, cy, cz = body_centre
+    hx, hy, hz = half
+    out: list[Part] = []
+    k = 0
+    for axis, sign in ((1, -1.0), (0, 1.0), (1, 1.0), (0, -1.0)):
+        along = half[1 - axis]  # the face's horizontal half extent
+        n_h, n_v = max(1, int(2 * along / pitch)), max(1, int(2 * hz / pitch))
+        for i in range(n_h):
+            u = -along + (i + 0.5) * 2 * along / n_h
+            for j in range(n_v):
+                z = cz - hz + (j + 0.5) * 2 * hz / n_v
+                c = [cx, cy, z]
+                c[axis] += sign * (half[axis] + 0.4 * radius)
+                c[1 - axis] += u
+                is_grey = k % grey_every == grey_every - 1
+                out.append(Part(grey_label if is_grey else label, "sphere", (c[0], c[1], c[2]), (radius,),
+                                grey if is_grey else albedo, ks=ks, power=power))
+                k += 1
+    return tuple(out)
+
+
 SCENES: dict[str, SceneSpec] = {
     spec.name: spec
     for spec in (
@@ -193,6 +222,23 @@ SCENES: dict[str, SceneSpec] = {
                 "orange beak (hue ~20) outside the rule and to keep",
             cam_radius=2.6,
             look_at=(0.0, 0.0, 0.2),
+        ),
+        SceneSpec(
+            name="studded_robot",
+            parts=(
+                Part("robot", "box", (0.0, 0.0, 0.35), (0.34, 0.26, 0.35), (0.88, 0.76, 0.10), ks=0.25, power=25.0),
+                Part("robot", "sphere", (0.0, 0.0, 0.95), (0.26,), (0.88, 0.76, 0.10), ks=0.25, power=25.0),
+            ) + studs("studs", "bolts", (0.0, 0.0, 0.35), (0.34, 0.26, 0.35), 0.025, 0.14, (0.80, 0.10, 0.08),
+                      (0.50, 0.50, 0.52)),
+            target="robot",
+            rule=_hue_rule(35.0, 75.0, 180.0, 0.35, 0.2),
+            why="small parts of another colour packed on a recoloured body (a model's studs, not separate "
+                "blobs): the yellow robot -> blue (+180); its red studs (hue ~3) and grey bolts (s ~0.04) lie "
+                "outside the rule, visible in the edited photo and to keep in every view",
+            floor_albedo=((0.93, 0.93, 0.92), (0.90, 0.90, 0.89)),
+            backdrop_albedo=(0.95, 0.95, 0.95),
+            cam_radius=3.2,
+            look_at=(0.0, 0.0, 0.55),
         ),
     )
 }
@@ -526,5 +572,5 @@ def scene_info(root: Path) -> dict:
     return json.loads((root / "scene.json").read_text())
 
 
-__all__ = ["Part", "SceneSpec", "SCENES", "surface_points", "gaussians_of", "scene_cameras", "render_scene",
+__all__ = ["Part", "SceneSpec", "SCENES", "studs", "surface_points", "gaussians_of", "scene_cameras", "render_scene",
            "write_scene", "hue_rotate", "scene_info"]

@@ -42,7 +42,7 @@ from virgi_ns.edit.optim import EditAdam
 from virgi_ns.edit.pixels import PixelBatch, pixel_batches, resolve_composite
 from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, new_edit_info
-from virgi_ns.edit.targets import MAP_START_SHARE, Target, find_target, logit_colour_map
+from virgi_ns.edit.targets import MAP_START_SHARE, Target, find_target, logit_colour_map, unchanged_pixel_weights
 from virgi_ns.errors import InputError
 from virgi_ns.raster import Cameras, Request, composite
 
@@ -174,8 +174,12 @@ class EditEngine:
             for b in self.batches:
                 b.target.copy_(image if b.pixels is None else image[b.pixels])
             return last.image, True
+        keep = None
+        if flat is not None and self.cfg.unchanged_weights == "colour":
+            c = self.contrib
+            keep = unchanged_pixel_weights(c.pixel, c.pair, c.weight, torch.sigmoid(self.c_d), flat)
         self.batches = pixel_batches(self.contrib, image, self.background, self.cfg.pixel_batches, self.cfg.seed,
-                                     flat, self.cfg.changed_share, kind, target.count)
+                                     flat, self.cfg.changed_share, kind, target.count, keep)
         for b in self.batches:
             if b.pixels is None:  # the whole image: its own copy, which a warm retarget writes into
                 b.target = b.target.clone()

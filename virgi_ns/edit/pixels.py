@@ -279,22 +279,27 @@ class PixelBatch:
         return err.mean() if self.weight is None else (err.mean(-1) * self.weight).sum()
 
 
-def _group_weights(changed: Optional[Tensor], share: float, n_changed: Optional[int] = None) -> Optional[Tensor]:
+def _group_weights(changed: Optional[Tensor], share: float, n_changed: Optional[int] = None,
+                   keep: Optional[Tensor] = None) -> Optional[Tensor]:
     """Per-pixel loss weights [p] summing to 1: the ``changed`` [p] pixels carry ``share`` of the loss and
     the others the rest, whatever their numbers (all of it when one group is empty). ``n_changed``:
-    how many are changed, when the caller knows it (counting them waits for the GPU)."""
+    how many are changed, when the caller knows it (counting them waits for the GPU). ``keep`` [p]:
+    relative weights of the unchanged pixels within their share (None: each the same)."""
     if changed is None:
         return None
     n_c = int(changed.sum()) if n_changed is None else n_changed
     n_u = changed.numel() - n_c
     if n_c == 0 or n_u == 0:
         return torch.full(changed.shape, 1.0 / max(changed.numel(), 1), device=changed.device)
-    return torch.where(changed, share / n_c, (1.0 - share) / n_u).float()
+    if keep is None:
+        return torch.where(changed, share / n_c, (1.0 - share) / n_u).float()
+    keep = torch.where(changed, torch.zeros((), device=keep.device), keep.float())
+    return torch.where(changed, share / n_c, (1.0 - share) * keep / keep.sum().clamp_min(1e-30)).float()
 
 
 def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches: int, seed: int,
                   changed: Optional[Tensor] = None, share: float = 0.5, composite: str = "csr",
-                  n_changed: Optional[int] = None) -> list[PixelBatch]:
+                  n_changed: Optional[int] = None, keep: Optional[Tensor] = None) -> list[PixelBatch]:
     """Split the view's pixels into ``n_batches`` random, equally sized sets, each with its own rows of
     ``A`` (pixels ascending within a set). With ``changed`` the changed and the other pixels are each
     spread evenly over the sets, and within every set the changed ones carry ``share`` of the loss.
@@ -309,6 +314,8 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
         share: the changed pixels' share of each set's loss.
         composite: ``csr``, ``fused`` or ``auto`` (:func:`resolve_composite`).
         n_changed: how many pixels ``changed`` marks, when the caller has counted them.
+        keep: [P] relative weights of the unchanged pixels within each set's share of them (None: each
+            the same; :func:`~virgi_ns.edit.targets.unchanged_pixel_weights`).
 
     Returns:
         One :class:`PixelBatch` per set."""
@@ -323,14 +330,14 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
         pix, pair = contrib.pixel.to(dev).long(), contrib.pair.to(dev).long()
         w = contrib.weight.detach().to(dev, dt)
         op = CompositeOp(pix, pair, w, P, U)
-        return [PixelBatch(op, T[:, None] * bg[None, :], target, _group_weights(changed, share, n_changed))]
+        return [PixelBatch(op, T[:, None] * bg[None, :], target, _group_weights(changed, share, n_changed, keep))]
     if changed is not None and n_changed is None:
         n_changed = int(changed.sum())
     batch_of = _assign_sets(P, n_batches, seed, changed, dev, n_changed)
     # the sets' pixels one after another, ascending within a set
     order = torch.argsort(batch_of, stable=True)
     if composite == "fused":
-        return _fused_batches(contrib, order, T, bg, target, changed, share, U, n_batches, n_changed)
+        return _fused_batches(contrib, order, T, bg, target, changed, share, U, n_batches, n_changed, keep)
     counts = torch.bincount(batch_of, minlength=n_batches)
     starts = torch.cumsum(counts, 0) - counts
     # local row of each pixel: its rank among its batch's pixels, in ascending pixel order
@@ -352,7 +359,8 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
         op = CompositeOp(rows, cols, vals, p_b, U)
         pixels = order[int(starts[b]) : int(starts[b]) + p_b]
         out.append(PixelBatch(op, T[pixels, None] * bg[None, :], target[pixels],
-                              None if changed is None else _group_weights(changed[pixels], share), pixels, b))
+                              None if changed is None else _group_weights(
+                                  changed[pixels], share, keep=None if keep is None else keep[pixels]), pixels, b))
     return out
 
 
@@ -386,7 +394,7 @@ def _assign_sets(P: int, n_batches: int, seed: int, changed: Optional[Tensor], d
 
 def _fused_batches(contrib: Contributions, order: Tensor, T: Tensor, bg: Tensor, target: Tensor,
                    changed: Optional[Tensor], share: float, U: int, n_sets: int,
-                   n_changed: Optional[int]) -> list[PixelBatch]:
+                   n_changed: Optional[int], keep: Optional[Tensor] = None) -> list[PixelBatch]:
     """The ``fused`` kind's batches: slices of one :class:`FusedSets` (no per-set matrices). Each set's
     size, and its share of the changed pixels, follow from the split of :func:`_assign_sets` on the
     host, so nothing here waits for the GPU."""
@@ -402,7 +410,7 @@ def _fused_batches(contrib: Contributions, order: Tensor, T: Tensor, bg: Tensor,
     loss_weight = torch.empty(P, dtype=torch.float32, device=order.device)
     for s, (a, b) in enumerate(zip(starts[:-1], starts[1:])):
         loss_weight[a:b] = (1.0 / max(b - a, 1)) if changed is None else _group_weights(
-            changed[order[a:b]], share, changed_counts[s])
+            changed[order[a:b]], share, changed_counts[s], None if keep is None else keep[order[a:b]])
     sets = FusedSets(contrib, order, starts, background, rows_target, loss_weight, U)
     return [PixelBatch(sets, background[a:b], rows_target[a:b],
                        None if changed is None else loss_weight[a:b], order[a:b], i)

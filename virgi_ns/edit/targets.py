@@ -5,6 +5,8 @@
   something, the current render elsewhere), which pixels changed, and what the fit is (``mode``).
 - :func:`changed_pixels_target`: the changed pixels' target for an edited photo
   (:attr:`EditConfig.changed_target`), with :func:`change_slope`, the slope of the user's change.
+- :func:`unchanged_pixel_weights`: how the unchanged pixels split their share of the loss
+  (:attr:`EditConfig.unchanged_weights`).
 - :func:`logit_colour_map`: the affine map in logit space that takes one set of colours to another,
   the copied layer's start for a large edit (:data:`MAP_START_SHARE`).
 """
@@ -153,6 +155,52 @@ def changed_pixels_target(cfg: EditConfig, render: Float[Tensor, "H W 3"], edite
     return edited
 
 
+KEEP_COLOUR_BINS = 8
+"""Levels per channel of the colour bins :func:`unchanged_pixel_weights` keys pixels by."""
+
+KEEP_COLOUR_CHANGED_MAX = 0.1
+"""A colour bin counts as shown only unchanged when at most this share of its pixels changed (a pixel that
+a part's Gaussian dominates but the rule caught through a blend with its neighbour does not make the
+part's colour a changed one)."""
+
+
+def unchanged_pixel_weights(pixel: Tensor, gaussian: Tensor, weight: Tensor, colours: Float[Tensor, "U 3"],
+                            changed: Tensor) -> Tensor:
+    """Relative loss weights [P] of the unchanged pixels (``changed`` [P] bool; changed pixels get 0) for
+    :attr:`EditConfig.unchanged_weights` ``colour``: half as if every unchanged pixel weighed the same,
+    half split equally over the colour bins that the image shows only unchanged (at most
+    :data:`KEEP_COLOUR_CHANGED_MAX` of their pixels changed) and within a bin equally over its pixels. A
+    pixel's bin is that of the colour ``colours`` [U, 3] (in [0, 1]) of the Gaussian with the largest
+    weight in it, :data:`KEEP_COLOUR_BINS` levels per channel; a pixel no Gaussian reaches has no bin.
+    Where no bin qualifies, every unchanged pixel weighs the same. Runs on the device without a host sync.
+
+    Args:
+        pixel: [E] each contribution entry's pixel (of P = ``changed.numel()``).
+        gaussian: [E] its Gaussian (a row of ``colours``).
+        weight: [E] its weight."""
+    P, dev = changed.numel(), changed.device
+    pixel, gaussian, weight = pixel.to(dev).long(), gaussian.to(dev).long(), weight.detach().to(dev).float()
+    best = torch.zeros(P, device=dev).scatter_reduce_(0, pixel, weight, "amax")
+    top = weight >= best[pixel]
+    dominant = torch.full((P,), -1, dtype=torch.long, device=dev).scatter_reduce_(
+        0, pixel[top], gaussian[top], "amax")
+    n = KEEP_COLOUR_BINS
+    q = (colours.detach().float().clamp(0.0, 1.0) * n).long().clamp_max(n - 1)
+    key_of = (q[:, 0] * n + q[:, 1]) * n + q[:, 2]
+    none = n**3  # the bin of pixels no Gaussian reaches
+    key = torch.where(dominant >= 0, key_of[dominant.clamp_min(0)], torch.full_like(dominant, none))
+    unchanged = ~changed.reshape(-1)
+    n_u = torch.bincount(key[unchanged], minlength=none + 1).float()
+    n_c = torch.bincount(key[~unchanged], minlength=none + 1).float()
+    kept = (n_u > 0) & (n_c <= KEEP_COLOUR_CHANGED_MAX * (n_u + n_c))
+    kept[none] = False
+    n_kept = kept.sum()
+    uniform = 1.0 / n_u.sum().clamp_min(1.0)
+    extra = torch.where(kept[key], 1.0 / (n_kept.clamp_min(1) * n_u[key].clamp_min(1.0)), torch.zeros((), device=dev))
+    w = torch.where(n_kept > 0, 0.5 * uniform + 0.5 * extra, uniform)
+    return torch.where(unchanged, w, torch.zeros((), device=dev))
+
+
 @functools.lru_cache(maxsize=4)
 def _pixel_subset(n: int, k: int, seed: int) -> Tensor:
     """The first ``k`` of a permutation of ``n`` drawn on the CPU with ``seed`` (the same on every
@@ -193,5 +241,5 @@ def logit_colour_map(source: Float[Tensor, "N 3"], target: Float[Tensor, "N 3"],
     return torch.cat([Mt.T, t[:, None]], 1).float()  # [3, 4]
 
 
-__all__ = ["MAP_START_SHARE", "RENDER_MATCH_MIN", "SLOPE_MIN_PIXELS", "SLOPE_RIDGE", "Target", "change_slope",
-           "changed_pixels_target", "find_target", "logit_colour_map"]
+__all__ = ["KEEP_COLOUR_BINS", "KEEP_COLOUR_CHANGED_MAX", "MAP_START_SHARE", "RENDER_MATCH_MIN", "SLOPE_MIN_PIXELS", "SLOPE_RIDGE", "Target", "change_slope",
+           "changed_pixels_target", "find_target", "logit_colour_map", "unchanged_pixel_weights"]
