@@ -223,6 +223,11 @@ def test_original_image_limits_the_fit_to_changed_pixels(saved, tmp_path):
         run(_apply(saved, original=orig, recipe="staged"), _quiet(), pl)
         st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
         assert st.entries[0].edit.info["recipe"] == "staged" and st.entries[0].edit.info["start"] == "colour map"
+        assert st.entries[0].edit.info["unchanged_weights"] == "count"
+        run(Reset(saved["config"]), _quiet(), pl)
+        run(_apply(saved, original=orig, unchanged_weights="colour"), _quiet(), pl)
+        st = EditStack.open(saved["config"].parent, pl.model.fingerprint())
+        assert st.entries[0].edit.info["unchanged_weights"] == "colour"
         small = tmp_path / "small.png"
         Image.fromarray(np.zeros((4, 5, 3), np.uint8)).save(small)
         _refused(saved, _apply(saved, original=small), "--original is 5x4.*--resize")
@@ -277,8 +282,15 @@ def test_pick_recolours_the_clicked_sphere_only_and_saves_what_it_selected(saved
         assert float((after[red] - green).abs().mean()) < 0.6 * gap_before
         assert float(after[red][:, 1].mean()) > float(after[red][:, 0].mean())  # green over red now
         assert float((after - before)[blue].abs().mean()) < 0.03
+        assert EditStack.open(saved["config"].parent, model.fingerprint()).entries[0].edit.info["unchanged_weights"] \
+            == "count"
         run(Undo(saved["config"]), _quiet(), pl)
         assert _listing(saved["config"]) == ["stack.json"]
+        model.set_edit_stack(None)
+        run(_pick(saved, pixel=_central(red0), unchanged_weights="colour", steps=5), _quiet(), pl)
+        assert EditStack.open(saved["config"].parent, model.fingerprint()).entries[0].edit.info["unchanged_weights"] \
+            == "colour"
+        run(Undo(saved["config"]), _quiet(), pl)
     finally:
         model.set_edit_stack(None)
         if (saved["config"].parent / "edits" / "stack.json").is_file():

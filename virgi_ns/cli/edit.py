@@ -73,6 +73,10 @@ class Apply:
     """``joint``: the segmentation and the new colour are fitted together (the paper's recipe);
     ``staged``: the segmentation first, from which Gaussians your change covers, so parts of another
     colour inside a recoloured object keep theirs."""
+    unchanged_weights: Literal["count", "colour"] = "count"
+    """How the pixels your edit left unchanged share their part of the fit: ``count``, each the same;
+    ``colour``, half of it spread equally over the colours the image shows only unchanged, so a small
+    part of another colour on a recoloured object (studs, spots, a beak) keeps its colour."""
 
 
 @dataclass
@@ -113,6 +117,10 @@ class Pick:
     keeping their ratio to it: the clicked one (the default), or the selection's median one."""
     steps: Optional[int] = None
     """Optimisation steps (default: the engine's)."""
+    unchanged_weights: Literal["count", "colour"] = "count"
+    """How the pixels outside the selection share their part of the fit: ``count``, each the same;
+    ``colour``, half of it spread equally over the colours the view shows only outside the selection, so
+    a small part of another colour on the picked object keeps its colour."""
 
 
 @dataclass
@@ -365,6 +373,7 @@ def apply(args: Apply, console: "Console", pipeline=None) -> str:
     cfg.whole_image = args.whole_image
     cfg.changed_target = args.changed_target
     cfg.recipe = args.recipe
+    cfg.unchanged_weights = args.unchanged_weights
     warmup.wait()
     with torch.no_grad():
         engine = EditEngine(scene, cams, torch.from_numpy(image), stack, cfg, source,
@@ -419,6 +428,7 @@ def pick(args: Pick, console: "Console", pipeline=None) -> str:
         cfg = pick_config(model.device)
         if args.steps is not None:  # the rate's schedule spans the config's steps: set them there
             cfg.steps = args.steps
+        cfg.unchanged_weights = args.unchanged_weights
         session = PickSession(FrozenScene.from_model(model), cams, x, y, stack, cfg, source,
                               criterion=args.selection, reference=args.reference)
         edit = session.update(colour, tolerance, args.mode, args.steps, contiguous=args.contiguous)

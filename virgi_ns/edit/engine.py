@@ -381,6 +381,7 @@ class EditEngine:
         times = ({"steps": timing.steps, "setup_s": timing.setup_s, "steps_s": timing.steps_s,
                   "loss": timing.final_loss} if timing is not None else {})
         info = new_edit_info(k=self.k, changed_fraction=self.changed_fraction, fit=self.mode, recipe=self.recipe,
+                             unchanged_weights=self.cfg.unchanged_weights,
                              start="colour map" if self.colour_map is not None else "unedited layer", **times)
         return Edit(self.weight.detach().clone(), self.bias.detach().clone(), copy.deepcopy(self.seg).eval(),
                     self.source, self.fingerprint, info)
