@@ -72,6 +72,8 @@ class Args:
     its packages); ``--no-bytecode-cache``: the environment as it is."""
     importtime: bool = True
     """One more pass under ``python -X importtime`` for the import breakdown (not in the walls)."""
+    profile: bool = True
+    """One more pass under cProfile for the phases (imports, run load, fit, write; not in the walls)."""
 
 
 # ------------------------------------------------------------------------------ the run copy
@@ -188,6 +190,44 @@ def import_breakdown(stderr: str) -> dict:
     return {"imports_s": total / 1e6, "torch_s": torch_s / 1e6, "largest_others_s": dict(others)}
 
 
+# per command, the phases read from a cProfile pass: (phase, [(file suffix, function), ...]), the
+# functions' cumulative seconds summed (imports made inside a later phase count in both)
+PHASES = {
+    "list": [("imports", [("importlib._bootstrap>", "_find_and_load")])],
+    "pick": [("imports", [("importlib._bootstrap>", "_find_and_load")]),
+             ("run load", [("virgi_ns/nerfstudio/runs.py", "open_run")]),
+             ("warm-up wait", [("virgi_ns/edit/warmup.py", "wait")]),
+             ("fit", [("virgi_ns/edit/pick.py", "__init__"), ("virgi_ns/edit/pick.py", "update")]),
+             ("write", [("virgi_ns/edit/pick.py", "commit")])],
+    "apply": [("imports", [("importlib._bootstrap>", "_find_and_load")]),
+              ("run load", [("virgi_ns/nerfstudio/runs.py", "open_run")]),
+              ("warm-up wait", [("virgi_ns/edit/warmup.py", "wait")]),
+              ("fit", [("virgi_ns/edit/engine.py", "__init__"), ("virgi_ns/edit/engine.py", "fit")]),
+              ("write", [("virgi_ns/edit/stack.py", "add")])],
+    "export": [("imports", [("importlib._bootstrap>", "_find_and_load")]),
+               ("run load", [("virgi_ns/nerfstudio/runs.py", "open_run")]),
+               ("fit", [("virgi_ns/nerfstudio/export.py", "bake")]),
+               ("write", [("virgi_ns/nerfstudio/export.py", "write_splat")])],
+    "render": [("imports", [("importlib._bootstrap>", "_find_and_load")]),
+               ("run load", [("virgi_ns/io/__init__.py", "load_splat")]),
+               ("fit", [("virgi_ns/cli/render.py", "render_image")])],
+}
+
+
+def profile_phases(name: str, path: Path, wall: float) -> dict:
+    """Seconds per phase of ``name`` from its cProfile file; ``interpreter`` is the wall outside
+    the profiled run (start-up, the profiler's own set-up and exit)."""
+    import pstats
+
+    stats = pstats.Stats(str(path)).stats  # {(file, line, func): (cc, nc, tt, ct, callers)}
+    total = max((v[3] for v in stats.values()), default=0.0)
+    out = {"interpreter": max(wall - total, 0.0)}
+    for phase, funcs in PHASES.get(name, []):
+        out[phase] = sum(v[3] for (f, _, fn), v in stats.items()
+                         if any(f.endswith(suffix) and fn == want for suffix, want in funcs))
+    return out
+
+
 def reported(name: str, out: str) -> Optional[float]:
     """The seconds the command reports of its own work: ``apply``'s set-up + steps, ``export``'s
     bake + write (None where it reports none)."""
@@ -248,12 +288,17 @@ def main(args: Args) -> None:
         raise SystemExit(f"unknown commands {sorted(unknown)} (known: {', '.join(COMMANDS)})")
     baseline = [sys.executable, "-c", BASELINE]
 
-    def one_pass(importtime: bool = False) -> Tuple[Dict[str, float], List[float], Dict[str, str], Dict[str, str]]:
-        """Each command, then a bare ``import torch``: (walls, the import torch walls, stdouts, stderrs)."""
+    def one_pass(importtime: bool = False, profile: bool = False
+                 ) -> Tuple[Dict[str, float], List[float], Dict[str, str], Dict[str, str]]:
+        """Each command, then a bare ``import torch``: (walls, the import torch walls, stdouts, stderrs);
+        ``profile``: the commands run under cProfile, each writing ``--out/NAME.prof``."""
         walls, base, outs, errs = {}, [], {}, {}
         for name in names:
             reset_edits()
-            walls[name], outs[name], errs[name] = _run(command(name), env, cwd, importtime)
+            cmd = command(name)
+            if profile:
+                cmd = [cmd[0], "-m", "cProfile", "-o", str(args.out / f"{name}.prof")] + cmd[1:]
+            walls[name], outs[name], errs[name] = _run(cmd, env, cwd, importtime)
             if name == "pick" and not edited.is_file():  # apply's image: the pick's edited image
                 made = sorted((cfg.parent / "edits").glob("*_edited.png"))
                 shutil.copy2(made[-1], edited)
@@ -282,6 +327,10 @@ def main(args: Args) -> None:
     if args.importtime:
         _, _, _, errs = one_pass(importtime=True)
         breakdown = {k: import_breakdown(v) for k, v in errs.items()}
+    phases = {}
+    if args.profile:
+        prof_walls, _, _, _ = one_pass(profile=True)
+        phases = {k: profile_phases(k, args.out / f"{k}.prof", w) for k, w in prof_walls.items()}
     base = statistics.median(all_base)
     rows = []
     for name in names:
@@ -289,7 +338,7 @@ def main(args: Args) -> None:
         rows.append({"command": name, "walls_s": walls, "median_s": statistics.median(walls),
                      "ratio_to_import_torch": statistics.median(walls) / base,
                      "reported_work_s": reported(name, outs.get(name, "")), "imports": breakdown.get(name),
-                     "loaded_through_nerfstudio": name in slow,
+                     "loaded_through_nerfstudio": name in slow, "profiled_phases_s": phases.get(name),
                      "argv": command(name)[1:]})
     result = {"device": args.device, "run": str(src), "gaussians": args.gaussians or None, "virgi_ns": where,
               "python": sys.version.split()[0], "bytecode_cache": args.bytecode_cache,
@@ -322,15 +371,18 @@ def _table(result: dict) -> None:
     passes = len(result["rows"][0]["walls_s"]) if result["rows"] else 0
     print(f"\nFresh-process walls, second call or later ({result['device']}; {n}; median of {passes}), "
           f"`python -c 'import torch'`: {base:.2f} s")
-    print("| command | wall s | / import torch | command's own work s | imports s (torch) | largest other imports |")
-    print("| --- | --- | --- | --- | --- | --- |")
+    print("| command | wall s | / import torch | command's own work s | imports s (torch) | largest other imports | "
+          "profiled phases s |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
     for r in result["rows"]:
         imp = r["imports"] or {}
         others = ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in list(imp.get("largest_others_s", {}).items())[:3])
         work = "" if r["reported_work_s"] is None else f"{r['reported_work_s']:.2f}"
         imps = f"{imp['imports_s']:.2f} ({imp['torch_s']:.2f})" if imp else ""
         note = " (loaded through nerfstudio)" if r["loaded_through_nerfstudio"] else ""
-        print(f"| {r['command']}{note} | {r['median_s']:.2f} | {r['ratio_to_import_torch']:.2f}x | {work} | {imps} | {others} |")
+        ph = ", ".join(f"{k} {v:.2f}" for k, v in (r.get("profiled_phases_s") or {}).items())
+        print(f"| {r['command']}{note} | {r['median_s']:.2f} | {r['ratio_to_import_torch']:.2f}x | {work} | {imps} | "
+              f"{others} | {ph} |")
 
 
 def _jsonable(x):
