@@ -164,7 +164,8 @@ def _run(cmd: List[str], env: dict, cwd: Path, importtime: bool = False) -> Tupl
     t = time.perf_counter()
     p = subprocess.run(cmd, env=env, cwd=cwd, capture_output=True, text=True)
     wall = time.perf_counter() - t
-    if p.returncode != 0:
+    # (a command's own error is one "error: ..." line; under cProfile its exit status can be lost)
+    if p.returncode != 0 or any(line.startswith("error: ") for line in p.stderr.splitlines()):
         raise SystemExit(f"{' '.join(cmd)} failed ({p.returncode}):\n{p.stderr[-3000:]}")
     return wall, p.stdout, p.stderr
 
