@@ -2,8 +2,8 @@
 
 A process that imports them leaves the objects alive at its exit out of the interpreter's last
 garbage collections (``gc.freeze`` run by ``atexit``, after every other thread has ended): those
-collections would traverse every object torch made, about 0.3 s of each command's wall, and the
-memory goes back with the process. Anything a command writes is closed before it returns.
+collections would traverse every object torch made (a measurable share of a short command's wall,
+bench/RESULTS.md), and the memory goes back with the process. Anything a command writes is closed before it returns.
 """
 
 from __future__ import annotations
