@@ -56,7 +56,7 @@ def world():
         pixel = (int(xs[k]), int(ys[k]))  # well on the red sphere
         stack = EditStack(S.scene.fingerprint())
         session = PickSession(S.scene, cams.index(EDIT_VIEW), *pixel, stack, pick_config("cpu"))
-        commit(stack, session, session.update(parse_colour(GREEN), TOLERANCE, "hue"))
+        commit(stack, session, session.update(parse_colour(GREEN), TOLERANCE, "hue", depth_edges=True))
         yield {"S": S, "cover": cover, "before": before, "pixel": pixel, "session": session, "stack": stack}
 
 
@@ -88,6 +88,17 @@ def test_a_click_on_the_red_sphere_selects_it_and_none_of_its_touching_neighbour
         assert taken == 0, f"the selection takes {taken} pixels of object {other}"
     inner = (cov[..., RED] > 0.9) & (s.maps.accumulation > 0.5)
     assert float(s.mask[inner].float().mean()) > 0.97  # the whole red sphere still
+
+
+def test_without_depth_edges_only_the_same_coloured_sphere_behind_is_taken(world):
+    """The default selection (no depth edges) tells the steel and the yellow apart by colour alone; the
+    brick sphere behind, of the red's hue and a chroma within the band, only depth separates."""
+    s = world["session"]
+    cov = world["cover"][EDIT_VIEW]
+    plain = select(s.maps, *world["pixel"], TOLERANCE)
+    for other in OTHERS:
+        taken = int((plain & (cov[..., other] > 0.5)).sum())
+        assert (taken > 20) if other == BRICK else (taken == 0), (other, taken)
 
 
 def test_a_click_on_the_steel_sphere_stays_steel(world):

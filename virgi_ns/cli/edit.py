@@ -103,6 +103,10 @@ class Pick:
     contiguous: bool = True
     """Select only what is connected to the pixel (``--no-contiguous``: every pixel of the view that
     passes the same colour tests, e.g. leaves all over a plant)."""
+    depth_edges: bool = False
+    """Also stop the selection at jumps in the surface's depth, so an object in front of another of its
+    colour is taken alone. Off by default: on a textured or noisily reconstructed surface (a rug, a
+    floor) the depth jumps between neighbouring pixels and the selection would stop short."""
     selection: Literal["chroma_steps", "colour_features"] = "chroma_steps"
     """How the selection grows from the pixel: ``chroma_steps`` (the default) by the diffuse colour's hue
     and gradual chroma; ``colour_features`` by the angles of the diffuse colour and of the colour
@@ -431,7 +435,8 @@ def pick(args: Pick, console: "Console", pipeline=None) -> str:
         cfg.unchanged_weights = args.unchanged_weights
         session = PickSession(FrozenScene.from_model(model), cams, x, y, stack, cfg, source,
                               criterion=args.selection, reference=args.reference)
-        edit = session.update(colour, tolerance, args.mode, args.steps, contiguous=args.contiguous)
+        edit = session.update(colour, tolerance, args.mode, args.steps, contiguous=args.contiguous,
+                              depth_edges=args.depth_edges)
     number = commit(stack, session, edit)
     st = session.settings
     return (f"edit {number} saved to {stack.directory / stack.entries[-1].file} (pick at {x} {y} of {where}: "

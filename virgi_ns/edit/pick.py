@@ -9,7 +9,8 @@ The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain to
   :class:`~virgi_ns.edit.engine.EditEngine` set up on the view;
 - :func:`select`: the selection grown from the clicked pixel over covered pixels (accumulation >=
   :data:`MIN_COVER`) connected to it (or, ``contiguous=False``, every covered pixel of the view that
-  passes the same colour tests), never across a depth edge (:data:`DEPTH_JUMP`). By default
+  passes the same colour tests); with ``depth_edges``, never across a jump in the surface's depth
+  (:data:`DEPTH_JUMP`: an object in front of another of its colour). By default
   (``chroma_steps``) a pixel joins when the hue of its diffuse colour (the direction of its
   chromaticity, which shading does not move; the highlight is not in the diffuse render) is within
   ``tolerance`` x 90 degrees of the click's, its chroma and its median contributor's are within a
@@ -233,12 +234,15 @@ def chromaticity(rgb: Tensor) -> Tensor:
 
 @torch.no_grad()
 def select(maps: ViewMaps, x: int, y: int, tolerance: float, criterion: str = DEFAULT_CRITERION,
-           contiguous: bool = True) -> Tensor:
+           contiguous: bool = True, depth_edges: bool = False) -> Tensor:
     """Bool [H,W]: the selection grown from pixel (x, y) over covered pixels, 8-connected to it
     (``contiguous=False``: every covered pixel of the view that passes the criterion's colour tests,
     connected or not, as a magic wand's "contiguous" box unticked: leaves all over a plant).
-    Contiguous growth never crosses a depth edge: neighbours whose surface depths (``maps.depth``)
-    differ by more than :data:`DEPTH_JUMP` of the nearer one are not connected.
+    ``depth_edges``: contiguous growth does not cross a depth edge either: neighbours whose surface
+    depths (``maps.depth``) differ by more than :data:`DEPTH_JUMP` of the nearer one are not
+    connected. It tells apart an object in front of another of its colour; off by default, because
+    on a textured or noisily reconstructed surface the surface depth jumps between neighbours and
+    the selection stops short of the surface.
     ``colour_features``: a pixel joins when its diffuse colour and its features both point within
     ``tolerance`` x 90 degrees of the clicked pixel's (see the module docstring). ``chroma_steps``:
     when its diffuse chromaticity's hue is within that angle of the click's, its chroma is at least
@@ -250,7 +254,7 @@ def select(maps: ViewMaps, x: int, y: int, tolerance: float, criterion: str = DE
     check_pixel(maps, x, y)
     tolerance = check_tolerance(tolerance)
     if check_criterion(criterion) == "chroma_steps":
-        chosen = _select_chroma_steps(maps, x, y, tolerance, contiguous)
+        chosen = _select_chroma_steps(maps, x, y, tolerance, contiguous, depth_edges)
         if chosen is not None:
             return chosen
     limit = 90.0 * tolerance
@@ -258,10 +262,11 @@ def select(maps: ViewMaps, x: int, y: int, tolerance: float, criterion: str = DE
                & (_angle(maps.diffuse, maps.diffuse[y, x]) <= limit)
                & (_angle(maps.features, maps.features[y, x]) <= limit))
     allowed[y, x] = True
-    return connected_to(allowed, x, y, depth=maps.depth) if contiguous else allowed
+    return connected_to(allowed, x, y, depth=maps.depth if depth_edges else None) if contiguous else allowed
 
 
-def _select_chroma_steps(maps: ViewMaps, x: int, y: int, tolerance: float, contiguous: bool = True) -> Optional[Tensor]:
+def _select_chroma_steps(maps: ViewMaps, x: int, y: int, tolerance: float, contiguous: bool = True,
+                         depth_edges: bool = False) -> Optional[Tensor]:
     """``select``'s ``chroma_steps`` criterion; None for a neutral click. Not ``contiguous``: the
     pixels of the click's hue with a chroma, wherever they are (no chroma steps: they join no path)."""
     ch = chromaticity(maps.diffuse)
@@ -278,7 +283,7 @@ def _select_chroma_steps(maps: ViewMaps, x: int, y: int, tolerance: float, conti
     if not contiguous:
         return allowed
     log_chroma = torch.log(chroma.clamp_min(1e-6))
-    return connected_to(allowed, x, y, log_chroma, math.log(1.0 + 4.0 * tolerance), maps.depth)
+    return connected_to(allowed, x, y, log_chroma, math.log(1.0 + 4.0 * tolerance), maps.depth if depth_edges else None)
 
 
 def _in_band(chroma: Tensor, at: float, band: float) -> Tensor:
@@ -441,15 +446,17 @@ class PickSession:
         self.maps = view_maps(self.engine)
         check_pixel(self.maps, self.x, self.y)
         self.mask: Optional[Tensor] = None
-        self._selection: Optional[tuple[tuple[float, bool], Tensor]] = None  # ((tolerance, contiguous), its selection)
+        self._selection: Optional[tuple[tuple[float, bool, bool], Tensor]] = None  # ((tolerance, contiguous,
+        # depth_edges), its selection)
         self.edited: Optional[Tensor] = None
         self.settings: dict = {}
         self.steps_done = 0
 
     def update(self, colour: tuple[float, float, float], tolerance: float, mode: str, steps: Optional[int] = None,
                seg_steps: Optional[int] = None, timer: Optional[Callable[[str], None]] = None,
-               contiguous: bool = True) -> Edit:
-        """Select with ``tolerance`` (``contiguous``: only what is connected to the click, :func:`select`),
+               contiguous: bool = True, depth_edges: bool = False) -> Edit:
+        """Select with ``tolerance`` (``contiguous``: only what is connected to the click; ``depth_edges``:
+        and not across a jump in depth, :func:`select`),
         recolour towards ``colour`` by ``mode`` and fit ``steps``
         (default: the config's) from the last fit; ``seg_steps``: the staged segmentation's steps
         when the selection changed (default: the config's). Returns the edit. ``timer(part)``, if
@@ -458,9 +465,10 @@ class PickSession:
         tick = timer or (lambda part: None)
         tolerance, mode = check_tolerance(tolerance), check_mode(mode)
         # a drag of the colour keeps the selection (it depends on the click, the tolerance and contiguity only)
-        key = (tolerance, bool(contiguous))
+        key = (tolerance, bool(contiguous), bool(depth_edges))
         if self._selection is None or self._selection[0] != key:
-            self._selection = (key, select(self.maps, self.x, self.y, tolerance, self.criterion, bool(contiguous)))
+            self._selection = (key, select(self.maps, self.x, self.y, tolerance, self.criterion, bool(contiguous),
+                                           bool(depth_edges)))
         mask = self._selection[1]
         tick("select")
         edited = recolour(self.maps.rgb, mask, colour, mode, self.maps.diffuse,
@@ -470,7 +478,8 @@ class PickSession:
         tick("retarget")
         self.mask, self.edited, self.steps_done = mask, edited, 0
         self.settings = {"pixel": [self.x, self.y], "colour": colour_hex(colour),
-                         "tolerance": tolerance, "contiguous": bool(contiguous), "mode": mode, "criterion": self.criterion,
+                         "tolerance": tolerance, "contiguous": bool(contiguous), "depth_edges": bool(depth_edges),
+                         "mode": mode, "criterion": self.criterion,
                          "reference": self.reference,
                          "selected": float(mask.float().mean())}
         edit = self.refine(self.engine.cfg.steps if steps is None else steps)
