@@ -11,11 +11,12 @@ runs on a CPU through gsplat's own projection and sort; only the last kernel is 
 
 from __future__ import annotations
 
-from contextlib import contextmanager
-from typing import Iterator, Optional
+from typing import Optional
 
 import torch
 from torch import Tensor
+
+from edit_scene import one_thread  # the tests' folder is on sys.path wherever this helper is imported
 
 
 def fully_fused_projection(means, covars, quats, scales, viewmats, Ks, width, height, eps2d=0.3, near_plane=0.01,
@@ -49,16 +50,6 @@ def isect_offset_encode(isect_ids, n_cameras, tile_width, tile_height):
     return _isect_offset_encode(isect_ids, n_cameras, tile_width, tile_height)
 
 
-@contextmanager
-def one_thread() -> Iterator[None]:
-    """torch on one thread inside: the per-tile tensors are tiny, and a second thread only waits on
-    a shared machine (here 40 times slower than one)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(n)
 
 
 def composite_tiles(means2d: Tensor, conics: Tensor, colors: Tensor, opacities: Tensor, image_width: int,
