@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from virgi_ns.cli import convert
+from convert_cli import run_convert
 from virgi_ns.errors import InputError
 from virgi_ns.gaussians import Gaussians
 from virgi_ns.io import decode_splat, load_splat, save_ply
@@ -61,23 +61,12 @@ def _bad_files(d: Path) -> dict[str, tuple[Path, str]]:
     return out
 
 
-def _run_cli_in_process(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
-    monkeypatch.setattr(sys, "argv", ["virgi-convert", *args])
-    code = 0
-    try:
-        convert.entrypoint()
-    except SystemExit as e:
-        code = e.code if isinstance(e.code, int) else 1
-    cap = capsys.readouterr()
-    return code, cap.out, cap.err
-
-
 def test_every_bad_input_gives_one_line_and_exit_2(tmp_path, monkeypatch, capsys):
     src = tmp_path / "in"
     src.mkdir()
     out_dir = tmp_path / "out"
     for name, (path, phrase) in _bad_files(src).items():
-        code, out, err = _run_cli_in_process(monkeypatch, capsys, str(path), str(out_dir / f"{name}.ply"))
+        code, out, err = run_convert(monkeypatch, capsys, str(path), str(out_dir / f"{name}.ply"))
         lines = [ln for ln in err.splitlines() if ln.strip()]
         assert code == 2, (name, err)
         assert len(lines) == 1 and lines[0].startswith("error: ") and phrase in lines[0], (name, err)
@@ -87,7 +76,7 @@ def test_every_bad_input_gives_one_line_and_exit_2(tmp_path, monkeypatch, capsys
 
 def test_drop_invalid_drops_the_bad_rows(tmp_path, monkeypatch, capsys):
     path, _ = _bad_files(tmp_path)["nan"]
-    code, out, err = _run_cli_in_process(monkeypatch, capsys, str(path), str(tmp_path / "o.ply"), "--drop-invalid")
+    code, out, err = run_convert(monkeypatch, capsys, str(path), str(tmp_path / "o.ply"), "--drop-invalid")
     assert code == 0, err
     assert out.startswith(f"{tmp_path / 'o.ply'}: 6 Gaussians, SH degree 0, bbox min (")
     assert len(load_splat(tmp_path / "o.ply")) == 6
@@ -96,7 +85,7 @@ def test_drop_invalid_drops_the_bad_rows(tmp_path, monkeypatch, capsys):
 def test_existing_output_survives_a_failed_conversion(tmp_path, monkeypatch, capsys):
     (tmp_path / "o.ply").write_bytes(b"precious")
     (tmp_path / "bad.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\n")
-    code, _, _ = _run_cli_in_process(monkeypatch, capsys, str(tmp_path / "bad.ply"), str(tmp_path / "o.ply"))
+    code, _, _ = run_convert(monkeypatch, capsys, str(tmp_path / "bad.ply"), str(tmp_path / "o.ply"))
     assert code == 2 and (tmp_path / "o.ply").read_bytes() == b"precious"
 
 

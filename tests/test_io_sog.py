@@ -13,7 +13,6 @@ import struct
 import warnings
 import zipfile
 import zlib
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,6 +26,7 @@ from virgi_ns.gaussians import Gaussians
 from virgi_ns.io import decode_splat, load_splat, save_ply
 from virgi_ns.io.sog import read_sog, sog_bytes, sog_files, sog_order, write_sog
 
+from convert_cli import run_convert
 from test_export import fitted, rscene, scene  # noqa: F401  (fixtures: a tiny trained run)
 
 SQRT2 = math.sqrt(2.0)
@@ -357,26 +357,12 @@ def _bad_sogs() -> dict[str, tuple[bytes, str]]:
     }
 
 
-def _run_convert(monkeypatch, capsys, *args: str) -> tuple[int, str]:
-    import sys
-
-    from virgi_ns.cli import convert as convert_cli
-
-    monkeypatch.setattr(sys, "argv", ["virgi-convert", *args])
-    code = 0
-    try:
-        convert_cli.entrypoint()
-    except SystemExit as e:
-        code = e.code if isinstance(e.code, int) else 1
-    return code, capsys.readouterr().err
-
-
 def test_bad_sog_files_give_one_line_and_write_nothing(tmp_path, monkeypatch, capsys):
     out_dir = tmp_path / "out"
     for name, (data, phrase) in _bad_sogs().items():
         p = tmp_path / f"{name}.sog"
         p.write_bytes(data)
-        code, err = _run_convert(monkeypatch, capsys, str(p), str(out_dir / f"{name}.ply"))
+        code, _, err = run_convert(monkeypatch, capsys, str(p), str(out_dir / f"{name}.ply"))
         lines = [ln for ln in err.splitlines() if ln.strip()]
         assert code == 2 and len(lines) == 1 and lines[0].startswith("error: ") and phrase in lines[0], (name, err)
         assert not out_dir.exists() or not any(out_dir.iterdir()), name
@@ -386,7 +372,7 @@ def test_bad_sog_files_give_one_line_and_write_nothing(tmp_path, monkeypatch, ca
     for k, v in sog_files(random_gaussians(20, 0)).items():
         if k != "scales.webp":
             (folder / k).write_bytes(v)
-    code, err = _run_convert(monkeypatch, capsys, str(folder), str(out_dir / "f.ply"))
+    code, _, err = run_convert(monkeypatch, capsys, str(folder), str(out_dir / "f.ply"))
     assert code == 2 and "lacks scales.webp" in err and err.count("\n") == 1, err
 
 
