@@ -72,7 +72,7 @@ import statistics
 import tempfile
 import time
 from types import SimpleNamespace
-from typing import Callable, Optional
+from typing import Callable
 
 import torch
 from torch import Tensor
@@ -148,12 +148,17 @@ def click_pixel(mask: Tensor) -> tuple[int, int, int]:
     return int(xs[k]), int(ys[k]), int(depth.max())
 
 
-def coverage(scene, camera) -> Tensor:
-    """Float [H,W]: the view's accumulated opacity."""
+def _whole_view(scene, camera):
+    """The contributions of ``camera``'s whole view (one camera) on ``scene``."""
     from virgi_ns.raster import Request
 
     cams = camera.to(scene.device, torch.float32)
-    return scene.contributions(cams, Request.whole_images(cams)).accumulation()[0]
+    return scene.contributions(cams, Request.whole_images(cams))
+
+
+def coverage(scene, camera) -> Tensor:
+    """Float [H,W]: the view's accumulated opacity."""
+    return _whole_view(scene, camera).accumulation()[0]
 
 
 def rule_colour(render: Tensor, x: int, y: int, rule: RecolorRule) -> tuple[float, float, float]:
@@ -200,18 +205,10 @@ def judge_pick(p: dict) -> dict:
     return {"class": klass, "share": share, "reason": reason, "by": by, "pass": bool(own or near)}
 
 
-def pick_passes(p: dict) -> bool:
-    """:func:`judge_pick`'s verdict."""
-    return judge_pick(p)["pass"]
-
-
 def object_gaussians(scene, camera, obj: Tensor) -> Tensor:
     """Bool [N]: the Gaussians of the object ``obj`` [H,W] shows on ``camera`` (one view): those that put
     at least half their blending weight on that view inside ``obj``."""
-    from virgi_ns.raster import Request
-
-    cams = camera.to(scene.device, torch.float32)
-    c = scene.contributions(cams, Request.whole_images(cams))
+    c = _whole_view(scene, camera)
     g = c.gaussian().to(scene.device)
     w = c.weight.detach().float().to(scene.device)
     inside = obj.reshape(-1).to(scene.device)[c.pixel.to(scene.device)].float()
@@ -222,10 +219,9 @@ def object_gaussians(scene, camera, obj: Tensor) -> Tensor:
 
 def object_cover(scene, camera, gaussians: Tensor) -> Tensor:
     """Float [H,W]: the opacity the ``gaussians`` [N] bool composite to on ``camera`` (one view)."""
-    from virgi_ns.raster import Request, composite
+    from virgi_ns.raster import composite
 
-    cams = camera.to(scene.device, torch.float32)
-    c = scene.contributions(cams, Request.whole_images(cams))
+    c = _whole_view(scene, camera)
     per_pair = gaussians.to(scene.device)[c.pair_gaussian.to(scene.device)].float()[:, None]
     return composite(per_pair, c)[0, ..., 0]
 
@@ -469,4 +465,4 @@ __all__ = ["CLASSES", "CLICK_TARGETS", "LATENCY_TARGET_S", "MODE", "OBJECT_TARGE
            "WITHIN_DB", "ViewerRender", "border_distance", "click_pixel", "coverage", "drag_frame", "judge_pick",
            "largest_component", "mask_class", "measure_object", "measure_pick", "object_cover", "object_figures",
            "object_gaussians",
-           "pick_passes", "release_frame", "rule_colour", "top_up_frame", "viewer_latency"]
+           "release_frame", "rule_colour", "top_up_frame", "viewer_latency"]
