@@ -114,7 +114,7 @@ def test_edit_figures_against_hand_computed_psnr():
     after[0, 3, 0] += 0.1
     photo = base.clone()
     photo[0, 2] += 0.05  # the unedited render's error: one pixel, all three channels
-    got = edit_figures(after, base, photo, rule)
+    got = edit_figures(after, base, photo, truth, recolor(photo, rule)[0], mask)
     assert got["miss_psnr"] >= 119.0  # exact (the PSNR's floor of 1e-12)
     assert abs(got["leak_psnr"] - -10.0 * math.log10(0.01 / 6)) < 1e-3  # one channel off of 2 pixels x 3
     assert abs(got["propagation_psnr"] - -10.0 * math.log10(0.01 / 12)) < 1e-3

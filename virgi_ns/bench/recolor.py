@@ -126,14 +126,13 @@ def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> float:
     return float(x[mask].float().mean()) if bool(mask.any()) else math.nan
 
 
-def edit_figures(after: torch.Tensor, base: torch.Tensor, photo: torch.Tensor, rule: RecolorRule) -> dict:
-    """One view's edit figures: ``after`` (the edited render) against the rule applied to ``base`` (the
-    unedited render) over the whole view (propagation), inside the rule's mask (miss) and outside it
-    (leak); the unedited render against ``photo``; the recolour a perfect edit would score (the rule
-    on the render against the rule on the photo: the rule's thresholds can amplify the reconstruction
-    error); the mask's share of the view."""
-    truth_photo, _ = recolor(photo, rule)
-    truth_render, mask = recolor(base, rule)
+def edit_figures(after: torch.Tensor, base: torch.Tensor, photo: torch.Tensor, truth_render: torch.Tensor,
+                 truth_photo: torch.Tensor, mask: torch.Tensor) -> dict:
+    """One view's edit figures: ``after`` (the edited render) against ``truth_render`` (the rule applied
+    to ``base``, the unedited render, whose ``mask`` it recoloured) over the whole view (propagation),
+    inside the mask (miss) and outside it (leak); the unedited render against ``photo``; the recolour a
+    perfect edit would score (``truth_render`` against ``truth_photo``, the rule on the photo: the
+    rule's thresholds can amplify the reconstruction error); the mask's share of the view."""
     return {"unedited_psnr": psnr(base, photo),
             "perfect_edit_recolour_psnr": psnr(truth_render, truth_photo),
             "propagation_psnr": psnr(after, truth_render),
@@ -341,7 +340,7 @@ class Bench:
             m = image_metrics(after, truth_photo, lpips="auto" if lpips else None)
             rows.append({
                 "recolour_psnr": m["psnr"], "recolour_ssim": m["ssim"], "recolour_lpips": m["lpips"],
-                **edit_figures(after, base, photo, rule),
+                **edit_figures(after, base, photo, truth_render, truth_photo, mask),
                 **self._per_gaussian_rule(i, rule, truth_render, mask),
                 # the edit's segmentation (composited alpha) where the rule recolours and elsewhere
                 "alpha_in_mask": _masked_mean(out["segmentation"][..., 0], mask),
