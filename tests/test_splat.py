@@ -372,7 +372,7 @@ def test_ns_train_on_a_splat_then_pick_and_export(tmp_path):
     from virgi_ns.io import load_splat
 
     g, red = write_splat(tmp_path / "two.ply", n_per_object=1500)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH")) if p),
            "VIRGI_NS_CACHE": str(tmp_path / "cache"),
            "NERFSTUDIO_DATAPARSER_CONFIGS": "splat=virgi_ns.data.splat:splat_dataparser"}
     bin_ = Path(sys.executable).parent
@@ -431,7 +431,7 @@ def test_a_real_splat_on_a_gpu(name, shared_data, tmp_path):
     from virgi_ns.demo.splat import SplatDemoConfig, run
 
     splat = shared_data / "splats" / f"{name}.compressed.ply"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(REPO), os.environ.get("PYTHONPATH")) if p),
            "VIRGI_NS_CACHE": str(tmp_path / "cache"),
            "NERFSTUDIO_DATAPARSER_CONFIGS": "splat=virgi_ns.data.splat:splat_dataparser"}
     train = "from nerfstudio.scripts.train import entrypoint; entrypoint()"
