@@ -464,7 +464,7 @@ class PickSession:
         benchmark's breakdown."""
         tick = timer or (lambda part: None)
         tolerance, mode = check_tolerance(tolerance), check_mode(mode)
-        # a drag of the colour keeps the selection (it depends on the click, the tolerance and contiguity only)
+        # a drag of the colour keeps the selection (it depends on the click and the selection settings only)
         key = (tolerance, bool(contiguous), bool(depth_edges))
         if self._selection is None or self._selection[0] != key:
             self._selection = (key, select(self.maps, self.x, self.y, tolerance, self.criterion, bool(contiguous),
