@@ -31,7 +31,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Dict, List, Literal
 
@@ -71,6 +71,9 @@ class Args:
     device: Literal["cuda", "cpu"] = "cuda"
     settings: str = ""
     """More config settings, 'a.b.c=value,...' (dotted TrainerConfig paths, as bench/train.py's)."""
+    warmup: bool = True
+    """First an untimed short run on one process: the first run of a fresh machine pays for reading the
+    libraries and the images from a cold disk (measured: 10-15 s more), which no row should carry."""
     merge: List[Path] = field(default_factory=list)
     """Train nothing: read the rows of these results.json files (seeds split over calls on one
     machine), print the tables and write them all to --out/results.json."""
@@ -148,10 +151,11 @@ def _child(config_file: Path) -> None:
         run_processes(_cpu_worker, world, config)
 
 
-def run(args: Args, world: int, seed: int) -> Dict[str, object]:
+def run(args: Args, world: int, seed: int, name_suffix: str = "") -> Dict[str, object]:
     """Train one run in a fresh interpreter; its row, with ``whole_run_s`` from the interpreter's
     start to the final checkpoint (``launch_s`` of it before rank 0's process starts its work)."""
     cfg = run_config(args, world, seed)
+    cfg.experiment_name += name_suffix
     path = Path(cfg.get_base_dir()) / RESULT
     path.unlink(missing_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
@@ -276,6 +280,10 @@ def main(args: Args) -> None:
     else:
         device = "CPU (gloo)"
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.warmup:
+        short = replace(args, steps=min(args.steps, 100), colour_steps=min(args.colour_steps, 20))
+        console.log(f"warm-up run (not timed): {short.steps} + {short.colour_steps} steps on one process")
+        run(short, 1, args.seeds[0], name_suffix="-warmup")
     rows: List[Dict[str, object]] = []
     for seed in args.seeds:
         for world in sorted(args.worlds):
