@@ -86,4 +86,16 @@ class DemoConfig:
         return RecolorRule(self.hue_from, self.hue_to, 0.0, self.sat_min, self.val_min)
 
 
-__all__ = ["DemoConfig", "SHARED_BEERCAN"]
+def demo_device(choice: str):
+    """The torch device a demo's ``--device`` names (``auto``: a CUDA GPU where one is visible, else the CPU);
+    ``cuda`` without a visible GPU is an :class:`~virgi_ns.errors.InputError`."""
+    import torch
+
+    from virgi_ns.errors import InputError
+
+    if choice == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: no CUDA GPU is available")
+    return torch.device("cuda" if choice == "cuda" or (choice == "auto" and torch.cuda.is_available()) else "cpu")
+
+
+__all__ = ["DemoConfig", "SHARED_BEERCAN", "demo_device"]

@@ -18,7 +18,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from virgi_ns.data.bundle import bundled_geometry
-from virgi_ns.demo.config import DemoConfig
+from virgi_ns.demo.config import DemoConfig, demo_device
 from virgi_ns.demo.measure import (DEFINITIONS, as_float, held_out_means, object_mask, psnr, summary_table,
                                    view_metrics)
 from virgi_ns.demo.picture import grid_image, grid_row
@@ -36,10 +36,7 @@ def _check_full(cfg: DemoConfig, dev: torch.device) -> None:
 def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]:
     """The whole demo; returns the metrics written to ``metrics.json``."""
     console = console or Console()
-    dev = torch.device("cuda" if cfg.device == "cuda" or (cfg.device == "auto" and torch.cuda.is_available())
-                       else "cpu")
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: no CUDA GPU is available")
+    dev = demo_device(cfg.device)
     _check_full(cfg, dev)
     for name in ("edit_steps", "colour_steps", "grid_views", "grid_scale"):
         if getattr(cfg, name) is not None and getattr(cfg, name) < 1:

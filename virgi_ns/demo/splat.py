@@ -34,6 +34,7 @@ import torch
 import tyro
 from rich.console import Console
 
+from virgi_ns.demo.config import demo_device
 from virgi_ns.errors import InputError, atomic_path, cli_entry
 
 __all__ = ["SplatDemoConfig", "choose_click", "main", "run"]
@@ -296,10 +297,7 @@ def run(cfg: SplatDemoConfig, console: Optional[Console] = None) -> Dict[str, ob
     from virgi_ns.cli.export import run as export_run
 
     console = console or Console()
-    dev = torch.device("cuda" if cfg.device == "cuda" or (cfg.device == "auto" and torch.cuda.is_available())
-                       else "cpu")
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: no CUDA GPU is available")
+    dev = demo_device(cfg.device)
     if (cfg.pixel is None) != (cfg.camera_index is None):
         raise InputError("give --camera-index and --pixel together (or neither: the most colourful spot)")
     parse_colour(cfg.colour)
