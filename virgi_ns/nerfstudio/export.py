@@ -119,6 +119,55 @@ def _camera_weights(means: Tensor, cams: Cameras, unseen: float) -> Tensor:
 
 
 # -------------------------------------------------------------------------------- baking
+def _baked(model, frame, sh: Tensor) -> Gaussians:
+    """The model's Gaussians in ``frame``'s capture frame with the baked coefficients ``sh``."""
+    m_cap, s_cap, q_cap = frame.gaussians_to_capture(model.means.detach().float(), model.scales.detach().float(),
+                                                     model.quats.detach().float())
+    return Gaussians(m_cap.contiguous(), s_cap.contiguous(), q_cap.contiguous(),
+                     model.opacities.detach().float().reshape(-1).clone(), sh)
+
+
+class _FitDirections:
+    """The directions a Gaussian's view-dependent colour is sampled in for its SH fit, in the run's frame,
+    with their weights: the training cameras' (at most ``cfg.max_cameras``, evenly strided) and a
+    Fibonacci sphere's of ``cfg.directions`` (at least ``min_sphere``) weighted by their nearness to a
+    camera direction. ``count`` directions a Gaussian; ``chunk`` Gaussians at a time fit
+    ``cfg.pairs_per_chunk`` (or the device's default) pairs."""
+
+    def __init__(self, cfg: BakeConfig, cameras, frame, means: Tensor, min_sphere: int) -> None:
+        dev = means.device
+        self.cfg = cfg
+        sphere_cap = fibonacci_sphere(max(cfg.directions, min_sphere), device=dev)
+        self.sphere_run = frame.directions_to_run(sphere_cap.double()).float()
+        self.cams = None
+        if cameras is not None and len(cameras) > 0:
+            sel = torch.linspace(0, len(cameras) - 1, min(cfg.max_cameras, len(cameras))).round().long().unique()
+            self.cams = cameras.index(sel).to(dev, torch.float32)
+        self.centres = self.cams.camera_centers().to(means.dtype) if self.cams is not None else None
+        self.count = (len(self.cams) if self.cams is not None else 0) + sphere_cap.shape[0]
+        budget = cfg.pairs_per_chunk or ((4 << 20) if dev.type == "cuda" else (512 << 10))
+        self.chunk = max(1, budget // max(self.count, 1))
+
+    def at(self, m: Tensor) -> tuple[Tensor, Tensor]:
+        """Directions [b,count,3] (run frame) and weights [b,count] for the Gaussians at ``m`` [b,3]."""
+        cfg, cams, b = self.cfg, self.cams, m.shape[0]
+        parts, wparts = [], []
+        if cams is not None:
+            parts.append(torch.nn.functional.normalize(m[:, None, :] - self.centres[None], dim=-1))
+            w_cam = _camera_weights(m, cams, cfg.unseen_weight)
+            wparts.append(w_cam)
+        if self.sphere_run.shape[0]:
+            sph = self.sphere_run[None].expand(b, -1, -1).to(m.dtype)
+            parts.append(sph)
+            w_s = torch.full((b, sph.shape[1]), cfg.sphere_floor if cams is not None else 1.0, device=m.device)
+            if cams is not None:
+                cos = sph @ parts[0].transpose(1, 2)  # [b,S,V]
+                near = (torch.exp((cos - 1.0) / max(cfg.kernel, 1e-6)) * w_cam[:, None, :]).amax(-1)
+                w_s = torch.maximum(w_s, near.to(w_s))
+            wparts.append(w_s)
+        return torch.cat(parts, dim=1), torch.cat(wparts, dim=1)
+
+
 @torch.no_grad()
 def bake(
     model,
@@ -168,17 +217,10 @@ def bake(
     else:
         varying = torch.ones(n, dtype=torch.bool, device=dev)
 
-    sphere_cap = fibonacci_sphere(max(cfg.directions, 0), device=dev)
-    sphere_run = frame.directions_to_run(sphere_cap.double()).float()
-    cams = None
-    if cameras is not None and len(cameras) > 0:
-        sel = torch.linspace(0, len(cameras) - 1, min(cfg.max_cameras, len(cameras))).round().long().unique()
-        cams = cameras.index(sel).to(dev, torch.float32)
-    P = (len(cams) if cams is not None else 0) + sphere_cap.shape[0]
+    dirs = _FitDirections(cfg, cameras, frame, means, min_sphere=0)
+    P, chunk = dirs.count, dirs.chunk
     if P == 0:
         varying.zero_()
-    budget = cfg.pairs_per_chunk or ((4 << 20) if dev.type == "cuda" else (512 << 10))
-    chunk = max(1, budget // max(P, 1))
     fixed_chunk = 1 << 16
     total = n
     done = 0
@@ -198,27 +240,11 @@ def bake(
             progress(done, total)
 
     vary = varying.nonzero().flatten()
-    centres = cams.camera_centers().to(means.dtype) if cams is not None else None
     for s in range(0, vary.numel(), chunk):
         idx = vary[s : s + chunk]
         m = means[idx]
         b = idx.numel()
-        parts, wparts = [], []
-        if cams is not None:
-            parts.append(torch.nn.functional.normalize(m[:, None, :] - centres[None], dim=-1))
-            w_cam = _camera_weights(m, cams, cfg.unseen_weight)
-            wparts.append(w_cam)
-        if sphere_cap.shape[0]:
-            sph = sphere_run[None].expand(b, -1, -1).to(m.dtype)
-            parts.append(sph)
-            w_s = torch.full((b, sph.shape[1]), cfg.sphere_floor if cams is not None else 1.0, device=dev)
-            if cams is not None:
-                cos = sph @ parts[0].transpose(1, 2)  # [b,S,V]
-                near = (torch.exp((cos - 1.0) / max(cfg.kernel, 1e-6)) * w_cam[:, None, :]).amax(-1)
-                w_s = torch.maximum(w_s, near.to(w_s))
-            wparts.append(w_s)
-        d_run = torch.cat(parts, dim=1)  # [b,P,3]
-        w = torch.cat(wparts, dim=1)
+        d_run, w = dirs.at(m)  # [b,P,3], [b,P]
         flat = d_run.reshape(-1, 3)
         f = fld.encode(m)
         rep = torch.arange(b, device=dev).repeat_interleave(P)
@@ -241,10 +267,7 @@ def bake(
         if progress is not None:
             progress(done, total)
 
-    m_cap, s_cap, q_cap = frame.gaussians_to_capture(means.float(), model.scales.detach().float(),
-                                                     model.quats.detach().float())
-    return Gaussians(m_cap.contiguous(), s_cap.contiguous(), q_cap.contiguous(),
-                     model.opacities.detach().float().reshape(-1).clone(), sh)
+    return _baked(model, frame, sh)
 
 
 @torch.no_grad()
@@ -280,35 +303,12 @@ def bake_file_colours(model, fc: FileColours, stack, k: float, frame, cameras, c
         colour = fc.dc_colours(idx) + torch.sigmoid(e[idx]) - torch.sigmoid(b[idx])
         sh[idx, 0] = ((colour - 0.5) / SH_C0).float()
     elif idx.numel():
-        sphere_cap = fibonacci_sphere(max(cfg.directions, 1), device=dev)
-        sphere_run = frame.directions_to_run(sphere_cap.double()).float()
-        cams = None
-        if cameras is not None and len(cameras) > 0:
-            sel = torch.linspace(0, len(cameras) - 1, min(cfg.max_cameras, len(cameras))).round().long().unique()
-            cams = cameras.index(sel).to(dev, torch.float32)
-        centres = cams.camera_centers().to(means.dtype) if cams is not None else None
-        P = (len(cams) if cams is not None else 0) + sphere_cap.shape[0]
-        budget = cfg.pairs_per_chunk or ((4 << 20) if dev.type == "cuda" else (512 << 10))
-        chunk = max(1, budget // max(P, 1))
+        dirs = _FitDirections(cfg, cameras, frame, means, min_sphere=1)
+        chunk = dirs.chunk
         for s in range(0, idx.numel(), chunk):
             part = idx[s : s + chunk]
-            m = means[part]
             nb = part.numel()
-            dparts, wparts = [], []
-            if cams is not None:
-                dparts.append(torch.nn.functional.normalize(m[:, None, :] - centres[None], dim=-1))
-                w_cam = _camera_weights(m, cams, cfg.unseen_weight)
-                wparts.append(w_cam)
-            sph = sphere_run[None].expand(nb, -1, -1).to(m.dtype)
-            dparts.append(sph)
-            w_s = torch.full((nb, sph.shape[1]), cfg.sphere_floor if cams is not None else 1.0, device=dev)
-            if cams is not None:
-                cos = sph @ dparts[0].transpose(1, 2)
-                near = (torch.exp((cos - 1.0) / max(cfg.kernel, 1e-6)) * w_cam[:, None, :]).amax(-1)
-                w_s = torch.maximum(w_s, near.to(w_s))
-            wparts.append(w_s)
-            d_run = torch.cat(dparts, dim=1)  # [nb,P,3]
-            w = torch.cat(wparts, dim=1)
+            d_run, w = dirs.at(means[part])  # [nb,P,3], [nb,P]
             P_ = d_run.shape[1]
             rep = part.repeat_interleave(P_)
             bb, ss = fc.logits(rep, d_run.reshape(-1, 3))
@@ -319,10 +319,7 @@ def bake_file_colours(model, fc: FileColours, stack, k: float, frame, cameras, c
                 progress(min(s + chunk, idx.numel()), idx.numel())
     if progress is not None:
         progress(n, n)
-    m_cap, s_cap, q_cap = frame.gaussians_to_capture(means.float(), model.scales.detach().float(),
-                                                     model.quats.detach().float())
-    return Gaussians(m_cap.contiguous(), s_cap.contiguous(), q_cap.contiguous(),
-                     model.opacities.detach().float().reshape(-1).clone(), sh)
+    return _baked(model, frame, sh)
 
 
 def bake_pipeline(pipeline, stack=None, specular_strength: Optional[float] = None,
