@@ -164,9 +164,12 @@ def _scene_pixels(region: np.ndarray) -> np.ndarray:
     return region[np.abs(region - bg).max(-1) > 0.08]
 
 
-def _page(driver):
-    """(the page's text, the panel button with a label): what the browser tests read and press."""
+def _open_panel(driver, url: str, shows: str):
+    """Open the viewer at ``url`` and wait until its connected VIRGi panel shows ``shows``; returns (the
+    page's text, the panel button with a label): what the browser tests read and press."""
     from selenium.webdriver.common.by import By
+
+    driver.get(url)
 
     def body() -> str:
         return driver.find_element(By.TAG_NAME, "body").text
@@ -174,6 +177,7 @@ def _page(driver):
     def button(label: str):
         return driver.find_element(By.XPATH, f"//button[normalize-space()='{label}']")
 
+    _wait("the VIRGi panel", lambda: shows in body() and "Connected" in body(), 90)
     return body, button
 
 
@@ -182,11 +186,7 @@ def test_save_upload_apply_in_the_browser(viewer, browser, tmp_path):
 
     url, run_dir, _ = viewer
     driver, downloads = browser
-    driver.get(url)
-
-    body, button = _page(driver)
-
-    _wait("the VIRGi panel", lambda: "Save this view" in body() and "Connected" in body(), 90)
+    body, button = _open_panel(driver, url, "Save this view")
     def rendered():
         px = _scene_pixels(_render_region(driver, _screenshot(driver, tmp_path / "0.png")))
         return (px,) if len(px) > 500 else None
@@ -288,11 +288,7 @@ def test_pick_in_the_browser(viewer, browser, tmp_path):
 
     url, run_dir, _ = viewer
     driver, _ = browser
-    driver.get(url)
-
-    body, button = _page(driver)
-
-    _wait("the VIRGi panel", lambda: "Pick mode" in body() and "Connected" in body(), 90)
+    body, button = _open_panel(driver, url, "Pick mode")
     if list((run_dir / "edits").glob("edit_*.pt")):  # another test's edits: start from the unedited run
         _press(driver, button("Reset"))
         _wait("the reset", lambda: "reset: removed" in body(), 60)
