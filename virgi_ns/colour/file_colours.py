@@ -82,10 +82,6 @@ class FileColours:
         self._base: Optional[Tensor] = None
 
     @property
-    def num_points(self) -> int:
-        return int(self.dc.shape[0])
-
-    @property
     def device(self) -> torch.device:
         return self.dc.device
 
