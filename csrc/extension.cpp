@@ -238,6 +238,22 @@ Kept kept_of(const torch::Tensor& keep_list, const torch::Tensor& keep_end) {
   return {keep_list.data_ptr<int>(), keep_end.data_ptr<int>()};
 }
 
+// The deferred lists a request's count pass left (see DeferredLists), for the deferred composite and
+// its gradient.
+DeferredLists deferred_lists(const torch::Tensor& plan, const torch::Tensor& meta,
+                             const torch::Tensor& ranges, const torch::Tensor& sorted_vals,
+                             const torch::Tensor& list_pair, const torch::Tensor& rec0,
+                             const torch::Tensor& rec1, const torch::Tensor& keep_list,
+                             const torch::Tensor& keep_end) {
+  check_i32(list_pair, "list_pair");
+  check_i32(sorted_vals, "sorted_vals");
+  const Units u = units_of(plan, meta);
+  const Kept kept = kept_of(keep_list, keep_end);
+  return {u.num_units, u.units, u.items, u.views, u.item_w, u.item_h, ranges.data_ptr<int>(),
+          sorted_vals.data_ptr<int>(), list_pair.data_ptr<int>(), float4_ptr(rec0), float4_ptr(rec1),
+          kept.list, kept.end};
+}
+
 }  // namespace
 
 // capacity: size of the compact visible-pair arrays to try first (-1: estimate; tests force an
@@ -666,22 +682,18 @@ torch::Tensor deferred_composite_forward(torch::Tensor colors, torch::Tensor bac
                                          torch::Tensor keep_list, torch::Tensor keep_end) {
   check_f32(colors, "colors");
   check_f32(transmittance, "transmittance");
-  check_i32(list_pair, "list_pair");
-  check_i32(sorted_vals, "sorted_vals");
   TORCH_CHECK(colors.dim() == 2 && colors.size(1) >= 1 && colors.size(1) <= 8,
               "deferred composite takes [U, D] colours with D in 1..8");
   const OnDevice on(colors);
-  const Units u = units_of(plan, meta);
+  const DeferredLists lists =
+      deferred_lists(plan, meta, ranges, sorted_vals, list_pair, rec0, rec1, keep_list, keep_end);
   const int D = static_cast<int>(colors.size(1));
   const float* bg = background_ptr(background, D);
   // pixels of no unit (outside their image) keep T = 1: the background
   torch::Tensor out = bg ? transmittance.unsqueeze(1) * background.reshape({1, D})
                          : torch::zeros({transmittance.size(0), D}, colors.options());
-  const Kept kept = kept_of(keep_list, keep_end);
-  VIRGI_CUDA_CHECK(launch_deferred_forward(
-      u.num_units, D, u.units, u.items, u.views, u.item_w, u.item_h, ranges.data_ptr<int>(),
-      sorted_vals.data_ptr<int>(), list_pair.data_ptr<int>(), float4_ptr(rec0), float4_ptr(rec1),
-      colors.data_ptr<float>(), bg, out.data_ptr<float>(), kept.list, kept.end, on.stream));
+  VIRGI_CUDA_CHECK(
+      launch_deferred_forward(lists, D, colors.data_ptr<float>(), bg, out.data_ptr<float>(), on.stream));
   return out;
 }
 
@@ -693,19 +705,15 @@ torch::Tensor deferred_composite_backward(torch::Tensor grad_images, int64_t num
                                           torch::Tensor rec1, torch::Tensor keep_list,
                                           torch::Tensor keep_end) {
   check_f32(grad_images, "grad_images");
-  check_i32(list_pair, "list_pair");
   const OnDevice on(grad_images);
-  const Units u = units_of(plan, meta);
+  const DeferredLists lists =
+      deferred_lists(plan, meta, ranges, sorted_vals, list_pair, rec0, rec1, keep_list, keep_end);
   const int D = static_cast<int>(grad_images.size(1));
   TORCH_CHECK(D >= 1 && D <= 8, "deferred composite takes D in 1..8");
   auto grad_colors = torch::zeros({num_pairs, D}, grad_images.options());
   if (num_pairs == 0) return grad_colors;
-  const Kept kept = kept_of(keep_list, keep_end);
-  VIRGI_CUDA_CHECK(launch_deferred_backward(
-      u.num_units, D, u.units, u.items, u.views, u.item_w, u.item_h, ranges.data_ptr<int>(),
-      sorted_vals.data_ptr<int>(), list_pair.data_ptr<int>(), float4_ptr(rec0), float4_ptr(rec1),
-      grad_images.data_ptr<float>(), grad_colors.data_ptr<float>(), kept.list, kept.end,
-      on.stream));
+  VIRGI_CUDA_CHECK(launch_deferred_backward(lists, D, grad_images.data_ptr<float>(),
+                                            grad_colors.data_ptr<float>(), on.stream));
   return grad_colors;
 }
 

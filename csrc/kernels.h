@@ -117,22 +117,32 @@ cudaError_t launch_composite_backward_tiles(int num_units, int D, const int* uni
                                             const int64_t* offsets, const int* pair,
                                             const float* weight, const float* grad,
                                             float* grad_colors, cudaStream_t stream);
+// A request's deferred tile lists, as the deferred composite and its gradient walk them: the work
+// units with their items and views (item_w x item_h pixels an item), each grid tile's range of its
+// depth-sorted list (ranges), every list element's Gaussian (sorted_vals) and pair rank (list_pair,
+// -1: it contributes nowhere), the projected Gaussians (rec0, rec1), and keep_list / keep_end (from a
+// kCountMark pass, or null: the whole lists) naming the list elements that matter to a unit's pixels.
+struct DeferredLists {
+  int num_units;
+  const int* units;
+  const int* items;
+  const int* views;
+  int item_w, item_h;
+  const int* ranges;
+  const int* sorted_vals;
+  const int* list_pair;
+  const float4* rec0;
+  const float4* rec1;
+  const int* keep_list;
+  const int* keep_end;
+};
 // Deferred lists (D in 1..8): the composite and its gradient straight from the tile lists,
 // weights recomputed as the raster pass computes them. The forward writes the pixels of the
-// units only; grad_colors [U, D] is pre-zeroed. keep_list / keep_end (from a kCountMark pass,
-// or null: the whole lists) name the list elements that matter to the unit's pixels.
-cudaError_t launch_deferred_forward(int num_units, int D, const int* units, const int* items,
-                                    const int* views, int item_w, int item_h, const int* ranges,
-                                    const int* sorted_vals, const int* list_pair,
-                                    const float4* rec0, const float4* rec1, const float* colors,
-                                    const float* background, float* out, const int* keep_list,
-                                    const int* keep_end, cudaStream_t stream);
-cudaError_t launch_deferred_backward(int num_units, int D, const int* units, const int* items,
-                                     const int* views, int item_w, int item_h, const int* ranges,
-                                     const int* sorted_vals, const int* list_pair,
-                                     const float4* rec0, const float4* rec1, const float* grad,
-                                     float* grad_colors, const int* keep_list, const int* keep_end,
-                                     cudaStream_t stream);
+// units only; grad_colors [U, D] is pre-zeroed.
+cudaError_t launch_deferred_forward(const DeferredLists& lists, int D, const float* colors,
+                                    const float* background, float* out, cudaStream_t stream);
+cudaError_t launch_deferred_backward(const DeferredLists& lists, int D, const float* grad,
+                                     float* grad_colors, cudaStream_t stream);
 cudaError_t launch_list_pair(int64_t n, const int* sorted_vals, const uint8_t* mark,
                              const int* rank_incl, int* list_pair, cudaStream_t stream);
 

@@ -541,24 +541,45 @@ __global__ void list_pair_kernel(int64_t n, const int* __restrict__ sorted_vals,
 // pixel[e] for every entry: a warp owns 32 consecutive pixels, whose entries are one contiguous
 // range; each lane finds its entry's pixel among the 32 offsets by a shuffle binary search, so
 // the stores are coalesced.
+// A warp's 32 consecutive pixels p0 .. p0 + 31 (fewer at the end of P) and their entries [start,
+// end), grouped by pixel by offsets [P + 1]; my_off: this lane's pixel's first entry.
+struct WarpPixels {
+  int64_t p0, start, end, my_off;
+};
+
+// False where the whole warp lies past P (P rounds the grid up by less than one block): the warp
+// returns together, as its shuffles need.
+__device__ __forceinline__ bool warp_pixels(int64_t P, const int64_t* __restrict__ offsets,
+                                            WarpPixels& w) {
+  const int64_t p = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  w.p0 = p - (threadIdx.x & 31);
+  if (w.p0 >= P) return false;
+  w.my_off = offsets[p < P ? p : P];
+  w.start = __shfl_sync(0xffffffffu, w.my_off, 0);
+  w.end = offsets[w.p0 + 32 < P ? w.p0 + 32 : P];
+  return true;
+}
+
+// The lane (pixel p0 + lane) whose entries hold entry e: a shuffle binary search among the warp's
+// 32 first entries. Every lane of the warp calls it.
+__device__ __forceinline__ int entry_lane(const WarpPixels& w, int64_t e) {
+  int lo = 0;
+#pragma unroll
+  for (int step = 16; step > 0; step >>= 1) {
+    const int64_t o = __shfl_sync(0xffffffffu, w.my_off, lo + step);
+    if (o <= e) lo += step;
+  }
+  return lo;
+}
+
 __global__ void pixel_fill_kernel(int64_t P, const int64_t* __restrict__ offsets,
                                   int* __restrict__ pixel) {
-  const int64_t p = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
-  const int lane = threadIdx.x & 31;
-  const int64_t p0 = p - lane;
-  if (p0 >= P) return;  // whole warp out of range (P rounds the grid up by < one block)
-  const int64_t my_off = offsets[p < P ? p : P];
-  const int64_t start = __shfl_sync(0xffffffffu, my_off, 0);
-  const int64_t end = offsets[p0 + 32 < P ? p0 + 32 : P];
-  for (int64_t b = start; b < end; b += 32) {
-    const int64_t e = b + lane;
-    int lo = 0;
-#pragma unroll
-    for (int step = 16; step > 0; step >>= 1) {
-      const int64_t o = __shfl_sync(0xffffffffu, my_off, lo + step);
-      if (o <= e) lo += step;
-    }
-    if (e < end) pixel[e] = static_cast<int>(p0 + lo);
+  WarpPixels w;
+  if (!warp_pixels(P, offsets, w)) return;
+  for (int64_t b = w.start; b < w.end; b += 32) {
+    const int64_t e = b + (threadIdx.x & 31);
+    const int lo = entry_lane(w, e);
+    if (e < w.end) pixel[e] = static_cast<int>(w.p0 + lo);
   }
 }
 
@@ -569,30 +590,50 @@ __global__ void split_padded_kernel(int64_t P, int pcap, const int64_t* __restri
                                     const int2* __restrict__ padded,
                                     const int* __restrict__ rank_incl, int* __restrict__ pixel,
                                     int* __restrict__ pair, float* __restrict__ weight) {
-  const int64_t p = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
-  const int lane = threadIdx.x & 31;
-  const int64_t p0 = p - lane;
-  if (p0 >= P) return;
-  const int64_t my_off = offsets[p < P ? p : P];
-  const int64_t start = __shfl_sync(0xffffffffu, my_off, 0);
-  const int64_t end = offsets[p0 + 32 < P ? p0 + 32 : P];
-  for (int64_t b = start; b < end; b += 32) {
-    const int64_t e = b + lane;
-    int lo = 0;
-#pragma unroll
-    for (int step = 16; step > 0; step >>= 1) {
-      const int64_t o = __shfl_sync(0xffffffffu, my_off, lo + step);
-      if (o <= e) lo += step;
-    }
-    const int64_t first = __shfl_sync(0xffffffffu, my_off, lo);
-    if (e < end) {
-      const int64_t q = p0 + lo;
+  WarpPixels w;
+  if (!warp_pixels(P, offsets, w)) return;
+  for (int64_t b = w.start; b < w.end; b += 32) {
+    const int64_t e = b + (threadIdx.x & 31);
+    const int lo = entry_lane(w, e);
+    const int64_t first = __shfl_sync(0xffffffffu, w.my_off, lo);
+    if (e < w.end) {
+      const int64_t q = w.p0 + lo;
       const int2 v = padded[q * pcap + (e - first)];
       pixel[e] = static_cast<int>(q);
       pair[e] = rank_incl[v.x] - 1;
       weight[e] = __int_as_float(v.y);
     }
   }
+}
+
+// This thread's pixel and the part [start, end) of its tile's list (the kept elements where the
+// lists name them) that a deferred walk reads.
+struct DeferredWalk {
+  UnitPixel px;
+  int start, end;
+};
+
+__device__ __forceinline__ DeferredWalk deferred_walk(const DeferredLists& L) {
+  DeferredWalk w;
+  w.px = unit_pixel(L.units, L.items, L.views, L.item_w, L.item_h);
+  w.start = L.ranges[2 * w.px.slot];
+  w.end = L.keep_list ? L.keep_end[w.px.slot] : L.ranges[2 * w.px.slot + 1];
+  return w;
+}
+
+constexpr int kNoElement = -2;  // (pair ranks are >= -1)
+
+// Each thread of the block loads the element b0 + threadIdx.x of the walk into shared memory (its
+// projected Gaussian) and returns its pair rank, or kNoElement past the walk's end.
+__device__ __forceinline__ int load_element(const DeferredLists& L, const DeferredWalk& w, int b0,
+                                            float4* s_r0, float4* s_r1) {
+  const int i = b0 + static_cast<int>(threadIdx.x);
+  if (i >= w.end) return kNoElement;
+  const int j = L.keep_list ? L.keep_list[i] : i;
+  const int f = L.sorted_vals[j];
+  s_r0[threadIdx.x] = L.rec0[f];
+  s_r1[threadIdx.x] = L.rec1[f];
+  return L.list_pair[j];
 }
 
 // Deferred lists: the composite and its gradient walk the tile lists again instead of reading
@@ -604,41 +645,29 @@ __global__ void split_padded_kernel(int64_t P, int pcap, const int64_t* __restri
 // (invalid ones) are written by the caller.
 template <int D>
 __global__ void __launch_bounds__(kTile* kTile)
-    deferred_fwd_kernel(const int* __restrict__ units, const int* __restrict__ items,
-                        const int* __restrict__ views, int item_w, int item_h,
-                        const int* __restrict__ ranges, const int* __restrict__ sorted_vals,
-                        const int* __restrict__ list_pair, const float4* __restrict__ rec0,
-                        const float4* __restrict__ rec1, const float* __restrict__ colors,
-                        const float* __restrict__ background, float* __restrict__ out,
-                        const int* __restrict__ keep_list, const int* __restrict__ keep_end) {
+    deferred_fwd_kernel(const DeferredLists L, const float* __restrict__ colors,
+                        const float* __restrict__ background, float* __restrict__ out) {
   constexpr int B = kTile * kTile;
   __shared__ float4 s_r0[B];
   __shared__ float4 s_r1[B];
   __shared__ float s_c[B * D];
-  const UnitPixel px = unit_pixel(units, items, views, item_w, item_h);
-  const int tid = threadIdx.x, slot = px.slot;
-  const bool inside = px.inside;
-  const int64_t p = px.p;
-  const int start = ranges[2 * slot];
-  const int end = keep_list ? keep_end[slot] : ranges[2 * slot + 1];
-  bool done = !inside;
+  const DeferredWalk w = deferred_walk(L);
+  const UnitPixel& px = w.px;
+  const int tid = threadIdx.x;
+  bool done = !px.inside;
   float T = 1.f;
   float acc[D];
 #pragma unroll
   for (int d = 0; d < D; ++d) acc[d] = 0.f;
-  for (int b0 = start; b0 < end; b0 += B) {
+  for (int b0 = w.start; b0 < w.end; b0 += B) {
     if (__syncthreads_count(done) == B) break;
-    if (b0 + tid < end) {
-      const int j = keep_list ? keep_list[b0 + tid] : b0 + tid;
-      const int f = sorted_vals[j];
-      const int q = list_pair[j];
-      s_r0[tid] = rec0[f];
-      s_r1[tid] = rec1[f];
+    const int q = load_element(L, w, b0, s_r0, s_r1);
+    if (q != kNoElement) {
 #pragma unroll
       for (int d = 0; d < D; ++d) s_c[tid * D + d] = q >= 0 ? colors[static_cast<int64_t>(q) * D + d] : 0.f;
     }
     __syncthreads();
-    const int nb = min(B, end - b0);
+    const int nb = min(B, w.end - b0);
     for (int t = 0; t < nb && !done; ++t) {
       float alpha;
       if (!pixel_alpha(s_r0[t], s_r1[t], px, alpha)) continue;
@@ -647,15 +676,15 @@ __global__ void __launch_bounds__(kTile* kTile)
         done = true;
         break;
       }
-      const float w = alpha * T;
+      const float wt = alpha * T;
 #pragma unroll
-      for (int d = 0; d < D; ++d) acc[d] += w * s_c[t * D + d];
+      for (int d = 0; d < D; ++d) acc[d] += wt * s_c[t * D + d];
       T = next_T;
     }
   }
-  if (inside) {
+  if (px.inside) {
 #pragma unroll
-    for (int d = 0; d < D; ++d) out[p * D + d] = background ? acc[d] + T * background[d] : acc[d];
+    for (int d = 0; d < D; ++d) out[px.p * D + d] = background ? acc[d] + T * background[d] : acc[d];
   }
 }
 
@@ -664,42 +693,28 @@ __global__ void __launch_bounds__(kTile* kTile)
 // one global atomic per (element, channel).
 template <int D>
 __global__ void __launch_bounds__(kTile* kTile)
-    deferred_bwd_kernel(const int* __restrict__ units, const int* __restrict__ items,
-                        const int* __restrict__ views, int item_w, int item_h,
-                        const int* __restrict__ ranges, const int* __restrict__ sorted_vals,
-                        const int* __restrict__ list_pair, const float4* __restrict__ rec0,
-                        const float4* __restrict__ rec1, const float* __restrict__ grad,
-                        float* __restrict__ grad_colors, const int* __restrict__ keep_list,
-                        const int* __restrict__ keep_end) {
+    deferred_bwd_kernel(const DeferredLists L, const float* __restrict__ grad,
+                        float* __restrict__ grad_colors) {
   constexpr int B = kTile * kTile;
   __shared__ float4 s_r0[B];
   __shared__ float4 s_r1[B];
   __shared__ int s_q[B];
   __shared__ float s_acc[B * D];
-  const UnitPixel px = unit_pixel(units, items, views, item_w, item_h);
-  const int tid = threadIdx.x, slot = px.slot;
-  const bool inside = px.inside;
-  const int64_t p = px.p;
-  const int start = ranges[2 * slot];
-  const int end = keep_list ? keep_end[slot] : ranges[2 * slot + 1];
-  bool done = !inside;
+  const DeferredWalk dw = deferred_walk(L);
+  const UnitPixel& px = dw.px;
+  const int tid = threadIdx.x;
+  bool done = !px.inside;
   float T = 1.f;
   float gv[D];
 #pragma unroll
-  for (int d = 0; d < D; ++d) gv[d] = inside ? grad[p * D + d] : 0.f;
-  for (int b0 = start; b0 < end; b0 += B) {
+  for (int d = 0; d < D; ++d) gv[d] = px.inside ? grad[px.p * D + d] : 0.f;
+  for (int b0 = dw.start; b0 < dw.end; b0 += B) {
     if (__syncthreads_count(done) == B) break;
-    s_q[tid] = -1;
-    if (b0 + tid < end) {
-      const int j = keep_list ? keep_list[b0 + tid] : b0 + tid;
-      const int f = sorted_vals[j];
-      s_q[tid] = list_pair[j];
-      s_r0[tid] = rec0[f];
-      s_r1[tid] = rec1[f];
-    }
+    const int q = load_element(L, dw, b0, s_r0, s_r1);
+    s_q[tid] = q == kNoElement ? -1 : q;
     clear_element_sums<D>(s_acc);
     __syncthreads();
-    const int nb = min(B, end - b0);
+    const int nb = min(B, dw.end - b0);
     for (int t = 0; t < nb; ++t) {
       if (__all_sync(0xffffffffu, done)) break;
       float w = 0.f;
@@ -823,31 +838,19 @@ cudaError_t launch_pixel_fill(int64_t P, const int64_t* offsets, int* pixel, cud
   return launch_elements(pixel_fill_kernel, P, stream, P, offsets, pixel);
 }
 
-cudaError_t launch_deferred_forward(int num_units, int D, const int* units, const int* items,
-                                    const int* views, int item_w, int item_h, const int* ranges,
-                                    const int* sorted_vals, const int* list_pair,
-                                    const float4* rec0, const float4* rec1, const float* colors,
-                                    const float* background, float* out, const int* keep_list,
-                                    const int* keep_end, cudaStream_t stream) {
-  if (num_units == 0) return cudaSuccess;
+cudaError_t launch_deferred_forward(const DeferredLists& lists, int D, const float* colors,
+                                    const float* background, float* out, cudaStream_t stream) {
   return dispatch<1, 2, 3, 4, 5, 6, 7, 8>(D, [&](auto d) {
-    return launch_units(deferred_fwd_kernel<decltype(d)::value>, num_units, stream, units, items,
-                        views, item_w, item_h, ranges, sorted_vals, list_pair, rec0, rec1, colors,
-                        background, out, keep_list, keep_end);
+    return launch_units(deferred_fwd_kernel<decltype(d)::value>, lists.num_units, stream, lists, colors,
+                        background, out);
   });
 }
 
-cudaError_t launch_deferred_backward(int num_units, int D, const int* units, const int* items,
-                                     const int* views, int item_w, int item_h, const int* ranges,
-                                     const int* sorted_vals, const int* list_pair,
-                                     const float4* rec0, const float4* rec1, const float* grad,
-                                     float* grad_colors, const int* keep_list, const int* keep_end,
-                                     cudaStream_t stream) {
-  if (num_units == 0) return cudaSuccess;
+cudaError_t launch_deferred_backward(const DeferredLists& lists, int D, const float* grad,
+                                     float* grad_colors, cudaStream_t stream) {
   return dispatch<1, 2, 3, 4, 5, 6, 7, 8>(D, [&](auto d) {
-    return launch_units(deferred_bwd_kernel<decltype(d)::value>, num_units, stream, units, items,
-                        views, item_w, item_h, ranges, sorted_vals, list_pair, rec0, rec1, grad,
-                        grad_colors, keep_list, keep_end);
+    return launch_units(deferred_bwd_kernel<decltype(d)::value>, lists.num_units, stream, lists, grad,
+                        grad_colors);
   });
 }
 
