@@ -146,6 +146,18 @@ def _script(name: str) -> List[str]:
     return [sys.executable, str(path)] if path.is_file() else [sys.executable, "-m", SCRIPTS[name]]
 
 
+def _profiled(cmd: List[str], out: Path) -> List[str]:
+    """``cmd`` under cProfile writing ``out``. A module (``-m``) is imported and its ``entrypoint`` called
+    inside the profile: run as cProfile's ``__main__`` instead, its dataclasses' annotations would be
+    resolved in cProfile's namespace and tyro would fail on them."""
+    if cmd[1] != "-m":
+        return [cmd[0], "-m", "cProfile", "-o", str(out)] + cmd[1:]
+    module = cmd[2]
+    code = (f"import cProfile, sys; sys.argv[0] = {module!r}; "
+            f"cProfile.run('from {module} import entrypoint; entrypoint()', {str(out)!r})")
+    return [cmd[0], "-c", code] + cmd[3:]
+
+
 def _env(args: Args) -> dict:
     env = dict(os.environ)
     if args.device == "cpu":
@@ -298,7 +310,7 @@ def main(args: Args) -> None:
             reset_edits()
             cmd = command(name)
             if profile:
-                cmd = [cmd[0], "-m", "cProfile", "-o", str(args.out / f"{name}.prof")] + cmd[1:]
+                cmd = _profiled(cmd, args.out / f"{name}.prof")
             walls[name], outs[name], errs[name] = _run(cmd, env, cwd, importtime)
             if name == "pick" and not edited.is_file():  # apply's image: the pick's edited image
                 made = sorted((cfg.parent / "edits").glob("*_edited.png"))
