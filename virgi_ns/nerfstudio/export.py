@@ -245,17 +245,19 @@ def bake(
         m = means[idx]
         b = idx.numel()
         d_run, w = dirs.at(m)  # [b,P,3], [b,P]
-        flat = d_run.reshape(-1, 3)
         f = fld.encode(m)
-        rep = torch.arange(b, device=dev).repeat_interleave(P)
         if fld.decoupled:
             h1, h2 = fld.diffuse_hidden(f)
             c_d = fld.diffuse(h2)
             if active:
                 c_d = stack.diffuse(f, h2, c_d)
-            c_s = fld.specular(f[rep], flat, h1[rep], h2[rep])
-            colour = torch.sigmoid(c_d[rep] + k * c_s)
+            # MLP_spec's view-independent parts once per Gaussian, broadcast over its P directions
+            p1, p2, p3 = fld.specular_parts(f, h1, h2)
+            c_s = fld.specular_from_parts(p1[:, None], p2[:, None], p3[:, None], d_run)  # [b,P,3]
+            colour = torch.sigmoid(c_d[:, None] + k * c_s)
         else:  # the single view-dependent MLP: its hidden layers read the direction
+            flat = d_run.reshape(-1, 3)
+            rep = torch.arange(b, device=dev).repeat_interleave(P)
             h1, h2 = fld.diffuse_hidden(f[rep], flat)
             c = fld.diffuse(h2)
             if active:
