@@ -7,12 +7,14 @@ One ``vertex`` element of float properties: ``x y z``, optional ``nx ny nz``, ``
 
 from __future__ import annotations
 
+from typing import BinaryIO
+
 import numpy as np
 import torch
 
 from virgi_ns.errors import InputError
 from virgi_ns.gaussians import Gaussians
-from virgi_ns.io.plyfmt import PlyData, ply_bytes
+from virgi_ns.io.plyfmt import PlyData, ply_bytes, write_ply
 
 REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
@@ -58,8 +60,8 @@ def gaussians_from_inria(ply: PlyData, where: str = "file") -> Gaussians:
     )
 
 
-def inria_ply_bytes(g: Gaussians) -> bytes:
-    """Serialise Gaussians in the INRIA layout, float32, in one vectorised pass."""
+def inria_vertices(g: Gaussians) -> np.ndarray:
+    """The Gaussians as the INRIA layout's ``vertex`` element: one float32 structured record each."""
     n, k = len(g), g.sh.shape[1]
     t = lambda x: x.detach().cpu().to(torch.float32).numpy().reshape(n, x.shape[1:].numel())  # noqa: E731
     sh = t(g.sh).reshape(n, k, 3)
@@ -70,5 +72,14 @@ def inria_ply_bytes(g: Gaussians) -> bytes:
     names += [f"f_rest_{i}" for i in range(3 * (k - 1))]
     names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     table = np.ascontiguousarray(np.concatenate(cols, axis=1), dtype="<f4")
-    vertex = table.view(np.dtype([(nm, "<f4") for nm in names])).reshape(n)
-    return ply_bytes([("vertex", vertex)])
+    return table.view(np.dtype([(nm, "<f4") for nm in names])).reshape(n)
+
+
+def inria_ply_bytes(g: Gaussians) -> bytes:
+    """Serialise Gaussians in the INRIA layout, float32, in one vectorised pass."""
+    return ply_bytes([("vertex", inria_vertices(g))])
+
+
+def write_inria_ply(f: BinaryIO, g: Gaussians) -> None:
+    """Write :func:`inria_ply_bytes` of ``g`` to the open binary file ``f`` without the byte string."""
+    write_ply(f, [("vertex", inria_vertices(g))])

@@ -9,6 +9,8 @@ The INRIA and SuperSplat layouts are interpreted on top of this in ``ply.py`` an
 
 from __future__ import annotations
 
+from typing import BinaryIO
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -140,11 +142,12 @@ def read_ply_bytes(buf: bytes, where: str = "file") -> PlyData:
     return PlyData(elements, comments)
 
 
-def ply_bytes(elements: list[tuple[str, np.ndarray]], comments: tuple[str, ...] = ()) -> bytes:
-    """Serialise structured arrays (one per element) as binary little-endian PLY."""
+def _ply_parts(elements: list[tuple[str, np.ndarray]], comments: tuple[str, ...]) -> tuple[bytes, list[np.ndarray]]:
+    """The header of binary little-endian PLY for structured arrays (one per element) and the arrays
+    in little-endian, contiguous form, in the file's order."""
     lines = ["ply", "format binary_little_endian 1.0"]
     lines += [f"comment {c}" for c in comments]
-    parts: list[bytes] = []
+    parts: list[np.ndarray] = []
     for name, arr in elements:
         lines.append(f"element {name} {len(arr)}")
         le = []
@@ -152,6 +155,21 @@ def ply_bytes(elements: list[tuple[str, np.ndarray]], comments: tuple[str, ...] 
             code = arr.dtype[prop].base.str[1:]
             lines.append(f"property {_WRITE_NAMES[code]} {prop}")
             le.append((prop, "<" + code))
-        parts.append(np.ascontiguousarray(arr.astype(np.dtype(le), copy=False)).tobytes())
+        parts.append(np.ascontiguousarray(arr.astype(np.dtype(le), copy=False)))
     lines.append("end_header")
-    return ("\n".join(lines) + "\n").encode("ascii") + b"".join(parts)
+    return ("\n".join(lines) + "\n").encode("ascii"), parts
+
+
+def ply_bytes(elements: list[tuple[str, np.ndarray]], comments: tuple[str, ...] = ()) -> bytes:
+    """Serialise structured arrays (one per element) as binary little-endian PLY."""
+    header, parts = _ply_parts(elements, comments)
+    return header + b"".join(p.tobytes() for p in parts)
+
+
+def write_ply(f: BinaryIO, elements: list[tuple[str, np.ndarray]], comments: tuple[str, ...] = ()) -> None:
+    """Write what :func:`ply_bytes` returns to the open binary file ``f``, without first copying the
+    arrays into one byte string (a large splat's table is written as it is held)."""
+    header, parts = _ply_parts(elements, comments)
+    f.write(header)
+    for p in parts:
+        f.write(memoryview(p.reshape(-1)).cast("B"))
