@@ -43,6 +43,7 @@ Gaussians the selection covers).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import re
 from concurrent.futures import ThreadPoolExecutor
@@ -115,14 +116,21 @@ class ViewMaps:
     and ``features`` (the diffuse colour and the colour field's ``h_diff``, divided by coverage),
     ``accumulation`` [H,W], ``depth`` [H,W] and ``surface`` [H,W,3] (the depth and the diffuse colour
     of each pixel's median contributor, :func:`median_contributor`; None: :func:`select` does without
-    them)."""
+    them). ``features`` is computed by ``features_of()`` when first read: only the ``colour_features``
+    criterion reads it."""
 
     rgb: Tensor
     diffuse: Tensor
-    features: Tensor
     accumulation: Tensor
     depth: Optional[Tensor] = None
     surface: Optional[Tensor] = None
+    features_of: Optional[Callable[[], Tensor]] = dataclasses.field(default=None, repr=False)
+
+    @functools.cached_property
+    def features(self) -> Tensor:
+        if self.features_of is None:
+            raise ValueError("these view maps were made without features")
+        return self.features_of()
 
 
 @torch.no_grad()
@@ -173,11 +181,16 @@ def view_maps(engine: EditEngine) -> ViewMaps:
     cover = acc[..., None].clamp_min(1e-6)
     colours = torch.sigmoid(engine.c_d)
     diffuse = composite(colours, c)[0] / cover
-    features = composite(engine.h_diff.float(), c)[0] / cover
     median = median_contributor(c)
     surface = torch.where((median >= 0)[..., None], colours.float()[median.clamp_min(0)], torch.zeros(()).to(colours))
     dev = engine.current.device
-    return ViewMaps(engine.current, diffuse, features, acc, surface_depth(c, median).to(dev), surface.to(dev))
+    h_diff = engine.h_diff
+
+    @torch.no_grad()
+    def features() -> Tensor:
+        return composite(h_diff.float(), c)[0] / cover
+
+    return ViewMaps(engine.current, diffuse, acc, surface_depth(c, median).to(dev), surface.to(dev), features)
 
 
 def _angle(a: Tensor, b: Tensor) -> Tensor:
