@@ -34,7 +34,7 @@ class Export:
     """k, the factor on the specular colour (default: the edit stack's, else 1; 0 removes highlights)."""
     no_edits: bool = False
     """Export the base colours, ignoring the run's edits."""
-    directions: int = 128
+    directions: int = 64
     """Sphere directions sampled per Gaussian (added to the training cameras' directions)."""
     frame: Literal["capture", "dataparser"] = "capture"
     """capture: the capture's original frame (lines up with the source data); dataparser: the run's frame."""

@@ -62,8 +62,9 @@ def fibonacci_sphere(n: int, dtype=torch.float32, device=None) -> Float[Tensor, 
 class BakeConfig:
     """How colours are sampled and fitted."""
 
-    directions: int = 128
-    """Fibonacci-sphere directions per Gaussian (shared by all)."""
+    directions: int = 64
+    """Fibonacci-sphere directions per Gaussian (shared by all): a weak prior that keeps each fit defined
+    away from the cameras. 64 lie about 25 degrees apart, finer than the lobes SH degree 3 can hold."""
     max_cameras: int = 64
     """Training-camera directions per Gaussian (evenly strided when there are more cameras)."""
     unseen_weight: float = 0.05
