@@ -196,9 +196,17 @@ class DecoupledColourField(nn.Module):
     ) -> Float[Tensor, "N 3"]:
         """``c_s`` from :meth:`specular_parts` and unit view directions (equals :meth:`specular`)."""
         w_dir, w_s1, w_s2 = self.specular_direction_weights()
-        s1 = torch.relu(p1 + nn.functional.linear(self.encode_dirs(dirs).to(p1.dtype), w_dir))
-        s2 = torch.relu(p2 + nn.functional.linear(s1, w_s1))
-        return p3 + nn.functional.linear(s2, w_s2)
+        # (in place on each layer's fresh output: the same sums, without a temporary per layer; the
+        # parts may broadcast, e.g. [N,1,H] parts over [N,P,3] directions)
+        s1 = nn.functional.linear(self.encode_dirs(dirs).to(p1.dtype), w_dir)
+        s1 += p1
+        s1 = s1.relu_()
+        s2 = nn.functional.linear(s1, w_s1)
+        s2 += p2
+        s2 = s2.relu_()
+        out = nn.functional.linear(s2, w_s2)
+        out += p3
+        return out
 
     # ----------------------------------------------------------------- forward
     def forward(self, positions: Float[Tensor, "N 3"], dirs: Float[Tensor, "N 3"]) -> dict[str, Tensor]:
