@@ -22,9 +22,13 @@ import subprocess
 import sys
 import tempfile
 import time
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10: the same parser as the package tomli (pytest's own dependency there)
+    import tomli as tomllib
 
 REPO = Path(__file__).resolve().parents[1]
 
