@@ -36,6 +36,14 @@ from torch import Tensor, nn
 from virgi_ns.colour.encodings import GridEncoding
 
 
+def _plus_part(layer: Tensor, part: Tensor) -> Tensor:
+    """``layer + part``, in place on the layer's fresh output where ``part`` broadcasts into its shape (the
+    same sums without a temporary: [N,1,H] parts over [N,P,H] directions); a new tensor otherwise (one
+    direction shared by N parts)."""
+    fits = part.dim() <= layer.dim() and all(p in (1, n) for p, n in zip(reversed(part.shape), reversed(layer.shape)))
+    return layer.add_(part) if fits else layer + part
+
+
 @dataclass
 class ColourFieldConfig:
     """Hash grid and MLP sizes (Compact-3DGS's grid by default)."""
@@ -196,17 +204,9 @@ class DecoupledColourField(nn.Module):
     ) -> Float[Tensor, "N 3"]:
         """``c_s`` from :meth:`specular_parts` and unit view directions (equals :meth:`specular`)."""
         w_dir, w_s1, w_s2 = self.specular_direction_weights()
-        # (in place on each layer's fresh output: the same sums, without a temporary per layer; the
-        # parts may broadcast, e.g. [N,1,H] parts over [N,P,3] directions)
-        s1 = nn.functional.linear(self.encode_dirs(dirs).to(p1.dtype), w_dir)
-        s1 += p1
-        s1 = s1.relu_()
-        s2 = nn.functional.linear(s1, w_s1)
-        s2 += p2
-        s2 = s2.relu_()
-        out = nn.functional.linear(s2, w_s2)
-        out += p3
-        return out
+        s1 = torch.relu_(_plus_part(nn.functional.linear(self.encode_dirs(dirs).to(p1.dtype), w_dir), p1))
+        s2 = torch.relu_(_plus_part(nn.functional.linear(s1, w_s1), p2))
+        return _plus_part(nn.functional.linear(s2, w_s2), p3)
 
     # ----------------------------------------------------------------- forward
     def forward(self, positions: Float[Tensor, "N 3"], dirs: Float[Tensor, "N 3"]) -> dict[str, Tensor]:
