@@ -15,8 +15,8 @@ from pathlib import Path
 from virgi_ns.errors import InputError, atomic_path
 from virgi_ns.gaussians import Gaussians
 from virgi_ns.io.compressed_ply import compressed_ply_bytes, gaussians_from_compressed, is_compressed_ply
-from virgi_ns.io.ply import gaussians_from_inria, write_inria_ply
-from virgi_ns.io.plyfmt import is_ply, read_ply_bytes
+from virgi_ns.io.ply import gaussians_from_inria, inria_vertices
+from virgi_ns.io.plyfmt import is_ply, read_ply_bytes, write_ply
 from virgi_ns.io.spz import MAGIC as _SPZ_MAGIC
 from virgi_ns.io.spz import read_spz_bytes, spz_bytes
 
@@ -108,8 +108,9 @@ def _write(data: bytes, path: str | os.PathLike) -> None:
 
 def save_ply(g: Gaussians, path: str | os.PathLike) -> None:
     """Write INRIA-layout binary ``.ply`` atomically (float32, normals zero)."""
+    vertex = inria_vertices(g)  # before the destination is touched
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        write_inria_ply(f, g)
+        write_ply(f, [("vertex", vertex)])
 
 
 def save_spz(g: Gaussians, path: str | os.PathLike, version: int = 3) -> None:

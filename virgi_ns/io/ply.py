@@ -7,14 +7,12 @@ One ``vertex`` element of float properties: ``x y z``, optional ``nx ny nz``, ``
 
 from __future__ import annotations
 
-from typing import BinaryIO
-
 import numpy as np
 import torch
 
 from virgi_ns.errors import InputError
 from virgi_ns.gaussians import Gaussians
-from virgi_ns.io.plyfmt import PlyData, ply_bytes, write_ply
+from virgi_ns.io.plyfmt import PlyData, ply_bytes
 
 REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
@@ -79,7 +77,3 @@ def inria_ply_bytes(g: Gaussians) -> bytes:
     """Serialise Gaussians in the INRIA layout, float32, in one vectorised pass."""
     return ply_bytes([("vertex", inria_vertices(g))])
 
-
-def write_inria_ply(f: BinaryIO, g: Gaussians) -> None:
-    """Write :func:`inria_ply_bytes` of ``g`` to the open binary file ``f`` without the byte string."""
-    write_ply(f, [("vertex", inria_vertices(g))])

@@ -172,4 +172,4 @@ def write_ply(f: BinaryIO, elements: list[tuple[str, np.ndarray]], comments: tup
     header, parts = _ply_parts(elements, comments)
     f.write(header)
     for p in parts:
-        f.write(memoryview(p.reshape(-1)).cast("B"))
+        f.write(p.reshape(-1).view(np.uint8).data)  # its bytes, whatever its fields are named
