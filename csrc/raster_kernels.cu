@@ -613,11 +613,13 @@ struct DeferredWalk {
   int start, end;
 };
 
+// (The lists are read-only while a kernel walks them: __ldg keeps their loads on the read-only path, which
+// the compiler cannot infer through the struct's pointers.)
 __device__ __forceinline__ DeferredWalk deferred_walk(const DeferredLists& L) {
   DeferredWalk w;
   w.px = unit_pixel(L.units, L.items, L.views, L.item_w, L.item_h);
-  w.start = L.ranges[2 * w.px.slot];
-  w.end = L.keep_list ? L.keep_end[w.px.slot] : L.ranges[2 * w.px.slot + 1];
+  w.start = __ldg(L.ranges + 2 * w.px.slot);
+  w.end = L.keep_list ? __ldg(L.keep_end + w.px.slot) : __ldg(L.ranges + 2 * w.px.slot + 1);
   return w;
 }
 
@@ -629,11 +631,11 @@ __device__ __forceinline__ int load_element(const DeferredLists& L, const Deferr
                                             float4* s_r0, float4* s_r1) {
   const int i = b0 + static_cast<int>(threadIdx.x);
   if (i >= w.end) return kNoElement;
-  const int j = L.keep_list ? L.keep_list[i] : i;
-  const int f = L.sorted_vals[j];
-  s_r0[threadIdx.x] = L.rec0[f];
-  s_r1[threadIdx.x] = L.rec1[f];
-  return L.list_pair[j];
+  const int j = L.keep_list ? __ldg(L.keep_list + i) : i;
+  const int f = __ldg(L.sorted_vals + j);
+  s_r0[threadIdx.x] = __ldg(L.rec0 + f);
+  s_r1[threadIdx.x] = __ldg(L.rec1 + f);
+  return __ldg(L.list_pair + j);
 }
 
 // Deferred lists: the composite and its gradient walk the tile lists again instead of reading

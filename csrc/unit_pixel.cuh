@@ -28,11 +28,11 @@ struct UnitPixel {
 
 __device__ __forceinline__ UnitPixel unit_pixel(const int* units, const int* items, const int* views,
                                                 int item_w, int item_h) {
-  const int* u = units + blockIdx.x * kUnitInts;
-  const int item = u[0], slot = u[1], gx = u[2], gy = u[3];
+  const int* u = units + blockIdx.x * kUnitInts;  // (read-only in every kernel: __ldg)
+  const int item = __ldg(u), slot = __ldg(u + 1), gx = __ldg(u + 2), gy = __ldg(u + 3);
   const int* it = items + item * kItemInts;
-  const int* vt = views + it[0] * kViewInts;
-  const int ix0 = it[1], iy0 = it[2], W = vt[1], H = vt[2];
+  const int* vt = views + __ldg(it) * kViewInts;
+  const int ix0 = __ldg(it + 1), iy0 = __ldg(it + 2), W = __ldg(vt + 1), H = __ldg(vt + 2);
   const int lx = threadIdx.x % kTile, ly = threadIdx.x / kTile;
   const int X = gx * kTile + lx, Y = gy * kTile + ly;
   UnitPixel px;
