@@ -164,13 +164,20 @@ def median_contributor(contrib: Contributions) -> Tensor:
     return out.reshape(H, W)
 
 
+def _at_median(values: Tensor, median: Tensor) -> Tensor:
+    """``values`` [U,*] of each pixel's median contributor (``median`` [H,W]: pair indices, -1 for none)
+    as [H,W,*]; 0 where nothing contributes."""
+    picked = values[median.clamp_min(0)]
+    none = (median < 0).reshape(*median.shape, *([1] * (values.dim() - 1)))
+    return picked.masked_fill(none, 0)
+
+
 def surface_depth(contrib: Contributions, median: Optional[Tensor] = None) -> Tensor:
     """[H,W] the camera-space depth of each pixel's median contributor (``median``: the
     :func:`median_contributor` of ``contrib``, computed when not given); 0 where nothing contributes.
     It steps at an occlusion edge where the expected depth ramps."""
     median = median_contributor(contrib) if median is None else median
-    depth = contrib.pair_depth.float()[median.clamp_min(0)]
-    return torch.where(median >= 0, depth, torch.zeros_like(depth))
+    return _at_median(contrib.pair_depth.float(), median)
 
 
 @torch.no_grad()
@@ -182,7 +189,7 @@ def view_maps(engine: EditEngine) -> ViewMaps:
     colours = torch.sigmoid(engine.c_d)
     diffuse = composite(colours, c)[0] / cover
     median = median_contributor(c)
-    surface = torch.where((median >= 0)[..., None], colours.float()[median.clamp_min(0)], torch.zeros(()).to(colours))
+    surface = _at_median(colours.float(), median)
     dev = engine.current.device
     h_diff = engine.h_diff
 
