@@ -59,17 +59,17 @@ def gaussians_from_inria(ply: PlyData, where: str = "file") -> Gaussians:
 
 
 def inria_vertices(g: Gaussians) -> np.ndarray:
-    """The Gaussians as the INRIA layout's ``vertex`` element: one float32 structured record each."""
+    """The Gaussians as the INRIA layout's ``vertex`` element: one float32 structured record each.
+    The table is assembled where the Gaussians are (on a GPU: one copy to the host)."""
     n, k = len(g), g.sh.shape[1]
-    t = lambda x: x.detach().cpu().to(torch.float32).numpy().reshape(n, x.shape[1:].numel())  # noqa: E731
+    t = lambda x: x.detach().to(torch.float32).reshape(n, x.shape[1:].numel())  # noqa: E731
     sh = t(g.sh).reshape(n, k, 3)
-    rest = sh[:, 1:].transpose(0, 2, 1).reshape(n, 3 * (k - 1))
-    cols = [t(g.means), np.zeros((n, 3), np.float32), sh[:, 0], rest,
-            t(g.opacities), t(g.scales), t(g.quats)]
+    rest = sh[:, 1:].transpose(1, 2).reshape(n, 3 * (k - 1))
+    cols = [t(g.means), sh.new_zeros(n, 3), sh[:, 0], rest, t(g.opacities), t(g.scales), t(g.quats)]
     names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
     names += [f"f_rest_{i}" for i in range(3 * (k - 1))]
     names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
-    table = np.ascontiguousarray(np.concatenate(cols, axis=1), dtype="<f4")
+    table = np.ascontiguousarray(torch.cat(cols, dim=1).cpu().numpy(), dtype="<f4")
     return table.view(np.dtype([(nm, "<f4") for nm in names])).reshape(n)
 
 
