@@ -1,13 +1,12 @@
-"""(GPU) Train the demo's geometry: splatfacto on the bundle's views, pruned, as an INRIA .ply.
+"""(GPU) Train the demo's geometry: splatfacto on the bundle's views, pruned, as a splat file.
 
-    python scripts/train_demo_geometry.py                     # -> virgi_ns/assets/beercan_small/geometry.ply
-    python scripts/train_demo_geometry.py --steps 15000 --cap 60000 --downscale 4   # how the bundled file was made
+    python scripts/train_demo_geometry.py     # how the bundled virgi_ns/assets/beercan_small/geometry.spz was made
 
-The demo imports ``geometry.ply`` from the bundle when it is there (``virgi_ns.demo``), which
+The demo imports ``geometry.spz`` (or ``geometry.ply``) from the bundle when it is there (``virgi_ns.demo``), which
 spares a CPU the geometry stage. This script trains nerfstudio's splatfacto (gsplat, CUDA) on the
 bundle's *training* views only (the same every-8th hold-out as the demo, so the demo's held-out
 views stay unseen), on the same views rebuilt at ``--downscale`` from the COLMAP beercan when
-``--source`` is present (sharper geometry), else on the bundled 1/4-size images. With
+``--source`` is present (sharper geometry), else on the bundled images. With
 ``--all-views`` (the default when ``--source`` is there) it trains on every photo of the capture
 except the bundle's held-out ones (67 of 71 for beercan: far fewer floaters in views between the
 training photos); the held-out photos are never seen either way. It then
@@ -17,7 +16,9 @@ training photos); the held-out photos are never seen either way. It then
 - trains the kept Gaussians for ``--finetune-steps`` more steps without densification (pruning
   leaves holes that a few thousand steps close again);
 - moves them from the run's frame back into the capture frame (COLMAP's; the inverse of the
-  dataparser's orient/centre/scale), and writes SH degree 0 (the colour field replaces colours);
+  dataparser's orient/centre/scale), and writes SH degree 0 (the colour field replaces colours) as
+  ``.spz`` by default: its quantisation is far below what the demo can see, at a quarter of a
+  ``.ply``'s size;
 - prints the held-out PSNR of the splatfacto render before pruning, after it, and after fine-tuning.
 
 Nothing is downloaded: splatfacto's LPIPS metric (which fetches AlexNet) is replaced by a NaN
@@ -58,9 +59,10 @@ class Args:
     """Downscale of the rebuilt views (1: 720x1280). Ignored without --source."""
     all_views: bool = True
     """With --source: train on every photo of the capture but the bundle's held-out ones."""
-    out: Path = BUNDLED_SCENE / "geometry.ply"
+    out: Path = BUNDLED_SCENE / "geometry.spz"
+    """The written file: .spz, .ply or .sog (by its suffix)."""
     steps: int = 15000
-    cap: int = 60000
+    cap: int = 150000
     """Most Gaussians kept."""
     min_opacity: float = 0.02
     finetune_steps: int = 3000
@@ -121,7 +123,7 @@ def main(args: Args) -> None:
 def _train_and_write(args: Args, tmp: Path) -> None:
     from nerfstudio.configs.method_configs import method_configs
 
-    from virgi_ns.io import save_ply
+    from virgi_ns.io import save_splat
 
     scene = args.scene
     if args.source.is_dir() and (args.source / "sparse" / "0").is_dir():
@@ -197,7 +199,7 @@ def _train_and_write(args: Args, tmp: Path) -> None:
     out = pipeline.datamanager.train_dataparser_outputs
     tuned = {k: v.detach() for k, v in model.gauss_params.items()}
     g = to_capture_frame(tuned, out.dataparser_transform, float(out.dataparser_scale))
-    save_ply(g, args.out)
+    save_splat(g, args.out)
     console.log(f"wrote {args.out}: {len(g):,} of {n_all:,} Gaussians "
                 f"({args.out.stat().st_size / 1e6:.1f} MB); held-out PSNR {psnr_full:.2f} dB before pruning, "
                 f"{psnr_pruned:.2f} dB after, {psnr_tuned:.2f} dB after fine-tuning")

@@ -25,7 +25,7 @@ warnings.filterwarnings("ignore", message="virgi-ns: no GPU")
 
 def _tiny_bundle(root: Path) -> Path:
     """8 bundled views at 45x80 and a small geometry at every 4th sparse point (capture frame)."""
-    scene = shrink_bundle(BUNDLED_SCENE, root / "scene", views=8, factor=4)
+    scene = shrink_bundle(BUNDLED_SCENE, root / "scene", views=8, factor=8)
     xyz, rgb = read_points_ply(scene / "sparse_pc.ply")
     xyz, rgb = xyz[::4], rgb[::4]
     gen = torch.Generator().manual_seed(0)
@@ -132,7 +132,7 @@ def test_full_resolution_without_a_gpu_is_refused(tmp_path, monkeypatch, capsys)
 
 def test_bundle_matches_colmap_observations(shared_data):
     """Projecting COLMAP's points with the bundle's pinhole cameras lands on COLMAP's own
-    (distorted) observations after undistortion: within a pixel at the bundle's 1/4 scale."""
+    (distorted) observations after undistortion: a median within one pixel of the full-size photos."""
     from nerfstudio.data.utils.colmap_parsing_utils import (read_cameras_binary, read_images_binary,
                                                              read_points3D_binary)
 
@@ -161,8 +161,8 @@ def test_bundle_matches_colmap_observations(shared_data):
         pc = X @ w2c[:3, :3].T + w2c[:3, 3]
         got = pc[:, :2] / pc[:, 2:3] * [fr["fl_x"], fr["fl_y"]] + [fr["cx"], fr["cy"]]
         errs.append(np.linalg.norm(got - want, axis=-1))
-    err = np.concatenate(errs)
-    assert np.median(err) < 0.25 and np.quantile(err, 0.95) < 1.0, (np.median(err), np.quantile(err, 0.95))
+    err = np.concatenate(errs) * meta["downscale"]  # in full-size pixels
+    assert np.median(err) < 1.0 and np.quantile(err, 0.95) < 4.0, (np.median(err), np.quantile(err, 0.95))
 
 
 def test_bundle_parses_with_its_hold_out():

@@ -3,7 +3,7 @@
 The bundle is a nerfstudio-format capture (``transforms.json``, undistorted pinhole images,
 ``sparse_pc.ply``) whose frame is COLMAP's (``applied_transform`` is the identity), so a splat
 trained on the original COLMAP model imports with ``geometry_frame="capture"``. It is made by
-``scripts/make_bundle.py``. Its optional ``geometry.ply`` holds pre-trained Gaussians in that frame.
+``scripts/make_bundle.py``. Its optional ``geometry.spz`` (or ``geometry.ply``) holds pre-trained Gaussians in that frame.
 
 :class:`BundleDataParserConfig` is nerfstudio's dataparser with the bundle's defaults (every 8th
 view held out, no downscaling) that reads the sparse points with the project's own PLY reader

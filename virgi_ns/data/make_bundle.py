@@ -2,7 +2,7 @@
 
 ``scripts/make_bundle.py`` is the command line::
 
-    python scripts/make_bundle.py                       # the bundled scene (32 views, 1/4 size)
+    python scripts/make_bundle.py                       # the bundled scene (32 views, 1/2 size)
     python scripts/make_bundle.py --downscale 1 --out /tmp/beercan_full   # same views, full size
 
 Reads ``../shared/data/beercan`` (COLMAP ``sparse/0``, SIMPLE_RADIAL cameras, one per image) and
@@ -45,7 +45,7 @@ class Args:
     """Output folder (created; its images/, transforms.json and sparse_pc.ply are replaced)."""
     views: int = 32
     """Number of views kept, evenly spread over the sorted image names."""
-    downscale: int = 4
+    downscale: int = 2
     """Integer downscale factor of the undistorted images."""
     jpeg_quality: int = 90
 

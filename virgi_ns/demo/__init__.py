@@ -1,6 +1,6 @@
 """``make demo``: VIRGi end to end on the bundled beercan capture, written to ``demo_out/``.
 
-1. **Geometry**: the bundle's pre-trained ``geometry.ply`` (capture frame) when present, else a
+1. **Geometry**: the bundle's pre-trained ``geometry.spz`` (capture frame) when present, else a
    short geometry stage on this machine (the reference rasterizer on a CPU: coarse, but it runs).
 2. **Colour**: the colour stage of ``ns-train virgi``: the field is warm-started from the
    geometry's own colours (the model's ``colour_init``), then trained on multi-view tile batches.

@@ -23,7 +23,7 @@ class DemoConfig:
     """A nerfstudio-format capture (transforms.json); the bundled beercan by default."""
     geometry: Optional[Path] = None
     """Pre-trained geometry (.ply/.spz/.compressed.ply in the capture's frame); default: the
-    scene's geometry.ply if it has one, otherwise geometry is trained here."""
+    scene's geometry.spz or geometry.ply if it has one, otherwise geometry is trained here."""
     full: bool = False
     """Rebuild the capture at full resolution from --source first (use a GPU)."""
     source: Path = SHARED_BEERCAN
