@@ -276,6 +276,8 @@ def main(args: Args) -> None:
     ply = args.out / "walls.ply"
     edited = args.out / "walls_edited.png"
     camera = args.out / "walls_camera.json"
+    for stale in (ply, edited, camera):  # made by this run's first pass, never taken from an earlier run
+        stale.unlink(missing_ok=True)
 
     def reset_edits() -> None:
         shutil.rmtree(cfg.parent / "edits")
