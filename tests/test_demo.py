@@ -198,3 +198,18 @@ def _check_geometry_script(mod, tmp_path):
     torch.testing.assert_close(g.scales, src.scales, atol=1e-4, rtol=1e-4)
     dots = (g.quats * torch.nn.functional.normalize(src.quats, dim=-1)).sum(-1).abs()
     assert bool((dots > 1 - 1e-4).all())
+
+
+def test_the_default_click_is_the_pixel_deepest_inside_the_object():
+    """A can-like object with print at its centre: the click lands in the widest plain part, not beside the
+    print (the centroid's neighbour), so the pick reads the object's own colour."""
+    from virgi_ns.demo.run import inner_pixel
+
+    mask = torch.zeros(60, 30, dtype=torch.bool)
+    mask[5:55, 5:25] = True  # the object, 20 px wide
+    mask[22:38, 8:22] = False  # print across its middle
+    x, y = inner_pixel(mask)
+    # deepest: 9-10 px from every edge, in the plain band above or below the print
+    depth = min(x - 5 + 1, 25 - x, y - 5 + 1, 55 - y, abs(y - 22) + 1 if y < 22 else abs(y - 37))
+    assert depth >= 8, (x, y)
+    assert mask[y, x]

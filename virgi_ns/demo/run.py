@@ -156,8 +156,13 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             cam_dev = cam.to(dev)
             view_contrib = frozen.contributions(cam_dev, Request.whole_images(cam_dev))
             view_base = render_view(frozen, cam_dev, 0, contrib=view_contrib)
-            if cfg.pixel is None:  # the photo's object where the Gaussians cover it (a pick refuses background)
-                obj = rule_mask(train_photos[edit_view], rule) & (view_contrib.accumulation()[0].cpu() >= MIN_COVER)
+            if cfg.pixel is None:
+                # the object's colour where the render shows it (what a user sees and the pick reads),
+                # else (a field trained too briefly to show it) where the photo does; always where Gaussians cover
+                covered = view_contrib.accumulation()[0].cpu() >= MIN_COVER
+                obj = rule_mask(view_base["rgb"].clamp(0, 1).cpu(), rule) & covered
+                if not bool(obj.any()):
+                    obj = rule_mask(train_photos[edit_view], rule) & covered
                 if not bool(obj.any()):
                     raise InputError(f"the object's colour shows nowhere in training view {edit_view}: give --pixel X Y")
                 x, y = inner_pixel(obj)
@@ -259,11 +264,11 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             shutil.rmtree(tmp_dir, ignore_errors=True)
 
 
-def inner_pixel(mask: torch.Tensor, margin: int = 3) -> tuple[int, int]:
-    """(x, y) of a pixel well inside ``mask`` [H,W] (at least ``margin`` pixels from its edge where
-    it can be): the one nearest the centroid of its inner part."""
+def inner_pixel(mask: torch.Tensor) -> tuple[int, int]:
+    """(x, y) of the pixel deepest inside ``mask`` [H,W] (farthest from its edge, by repeated 3x3
+    erosion); among equally deep pixels, the one nearest their centroid."""
     inner = mask
-    for _ in range(margin):
+    while True:
         eroded = -torch.nn.functional.max_pool2d(-inner[None, None].float(), 3, 1, 1)[0, 0] > 0
         if not bool(eroded.any()):
             break
