@@ -17,7 +17,7 @@ back before every call, so each ``pick``/``apply`` adds one edit to the same sta
 as ``bench/export.py`` times the bake), e.g. ``--gaussians 1000000`` on a GPU.
 
     python bench/cli_walls.py --load-config demo_out/run/config.yml --device cpu \\
-        --camera-index 16 --pixel 127 159 --colour '#e0141e'
+        --camera-index 16 --pixel 267 307 --colour '#e0141e'
     python bench/cli_walls.py --load-config outputs/.../config.yml --device cuda --gaussians 1000000
 
 ``--device cpu`` hides the GPUs from the commands (``CUDA_VISIBLE_DEVICES=``). The console scripts
