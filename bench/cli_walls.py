@@ -325,6 +325,8 @@ def main(args: Args) -> None:
 
     if "apply" in names and "pick" not in names:
         raise SystemExit("apply fits the image pick makes: time pick too")
+    if "render" in names and "export" not in names:
+        raise SystemExit("render draws the file export writes: time export too")
     print("unmeasured pass ...", flush=True)
     one_pass()
     runs: List[Dict[str, float]] = []

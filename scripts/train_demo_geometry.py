@@ -60,7 +60,7 @@ class Args:
     all_views: bool = True
     """With --source: train on every photo of the capture but the bundle's held-out ones."""
     out: Path = BUNDLED_SCENE / "geometry.spz"
-    """The written file: .spz, .ply or .sog (by its suffix)."""
+    """The written file: .spz or .ply (by its suffix; the demo reads a bundle's geometry.spz, else geometry.ply)."""
     steps: int = 15000
     cap: int = 150000
     """Most Gaussians kept."""

@@ -76,7 +76,8 @@ def test_demo_pipeline_on_a_tiny_capture(tmp_path):
     photo = np.asarray(Image.open(scene / "images" / eval_name).convert("RGB"))
     cell = grid[title + scale * 14 : title + scale * h : scale, pad : pad + scale * w : scale].astype(int)
     assert np.abs(cell - photo[14:].astype(int)).max() <= 1
-    # the clicked pixel shows the object's colour in the clicked view's photo
+    # the clicked pixel shows the object's colour in the clicked view's photo (this briefly trained render shows
+    # it nowhere, so the photo chose the click)
     meta = json.loads((scene / "transforms.json").read_text())
     train_names = [f["file_path"] for i, f in enumerate(meta["frames"]) if i % 8 != 0]
     img = torch.from_numpy(np.array(Image.open(scene / train_names[click["view_index"]]).convert("RGB")))
@@ -202,7 +203,8 @@ def _check_geometry_script(mod, tmp_path):
 
 def test_the_default_click_is_the_pixel_deepest_inside_the_object():
     """A can-like object with print at its centre: the click lands in the widest plain part, not beside the
-    print (the centroid's neighbour), so the pick reads the object's own colour."""
+    print (the centroid's neighbour), so the pick reads the object's own colour. The image's edge is an
+    edge of the object too."""
     from virgi_ns.demo.run import inner_pixel
 
     mask = torch.zeros(60, 30, dtype=torch.bool)
@@ -210,6 +212,36 @@ def test_the_default_click_is_the_pixel_deepest_inside_the_object():
     mask[22:38, 8:22] = False  # print across its middle
     x, y = inner_pixel(mask)
     # deepest: 9-10 px from every edge, in the plain band above or below the print
-    depth = min(x - 5 + 1, 25 - x, y - 5 + 1, 55 - y, abs(y - 22) + 1 if y < 22 else abs(y - 37))
+    depth = min(x - 5 + 1, 25 - x, y - 5 + 1, 55 - y, 22 - y if y < 22 else y - 37)
     assert depth >= 8, (x, y)
     assert mask[y, x]
+    # an object cut by the image's left edge: the click keeps away from that edge as from its own
+    cut = torch.zeros(40, 40, dtype=torch.bool)
+    cut[10:30, 0:20] = True
+    x, y = inner_pixel(cut)
+    assert 8 <= x <= 11 and 18 <= y <= 21, (x, y)
+    assert inner_pixel(torch.ones(9, 9, dtype=torch.bool)) == (4, 4)  # the whole image: its centre
+
+
+def test_the_default_click_reads_the_render_then_the_photo():
+    """The click is where the render shows the object's colour (what the pick reads); only where the render shows
+    it nowhere (a field trained too briefly) does the photo decide; never where no Gaussian covers."""
+    from virgi_ns.demo.config import DemoConfig
+    from virgi_ns.demo.run import default_click
+
+    blue, grey = torch.tensor([0.1, 0.2, 0.9]), torch.tensor([0.5, 0.5, 0.5])
+    render = grey.expand(40, 60, 3).clone()
+    photo = grey.expand(40, 60, 3).clone()
+    render[5:25, 5:25] = blue  # the render shows the object on the left
+    photo[5:25, 35:55] = blue  # the photo on the right
+    covered = torch.ones(40, 60, dtype=torch.bool)
+    rule = DemoConfig().object_rule()
+    x, y = default_click(render, photo, covered, rule)
+    assert 5 <= x < 25 and 5 <= y < 25
+    x, y = default_click(grey.expand(40, 60, 3), photo, covered, rule)
+    assert 35 <= x < 55 and 5 <= y < 25
+    uncovered = covered.clone()
+    uncovered[:, :30] = False
+    x, y = default_click(render, photo, uncovered, rule)  # the render's object is not covered: the photo's
+    assert 35 <= x < 55
+    assert default_click(grey.expand(40, 60, 3), grey.expand(40, 60, 3), covered, rule) is None

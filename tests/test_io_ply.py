@@ -10,7 +10,11 @@ from virgi_ns.errors import InputError
 from virgi_ns.gaussians import Gaussians
 from virgi_ns.io import load_splat, save_ply
 
-plyfile = pytest.importorskip("plyfile")  # a test dependency; an install without the test extras skips
+
+def _plyfile():
+    """plyfile, the independent reader and writer (a test dependency: an install without the test extras skips
+    only the tests that use it)."""
+    return pytest.importorskip("plyfile")
 
 
 def random_gaussians(n: int, degree: int, seed: int = 0) -> Gaussians:
@@ -32,7 +36,7 @@ def test_write_then_read_is_exact(tmp_path, degree):
 def test_written_file_matches_inria_layout_read_by_plyfile(tmp_path):
     g = random_gaussians(50, 2)
     save_ply(g, tmp_path / "a.ply")
-    v = plyfile.PlyData.read(str(tmp_path / "a.ply"))["vertex"].data
+    v = _plyfile().PlyData.read(str(tmp_path / "a.ply"))["vertex"].data
     np.testing.assert_array_equal(v["x"], g.means[:, 0].numpy())
     np.testing.assert_array_equal(v["rot_0"], g.quats[:, 0].numpy())  # w first
     np.testing.assert_array_equal(v["opacity"], g.opacities.numpy())
@@ -47,6 +51,7 @@ def _plyfile_write(path, cols: dict[str, np.ndarray], byte_order: str = "<") -> 
     arr = np.empty(len(next(iter(cols.values()))), dtype=[(k, v.dtype.str) for k, v in cols.items()])
     for k, v in cols.items():
         arr[k] = v
+    plyfile = _plyfile()
     plyfile.PlyData([plyfile.PlyElement.describe(arr, "vertex")], byte_order=byte_order).write(str(path))
 
 

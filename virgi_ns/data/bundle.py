@@ -24,7 +24,7 @@ from virgi_ns.errors import InputError
 
 BUNDLED_SCENE = Path(__file__).resolve().parents[1] / "assets" / "beercan_small"
 """The bundled capture's folder."""
-GEOMETRY_NAMES = ("geometry.ply", "geometry.spz")
+GEOMETRY_NAMES = ("geometry.spz", "geometry.ply")
 """File names of pre-trained geometry inside a bundle, in order of preference."""
 
 

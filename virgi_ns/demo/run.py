@@ -157,15 +157,11 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             view_contrib = frozen.contributions(cam_dev, Request.whole_images(cam_dev))
             view_base = render_view(frozen, cam_dev, 0, contrib=view_contrib)
             if cfg.pixel is None:
-                # the object's colour where the render shows it (what a user sees and the pick reads),
-                # else (a field trained too briefly to show it) where the photo does; always where Gaussians cover
-                covered = view_contrib.accumulation()[0].cpu() >= MIN_COVER
-                obj = rule_mask(view_base["rgb"].clamp(0, 1).cpu(), rule) & covered
-                if not bool(obj.any()):
-                    obj = rule_mask(train_photos[edit_view], rule) & covered
-                if not bool(obj.any()):
+                click = default_click(view_base["rgb"], train_photos[edit_view],
+                                      view_contrib.accumulation()[0] >= MIN_COVER, rule)
+                if click is None:
                     raise InputError(f"the object's colour shows nowhere in training view {edit_view}: give --pixel X Y")
-                x, y = inner_pixel(obj)
+                x, y = click
             else:
                 x, y = cfg.pixel
             edit_cfg = pick_config(dev)
@@ -266,16 +262,31 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
 
 def inner_pixel(mask: torch.Tensor) -> tuple[int, int]:
     """(x, y) of the pixel deepest inside ``mask`` [H,W] (farthest from its edge, by repeated 3x3
-    erosion); among equally deep pixels, the one nearest their centroid."""
+    erosion; beyond the image counts as outside); among equally deep pixels, the one nearest their
+    centroid."""
     inner = mask
     while True:
-        eroded = -torch.nn.functional.max_pool2d(-inner[None, None].float(), 3, 1, 1)[0, 0] > 0
+        padded = torch.nn.functional.pad(inner[None, None].float(), (1, 1, 1, 1))
+        eroded = -torch.nn.functional.max_pool2d(-padded, 3, 1, 0)[0, 0] > 0
         if not bool(eroded.any()):
             break
         inner = eroded
     ys, xs = torch.nonzero(inner, as_tuple=True)
     i = int(((ys - ys.float().mean()) ** 2 + (xs - xs.float().mean()) ** 2).argmin())
     return int(xs[i]), int(ys[i])
+
+
+def default_click(render_rgb: torch.Tensor, photo: torch.Tensor, covered: torch.Tensor,
+                  rule) -> Optional[tuple[int, int]]:
+    """The demo's click when none is given: the pixel deepest inside the object's colour (``rule``) where
+    the render [H,W,3] shows it (what a user sees and the pick reads), else, for a field trained too briefly
+    to show it, where the photo does; only where Gaussians cover (``covered`` [H,W]). None where neither
+    shows it."""
+    for image in (render_rgb.clamp(0, 1).cpu(), photo.cpu()):
+        obj = rule_mask(image, rule) & covered.cpu()
+        if bool(obj.any()):
+            return inner_pixel(obj)
+    return None
 
 
 def next_commands(metrics: Dict[str, object], out: Path) -> list[str]:
