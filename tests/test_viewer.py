@@ -397,6 +397,8 @@ def test_viewer_save_upload_apply_display_toggle_undo(run, served):
     # the specular strength slider reaches the stack and its file
     client.set(ids["specular"], 0.0)
     client.wait_for(lambda: model.edit_stack.specular_strength == 0.0, 30, "k = 0 in the stack")
+    # the panel's status follows the stack's file (written after the stack itself)
+    client.wait_for(lambda: "specular strength 0.00" in _status(client, ids), 30, "the status of k = 0")
     assert json.loads((panel.run_dir / "edits" / "stack.json").read_text())["specular_strength"] == 0.0
     client.set(ids["specular"], 1.0)
     client.wait_for(lambda: model.edit_stack.specular_strength == 1.0, 30, "k = 1 in the stack")
