@@ -305,6 +305,13 @@ def served(run, tmp_path_factory):
         if client is not None:
             client.close()
         viewer.viser_server.stop()
+        # nerfstudio's render threads keep rendering (daemons) until told to stop; a render still running while
+        # the interpreter exits aborts it ("terminate called without an active exception")
+        from nerfstudio.viewer.render_state_machine import RenderStateMachine
+
+        for machine in [t for t in threading.enumerate() if isinstance(t, RenderStateMachine)]:
+            machine.running = False  # also those a disconnect already let go, which may still be rendering
+            machine.join(timeout=30)
         model.set_edit_stack(None)
 
 
