@@ -245,12 +245,14 @@ def main(args: Args) -> None:
 
     # export time at scale
     timing_rows = []
-    big = _Scaled(model, args.timing_gaussians) if args.timing_gaussians > 0 else None
-    for label, use_gate in (("gated", True), ("all fitted", False)) if big is not None else ():
-        bake(big, stack, 1.0, frame, train_cams, BakeConfig(use_gate=use_gate, directions=args.directions))  # warm-up (kernels, allocator)
+    modes = (("gated", True), ("all fitted", False)) if args.timing_gaussians > 0 else ()
+    big = _Scaled(model, args.timing_gaussians) if modes else None
+    for label, use_gate in modes:
+        bake_cfg = BakeConfig(use_gate=use_gate, directions=args.directions)
+        bake(big, stack, 1.0, frame, train_cams, bake_cfg)  # warm-up (kernels, allocator)
         sync()
         t0 = time.perf_counter()
-        g = bake(big, stack, 1.0, frame, train_cams, BakeConfig(use_gate=use_gate, directions=args.directions))
+        g = bake(big, stack, 1.0, frame, train_cams, bake_cfg)
         sync()
         bake_s = time.perf_counter() - t0
         with tempfile.TemporaryDirectory(dir=args.out) as tmp:

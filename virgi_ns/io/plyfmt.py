@@ -9,9 +9,8 @@ The INRIA and SuperSplat layouts are interpreted on top of this in ``ply.py`` an
 
 from __future__ import annotations
 
-from typing import BinaryIO
-
 from dataclasses import dataclass, field
+from typing import BinaryIO
 
 import numpy as np
 
