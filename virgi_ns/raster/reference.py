@@ -49,9 +49,11 @@ Compositing (per pixel, front to back)
     final value is the pixel's transmittance.
 
 Implementation: each Gaussian's tile-range intersections with the requested grid tiles are
-sorted by (tile, depth, index); each intersection is expanded into the pixels of its tile where
+sorted by (tile, depth, index); each intersection is expanded into the pixel rows of its tile where
 alpha can reach 1/255 (a conservative box around the ellipse ``sigma <= log(255 o)``, 1 px
-margin: every excluded pixel has alpha < 1/255 for certain, so nothing depends on the box); the
+margin: every excluded pixel has alpha < 1/255 for certain, so nothing depends on the box), each
+row evaluated as a 16-pixel strip of the tile with the columns outside the box masked (the
+per-row values broadcast; no per-pixel gathers); the
 surviving (pixel, Gaussian) pairs are grouped per pixel in depth order and T is a sequential
 ``cumprod`` in the working dtype over each pixel's row of a padded matrix (rows padded to a
 power of two, one matrix per width, so that padding at most doubles the memory). Every step is a torch
@@ -329,8 +331,11 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
     all_wanted = bool(wanted.all())
     lx0_all = bx0 - ux0  # box origin inside its tile, 0..15
     ly0_all = by0 - uy0
+    box_rows = torch.where(box > 0, bh, torch.zeros_like(bh))
     ux0_t = ux0.to(dtype) + 0.5
     uy0_t = uy0.to(dtype) + 0.5
+    cols = torch.arange(TILE_SIZE, device=dev)
+    cols_t = cols.to(dtype)
     T_q = torch.ones(n_units * _TILE_PIX, dtype=dtype, device=dev)
     e_q, e_vg, e_w = [], [], []
     u0 = 0
@@ -344,69 +349,82 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
         u0 = u1
         if i1 == i0:
             continue
-        # expand every intersection into the pixels of its box (pairs stay in (unit, depth) order)
+        # expand every intersection into the rows of its box, each row a 16-wide strip of its tile
+        # whose columns past the box are masked: one gather per row, none per pixel
         with torch.no_grad():
-            c_box = box[i0:i1]
-            n_pairs = int(c_box.sum())
-            if n_pairs == 0:
+            c_rows = box_rows[i0:i1]
+            n_rows = int(c_rows.sum())
+            if n_rows == 0:
                 continue
-            rep = torch.repeat_interleave(torch.arange(i1 - i0, device=dev), c_box, output_size=n_pairs)
-            off = torch.arange(n_pairs, device=dev) - (torch.cumsum(c_box, 0) - c_box)[rep]
-            bwr = bw[i0:i1][rep]
-            row = torch.div(off, bwr, rounding_mode="floor")
-            lx = lx0_all[i0:i1][rep] + (off - row * bwr)
-            ly = ly0_all[i0:i1][rep] + row
-            q = (i_unit_d[i0:i1] * _TILE_PIX - q0)[rep] + ly * TILE_SIZE + lx  # chunk-local unit-pixel
+            rep = torch.repeat_interleave(torch.arange(i1 - i0, device=dev), c_rows, output_size=n_rows)
+            row_in_box = torch.arange(n_rows, device=dev) - (torch.cumsum(c_rows, 0) - c_rows)[rep]
+            ints = torch.stack([lx0_all[i0:i1], ly0_all[i0:i1], bw[i0:i1], i_unit_d[i0:i1] * _TILE_PIX - q0,
+                                vg_d[i0:i1]], 1)[rep]  # per row: box origin, width, unit base, Gaussian
+            lx0, ly = ints[:, 0], ints[:, 1] + row_in_box
+        gid_i = vg_d[i0:i1]
+        qd_i = quad[gid_i]
+        # per intersection: the mean minus the centre of its tile's first pixel, the form, the opacity
+        per = torch.stack([m2d[gid_i, 0] - ux0_t[i0:i1], m2d[gid_i, 1] - uy0_t[i0:i1], qd_i[:, 0], qd_i[:, 1],
+                           qd_i[:, 2], opa[gid_i]], 1)[rep]
+        dy = per[:, 1] - ly.to(dtype)
+        dx = per[:, 0, None] - (lx0.to(dtype)[:, None] + cols_t)  # [rows, 16]
+        e = dx - (per[:, 3] * dy)[:, None]
+        sigma = 0.5 * (per[:, 2, None] * e * e + (per[:, 4] * dy * dy)[:, None])
+        alpha = torch.clamp(per[:, 5, None] * torch.exp(-sigma), max=ALPHA_MAX)
+        with torch.no_grad():  # sigma is never negative in this form: alpha alone decides
+            sel = torch.nonzero(((alpha >= ALPHA_MIN) & (cols < ints[:, 2, None])).reshape(-1)).squeeze(1)
+            if sel.numel() == 0:
+                continue
+            # chunk-local unit-pixel of each entry (row = sel // 16, column = sel % 16)
+            q = (ints[:, 3] + ly * TILE_SIZE + lx0)[sel >> 4] + (sel & (TILE_SIZE - 1))
             if not all_wanted:
                 keep = torch.nonzero(wanted_d[q + q0]).squeeze(1)
-                rep, q, lx, ly = rep[keep], q[keep], lx[keep], ly[keep]
-        gid_i = vg_d[i0:i1]
-        ox = m2d[gid_i, 0] - ux0_t[i0:i1]  # mean minus the centre of the tile's first pixel
-        oy = m2d[gid_i, 1] - uy0_t[i0:i1]
-        qd_i = quad[gid_i]
-        dx = ox[rep] - lx.to(dtype)
-        dy = oy[rep] - ly.to(dtype)
-        e = dx - qd_i[rep, 1] * dy
-        sigma = 0.5 * (qd_i[rep, 0] * e * e + qd_i[rep, 2] * dy * dy)
-        alpha = torch.clamp(opa[gid_i][rep] * torch.exp(-sigma), max=ALPHA_MAX)
-        sel = torch.nonzero((sigma >= 0) & (alpha >= ALPHA_MIN)).squeeze(1)
-        if sel.numel() == 0:
-            continue
-        # group by unit-pixel; a stable sort keeps the depth order the pairs were made in
-        order = sel[torch.sort(q[sel].int(), stable=True)[1]]
-        q, rep, alpha = q[order], rep[order], alpha[order]
-        # front-to-back transmittance per unit-pixel: a product over each pixel's segment, laid
-        # out as rows of a padded matrix so that it is a plain sequential cumprod, as in gsplat
-        first = torch.ones_like(q, dtype=torch.bool)
-        first[1:] = q[1:] != q[:-1]
-        seg = torch.cumsum(first, 0) - 1
-        start = torch.nonzero(first).squeeze(1)
-        pos = torch.arange(len(q), device=dev) - start[seg]
-        seg_len = torch.bincount(seg, minlength=len(start))
-        # rows padded to the next power of two of their length, one matrix per such width
-        width = torch.ones_like(seg_len)
-        while bool((width < seg_len).any()):
-            width = torch.where(width < seg_len, width * 2, width)
-        t_incl = torch.zeros_like(alpha)
-        t_excl = torch.zeros_like(alpha)
-        for wd in torch.unique(width).tolist():
-            rows = torch.nonzero(width == wd).squeeze(1)
-            row_of = torch.full_like(seg_len, -1).index_put((rows,), torch.arange(len(rows), device=dev))
-            ent = torch.nonzero(row_of[seg] >= 0).squeeze(1)
-            r, c = row_of[seg[ent]], pos[ent]
-            F = torch.ones(len(rows), wd, dtype=dtype, device=dev).index_put((r, c), 1.0 - alpha[ent])
-            cp = torch.cumprod(F, dim=1)
-            t_incl = t_incl.index_put((ent,), cp[r, c])
-            t_excl = t_excl.index_put((ent,), torch.where(c > 0, cp[r, (c - 1).clamp(min=0)], torch.ones_like(cp[r, c])))
-        alive = t_incl > T_MIN  # a prefix of each segment
-        n_alive = torch.zeros(len(start), dtype=torch.long, device=dev).index_add_(0, seg, alive.long())
-        has = n_alive > 0
-        last = (start + n_alive - 1)[has]
+                sel, q = sel[keep], q[keep]
+                if sel.numel() == 0:
+                    continue
+            # group by unit-pixel; a stable sort keeps the depth order the pairs were made in
+            q, order = torch.sort(q.int(), stable=True)
+            sel = sel[order]
+            q = q.long()
+        alpha = alpha.reshape(-1)[sel]
+        # front-to-back transmittance per unit-pixel: a product over each pixel's segment, laid out
+        # as rows of padded matrices so that it is a plain sequential cumprod, as in gsplat
+        with torch.no_grad():
+            n_e = len(q)
+            first = torch.ones(n_e, dtype=torch.bool, device=dev)
+            first[1:] = q[1:] != q[:-1]
+            start = torch.nonzero(first).squeeze(1)
+            seg_len = torch.diff(start, append=start.new_tensor([n_e]))
+            # rows padded to the next power of two of their length, one matrix per such width, the
+            # matrices one after the other in one buffer (rows in segment order within each)
+            width = torch.ones_like(seg_len)
+            while bool((width < seg_len).any()):
+                width = torch.where(width < seg_len, width * 2, width)
+            by_width = torch.argsort(width, stable=True)
+            w_sorted = width[by_width]
+            row_base = torch.empty_like(width)
+            row_base[by_width] = torch.cumsum(w_sorted, 0) - w_sorted
+            seg = torch.cumsum(first, 0) - 1
+            flat = (row_base - start)[seg] + torch.arange(n_e, device=dev)  # row base + position in segment
+            widths, counts = torch.unique_consecutive(w_sorted, return_counts=True)
+        F = torch.ones(int(w_sorted.sum()), dtype=dtype, device=dev).index_put((flat,), 1.0 - alpha)
+        parts, at = [], 0
+        for wd, n_seg in zip(widths.tolist(), counts.tolist()):
+            parts.append(torch.cumprod(F[at:at + wd * n_seg].view(n_seg, wd), dim=1).reshape(-1))
+            at += wd * n_seg
+        cp = torch.cat(parts)
+        t_incl = cp[flat]
+        w = alpha * torch.where(first, torch.ones_like(t_incl), cp[(flat - 1).clamp(min=0)])
+        with torch.no_grad():
+            alive = t_incl > T_MIN  # a prefix of each segment
+            last = alive.clone()  # each segment's last alive entry
+            last[:-1] &= ~(alive[1:] & ~first[1:])
+            last = torch.nonzero(last).squeeze(1)
         T_q = T_q.index_put((q[last] + q0,), t_incl[last])
         idx = torch.nonzero(alive).squeeze(1)
         e_q.append(q[idx] + q0)
-        e_vg.append(gid_i[rep[idx]])
-        e_w.append(alpha[idx] * t_excl[idx])
+        e_vg.append(ints[:, 4][sel[idx] >> 4])
+        e_w.append(w[idx])
 
     # ---- transmittance of every output pixel
     pidx_d, p_q_d = pidx.to(dev), p_q.to(dev)
@@ -424,8 +442,11 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
     q_count = torch.bincount(q, minlength=n_units * _TILE_PIX)
     q_start = torch.cumsum(q_count, 0) - q_count
     c = q_count[p_q_d]
-    sel = torch.repeat_interleave(q_start[p_q_d], c) + _segment_arange(c)
-    pixel = torch.repeat_interleave(pidx_d, c)
+    total = int(c.sum())
+    # entry k of output pixel j sits at q_start[p_q[j]] + k: each pixel's run of the output, shifted
+    shift = q_start[p_q_d] - (torch.cumsum(c, 0) - c)
+    sel = torch.arange(total, device=dev) + torch.repeat_interleave(shift, c, output_size=total)
+    pixel = torch.repeat_interleave(pidx_d, c, output_size=total)
     evg, w = evg[sel], w[sel]
 
     # ---- distinct (view, Gaussian) pairs, sorted by view * N + gaussian (views_used is sorted, so
