@@ -197,6 +197,45 @@ def test_fit_sh_recovers_degree_3_coefficients_and_the_sphere_is_uniform():
     assert flat[0, 1:].abs().max() < 1e-6
 
 
+
+def test_fit_directions_weigh_each_sphere_direction_by_its_nearest_seeing_camera():
+    """A sphere direction's weight is the largest of ``w_v exp((cos a_v - 1) / kernel)`` over the cameras
+    (``w_v`` 1 where camera v sees the Gaussian, ``unseen_weight`` where not), floored at
+    ``sphere_floor``; the camera directions come first with their ``w_v``. Checked against a loop."""
+    from virgi_ns.nerfstudio.export import _FitDirections
+    from virgi_ns.raster import Cameras
+
+    gen = torch.Generator().manual_seed(3)
+    centres = torch.tensor([[0.0, 0.0, -3.0], [3.0, 0.0, 0.0], [0.0, 3.0, 0.5]])
+    viewmats = torch.eye(4).repeat(3, 1, 1)
+    for v, c in enumerate(centres):  # each camera looks at the origin along +z of its own frame
+        z = -c / c.norm()
+        x = torch.nn.functional.normalize(torch.linalg.cross(torch.tensor([0.0, 1.0, 0.0]) if v != 2 else
+                                                             torch.tensor([1.0, 0.0, 0.0]), z), dim=0)
+        R = torch.stack([x, torch.linalg.cross(z, x), z])
+        viewmats[v, :3, :3], viewmats[v, :3, 3] = R, -R @ c
+    K = torch.tensor([[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]]).repeat(3, 1, 1)
+    cams = Cameras(K, viewmats, torch.full((3,), 64), torch.full((3,), 64))
+    means = torch.randn(5, 3, generator=gen) * 0.3
+    means[4] = torch.tensor([0.0, 0.0, -5.0])  # behind the first camera: unseen by it
+    cfg = BakeConfig(directions=16, unseen_weight=0.05, sphere_floor=0.01, kernel=0.03)
+    dirs, w = _FitDirections(cfg, cams, CaptureFrame.identity(), means, min_sphere=0).at(means)
+    assert dirs.shape == (5, 3 + 16, 3) and w.shape == (5, 3 + 16)
+    sphere = fibonacci_sphere(16, torch.float64)
+    for n in range(5):
+        seen = []
+        for v in range(3):
+            pc = viewmats[v, :3, :3].double() @ means[n].double() + viewmats[v, :3, 3].double()
+            u, y = 50 * pc[0] / pc[2] + 32, 50 * pc[1] / pc[2] + 32
+            seen.append(1.0 if (pc[2] > 0 and 0 <= u < 64 and 0 <= y < 64) else 0.05)
+            cam_dir = (means[n].double() - centres[v].double()) / (means[n].double() - centres[v].double()).norm()
+            torch.testing.assert_close(dirs[n, v].double(), cam_dir, atol=1e-6, rtol=0)
+        assert w[n, :3].tolist() == pytest.approx(seen)
+        for s in range(16):
+            best = max(seen[v] * math.exp((float(sphere[s] @ dirs[n, v].double()) - 1.0) / 0.03) for v in range(3))
+            assert float(w[n, 3 + s]) == pytest.approx(max(0.01, best), rel=1e-4, abs=1e-7)
+    assert w[4, 0] == pytest.approx(0.05) and w[:4, :3].min() == 1.0  # the set-up sees what it should
+
 # ------------------------------------------------------------------------------ fidelity
 def test_export_matches_the_model_from_held_out_cameras(fitted, rscene):
     scene = rscene

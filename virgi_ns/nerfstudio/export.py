@@ -81,7 +81,8 @@ class BakeConfig:
     """Give Gaussians below the model's specular gate their exact (view-independent) colour in
     the DC term, as the model renders them."""
     pairs_per_chunk: int = 0
-    """(Gaussian, direction) pairs evaluated at once; 0: 4M on a GPU, 512k on a CPU."""
+    """(Gaussian, direction) pairs evaluated at once; 0: 4M on a GPU, 64k on a CPU (where each of MLP_spec's
+    hidden activations, [pairs, 64] floats, then stays within a CPU's last-level cache)."""
 
 
 def fit_sh(dirs: Float[Tensor, "N P 3"], colours: Float[Tensor, "N P 3"], weights: Float[Tensor, "N P"],
@@ -146,7 +147,7 @@ class _FitDirections:
             self.cams = cameras.index(sel).to(dev, torch.float32)
         self.centres = self.cams.camera_centers().to(means.dtype) if self.cams is not None else None
         self.count = (len(self.cams) if self.cams is not None else 0) + sphere_cap.shape[0]
-        budget = cfg.pairs_per_chunk or ((4 << 20) if dev.type == "cuda" else (512 << 10))
+        budget = cfg.pairs_per_chunk or ((4 << 20) if dev.type == "cuda" else (64 << 10))
         self.chunk = max(1, budget // max(self.count, 1))
 
     def at(self, m: Tensor) -> tuple[Tensor, Tensor]:
@@ -163,7 +164,10 @@ class _FitDirections:
             w_s = torch.full((b, sph.shape[1]), cfg.sphere_floor if cams is not None else 1.0, device=m.device)
             if cams is not None:
                 cos = sph @ parts[0].transpose(1, 2)  # [b,S,V]
-                near = (torch.exp((cos - 1.0) / max(cfg.kernel, 1e-6)) * w_cam[:, None, :]).amax(-1)
+                # the largest w exp((cos - 1) / kernel) over the cameras is exp of the largest exponent
+                # plus log w (exp increases): one exp per sphere direction, not one per camera too
+                exponent = cos.sub_(1.0).div_(max(cfg.kernel, 1e-6)).add_(torch.log(w_cam)[:, None, :])
+                near = torch.exp(exponent.amax(-1))
                 w_s = torch.maximum(w_s, near.to(w_s))
             wparts.append(w_s)
         return torch.cat(parts, dim=1), torch.cat(wparts, dim=1)
