@@ -68,8 +68,9 @@ class CompositeOp:
         self.shape = (p, U)
         rows, cols = rows.long(), cols.long()
         self.matrix = csr_matrix(row_offsets(rows, p, torch.long), cols, vals, (p, U))
-        # the entries sorted by Gaussian (pixels ascending within one: rows are sorted already)
-        t_order = torch.argsort(cols, stable=True)
+        # the entries sorted by Gaussian (pixels ascending within one: rows are sorted already); int32
+        # keys sort in half the time of int64 ones
+        t_order = torch.argsort(cols.int(), stable=True)
         rows_t, cols_t, vals_t = rows[t_order], cols[t_order], vals[t_order]
         self.transpose = csr_matrix(row_offsets(cols_t, U, torch.long), rows_t, vals_t, (U, p))
 
@@ -347,7 +348,7 @@ def pixel_batches(contrib: Contributions, target: Tensor, bg: Tensor, n_batches:
     pix, pair = contrib.pixel.to(dev).long(), contrib.pair.to(dev).long()
     w = contrib.weight.detach().to(dev, dt)
     eb = batch_of[pix]
-    e_order = torch.argsort(eb, stable=True)  # entries stay in pixel order within a batch
+    e_order = torch.argsort(eb.int(), stable=True)  # entries stay in pixel order within a batch
     e_counts = torch.bincount(eb, minlength=n_batches).tolist()
     out = []
     e0 = 0
