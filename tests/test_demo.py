@@ -105,6 +105,8 @@ def test_demo_pipeline_on_a_tiny_capture(tmp_path):
     commands = next_commands(saved, out)
     assert [c.split()[0] for c in commands] == ["ns-viewer", "virgi-edit", "virgi-export"]
     assert f"--camera-index {pick['camera_index']} --pixel {x} {y} --colour '{cfg.colour}'" in commands[1]
+    # the demo's object is every pixel of its colour: its pick, and the one it prints, are not contiguous
+    assert click["contiguous"] is False and pick["contiguous"] is False and commands[1].endswith(" --no-contiguous")
 
 
 def test_bad_scene_exits_2_and_writes_nothing(tmp_path, monkeypatch, capsys):

@@ -58,6 +58,10 @@ class DemoConfig:
     and saturation and keeps each pixel's brightness, so shading stays and white highlights stay white."""
     tolerance: float = 0.2
     """The pick's tolerance (``virgi-edit pick --tolerance``)."""
+    contiguous: bool = False
+    """Select only what is connected to the click (``virgi-edit pick --contiguous``). Off by default: the demo's
+    object is every pixel of its colour (``--hue-from`` ...), as its measures count it, and the bundled can's
+    blue is cut in two by a printed stripe, where a contiguous pick from one side stops."""
     edit_view: Optional[int] = None
     """Training view to click in (index among training views); default: where the can shows most."""
     pixel: Optional[Tuple[int, int]] = None

@@ -175,7 +175,7 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             t_ed = progress.add_task("pick", total=1, info=f"view {edit_view}, pixel {x} {y}, {cfg.colour}")
             t0 = time.perf_counter()
             session = PickSession(frozen, cam_dev, x, y, stack, edit_cfg, source)
-            edit = session.update(colour, cfg.tolerance, cfg.mode)
+            edit = session.update(colour, cfg.tolerance, cfg.mode, contiguous=cfg.contiguous)
             pick_s = time.perf_counter() - t0
             stack.add(edit)
             progress.update(t_ed, completed=1)
@@ -220,7 +220,8 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             "colour_init": {"mode": cfg.colour_init, "steps": int(model.config.colour_init_steps),
                             "batch": int(model.config.colour_init_batch)},
             "click": {"view_index": edit_view, "image": src_name, "pixel": [int(x), int(y)], "colour": cfg.colour,
-                      "mode": cfg.mode, "tolerance": cfg.tolerance, "selected_share": session.settings["selected"]},
+                      "mode": cfg.mode, "tolerance": cfg.tolerance, "contiguous": cfg.contiguous,
+                      "selected_share": session.settings["selected"]},
             "object_rule": rule.to_dict(),
             **held_out_means(per_view),
             "edit_fit_psnr": edit_fit_psnr,
@@ -251,7 +252,7 @@ def run(cfg: DemoConfig, console: Optional[Console] = None) -> Dict[str, object]
             save_run(tc, pipeline, optimizers, total - 1, run_dir)
             metrics["run"] = {"config": str(run_dir / "config.yml"),
                               "pick": {"camera_index": edit_view, "pixel": [int(x), int(y)], "colour": cfg.colour,
-                                       "mode": cfg.mode}}
+                                       "mode": cfg.mode, "contiguous": cfg.contiguous}}
         with atomic_path(cfg.out / "metrics.json") as tmp:
             tmp.write_text(json.dumps(metrics, indent=1) + "\n")
         return metrics
@@ -297,7 +298,8 @@ def next_commands(metrics: Dict[str, object], out: Path) -> list[str]:
     x, y = pick["pixel"]
     return [f"ns-viewer --load-config {config}",
             f"virgi-edit pick --load-config {config} --camera-index {pick['camera_index']} --pixel {x} {y} "
-            f"--colour '{pick['colour']}' --mode {pick['mode']}",
+            f"--colour '{pick['colour']}' --mode {pick['mode']}"
+            + ("" if pick.get("contiguous", True) else " --no-contiguous"),
             f"virgi-export --load-config {config} --out {out / 'recoloured.ply'}"]
 
 
