@@ -229,8 +229,8 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
               max_pairs: int = 1 << 21) -> Contributions:
     """Contribution lists for ``request`` (see the module docstring for the rules).
 
-    Work is split into chunks of whole grid tiles of about ``max_pairs`` candidate (pixel,
-    Gaussian) pairs each, which bounds memory; results do not depend on it.
+    Work is split into chunks of whole grid tiles of about ``max_pairs`` evaluated (pixel, Gaussian)
+    lanes each (16 per row of a Gaussian's box in a tile), which bounds memory; results do not depend on it.
     """
     dtype, dev = means.dtype, means.device
     n = int(means.shape[0])
@@ -322,8 +322,10 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
         bh = (by1 - by0).clamp(min=0)
         box = bw * bh
         box = torch.where(lg > 0, box, torch.zeros_like(box))
-        # chunks of whole units (segments never cross units) of at most ~max_pairs boxes' pixels
-        unit_pairs = torch.zeros(n_units, dtype=torch.long, device=dev).index_add_(0, i_unit_d, box).cpu()
+        # chunks of whole units (segments never cross units) of at most ~max_pairs lanes: 16 per box row
+        box_rows = torch.where(box > 0, bh, torch.zeros_like(bh))
+        unit_pairs = torch.zeros(n_units, dtype=torch.long, device=dev).index_add_(0, i_unit_d, box_rows * TILE_SIZE)
+        unit_pairs = unit_pairs.cpu()
         unit_end = torch.cumsum(unit_pairs, 0)
         k_end = torch.cumsum(k_count, 0)
         wanted_d = wanted.to(dev)
@@ -331,7 +333,6 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
     all_wanted = bool(wanted.all())
     lx0_all = bx0 - ux0  # box origin inside its tile, 0..15
     ly0_all = by0 - uy0
-    box_rows = torch.where(box > 0, bh, torch.zeros_like(bh))
     ux0_t = ux0.to(dtype) + 0.5
     uy0_t = uy0.to(dtype) + 0.5
     cols = torch.arange(TILE_SIZE, device=dev)
