@@ -148,6 +148,9 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     assert abs(rows[5]["timing_warm"]["changed_fraction"] - rows[0]["mask_fraction"]) < 0.5
     for r in rows:  # the diffuse-only ceiling: a per-Gaussian recolour of the diffuse part alone
         assert math.isfinite(r["diffuse_rule_propagation_psnr"]) and math.isfinite(r["diffuse_rule_miss_psnr"])
+        # the ceilings' region colour: the rule on every Gaussian lands near the rule on the pixels
+        assert abs(r["per_gaussian_rule_region_hue_error_deg"]) < 1.0 and abs(r["diffuse_rule_region_hue_error_deg"]) < 2.0
+        assert abs(r["per_gaussian_rule_region_saturation_error"]) < 0.02 and math.isfinite(r["diffuse_rule_region_value_error"])
     assert rows[1]["timing_warm"]["pixel_batches"] == 2
     assert set(rows[0]["targets"]) == {"propagation>=35", "miss>=30", "leak>=30",
                                        "recolour within 0.5 dB of unedited", "edit <= 0.25 s warm"}

@@ -283,8 +283,8 @@ class Bench:
                       "start": edit.info.get("start"), "changed_fraction": edit.info.get("changed_fraction")}
 
     def _per_gaussian_rule(self, i: int, rule: RecolorRule, truth: torch.Tensor, mask: torch.Tensor) -> dict:
-        """Propagation figures of an object-level reference edit for held-out view ``i``: the rule
-        applied to every Gaussian's colour (not to pixels), composited. Where a pixel blends
+        """Propagation and region-colour figures of an object-level reference edit for held-out view ``i``: the
+        rule applied to every Gaussian's colour (not to pixels), composited. Where a pixel blends
         recoloured and untouched Gaussians (thin leaves over a bright background) the per-pixel rule
         and any per-Gaussian edit disagree; this says how much of the propagation error that alone
         explains. Rendered once per (rule, view)."""
@@ -302,7 +302,10 @@ class Bench:
                                     "per_gaussian_rule_miss_psnr": psnr(ref, truth, mask),
                                     "per_gaussian_rule_leak_psnr": psnr(ref, truth, ~mask),
                                     "diffuse_rule_propagation_psnr": psnr(dif, truth),
-                                    "diffuse_rule_miss_psnr": psnr(dif, truth, mask)}
+                                    "diffuse_rule_miss_psnr": psnr(dif, truth, mask),
+                                    # the recoloured region's colour of both: the ceilings of the edit's
+                                    **{f"per_gaussian_rule_{k}": v for k, v in region_colour_error(ref, truth, mask).items()},
+                                    **{f"diffuse_rule_{k}": v for k, v in region_colour_error(dif, truth, mask).items()}}
         return self._reference[key]
 
     def _truth_figures(self, i: int, after: torch.Tensor, alpha: torch.Tensor) -> dict:
