@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from nerfstudio.configs.base_config import ViewerConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
-from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
@@ -20,7 +19,7 @@ from virgi_ns.nerfstudio import compat  # noqa: F401  (checkpoint-loading work-a
 from virgi_ns.nerfstudio.datamanager import VirgiDataManagerConfig
 from virgi_ns.nerfstudio.model import VirgiModelConfig
 from virgi_ns.nerfstudio.pipeline import VirgiPipelineConfig
-from virgi_ns.nerfstudio.trainer import VirgiTrainerConfig
+from virgi_ns.nerfstudio.trainer import AdamConfig, VirgiTrainerConfig
 
 GEOMETRY_STEPS = 30000
 COLOUR_STEPS = 10000
@@ -36,8 +35,8 @@ def virgi_trainer_config(
     """The full training recipe; the two registered methods differ only in the switches."""
     total = geometry_steps + colour_steps
 
-    def adam(lr: float) -> AdamOptimizerConfig:
-        return AdamOptimizerConfig(lr=lr, eps=1e-15)
+    def adam(lr: float) -> AdamConfig:
+        return AdamConfig(lr=lr, eps=1e-15)
 
     return VirgiTrainerConfig(
         method_name=name,

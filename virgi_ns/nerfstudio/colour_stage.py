@@ -103,7 +103,7 @@ class ColourStage:
         seen_draws, seen_total = torch.zeros((), device=dev), 0  # summed on the device: no per-step sync
         grid_lr, mlp_lr = self._field_lrs
         opt = torch.optim.Adam([{"params": fld.grid_parameters(), "lr": grid_lr},
-                                {"params": fld.mlp_parameters(), "lr": mlp_lr}], eps=1e-15)
+                                {"params": fld.mlp_parameters(), "lr": mlp_lr}], eps=1e-15, foreach=True)
         before = self._colour_init_error(target)
         with torch.enable_grad():
             for _ in range(steps):

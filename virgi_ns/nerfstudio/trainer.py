@@ -17,7 +17,7 @@ import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Tuple, Type
+from typing import Optional, Tuple, Type
 
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
@@ -36,9 +36,12 @@ TRAINER_STEPS = ("steps_per_save", "steps_per_eval_image", "steps_per_eval_batch
 
 @dataclass
 class AdamConfig(AdamOptimizerConfig):
-    """Adam with its betas in the config (the batch rule sets them)."""
+    """Adam with its betas in the config (the batch rule sets them), updating with torch's multi-tensor
+    kernels on any device (``foreach``): on a GPU torch's own default, and on a CPU, where torch would loop
+    over the tensors one at a time, the same numbers in about a third of the time."""
 
     betas: Tuple[float, float] = (0.9, 0.999)
+    foreach: Optional[bool] = True
 
 
 def _steps(n: int, world: int) -> int:
@@ -73,7 +76,8 @@ def scale_batch(config: TrainerConfig, world: int) -> TrainerConfig:
                              "use --pipeline.multi-gpu-batch keep")
         betas = tuple(max(0.0, 1.0 - world * (1.0 - b)) for b in getattr(opt, "betas", (0.9, 0.999)))
         group["optimizer"] = AdamConfig(lr=opt.lr * root, eps=opt.eps / root, max_norm=opt.max_norm,
-                                        weight_decay=opt.weight_decay, betas=betas)  # type: ignore[arg-type]
+                                        weight_decay=opt.weight_decay, betas=betas,  # type: ignore[arg-type]
+                                        foreach=getattr(opt, "foreach", True))
         sch = group.get("scheduler")
         if sch is None:
             continue
