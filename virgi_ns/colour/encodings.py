@@ -4,7 +4,8 @@ nerfstudio (the field takes nerfstudio's SH encoding and scene contraction as th
 - :class:`GridEncoding` reads the eight corners of a point in one ``index_select`` (same hash,
   same trilinear arithmetic, same parameter and state dict as nerfstudio's torch
   ``HashEncoding``): its gradient accumulates with ``index_add_`` instead of the sort that
-  advanced indexing's backward costs, which dominated a colour step;
+  advanced indexing's backward costs, which dominated a colour step; and it hashes each axis's
+  two coordinates once for the corners that share them;
 - ``empty=True`` builds the table without its random draws (a run's field whose state is loaded
   next: a large table's draws take a fresh process a noticeable part of a second).
 """
@@ -39,6 +40,22 @@ class GridEncoding(HashEncoding):
         self.hash_offset = torch.arange(self.num_levels) * self.hash_table_size
         self.hash_table = nn.Parameter(torch.empty(self.hash_table_size * self.num_levels, self.features_per_level))
 
+    def _corner_hashes(self, c: Tensor, f: Tensor) -> Tensor:
+        """[..., 8, L] table rows of the eight corners (``_CORNERS``' order) from the ceil and floor grid
+        coordinates ``c``, ``f`` [..., L, 3]: nerfstudio's ``hash_fn`` (each axis times its prime, XORed,
+        modulo the table size, plus the level's offset), with each axis's two products computed once and
+        shared by the four corners that use them: the same integers, a quarter of the multiplications."""
+        primes = torch.tensor([1, 2654435761, 805459861], device=c.device)
+        terms = (f * primes, c * primes)  # [..., L, 3] int64: each axis's floor and ceil term
+        offsets = self.hash_offset.to(c.device)
+        rows = []
+        for ix, iy, iz in _CORNERS:
+            h = torch.bitwise_xor(terms[ix][..., 0], terms[iy][..., 1])
+            h = torch.bitwise_xor(h, terms[iz][..., 2])
+            h %= self.hash_table_size
+            rows.append(h + offsets)
+        return torch.stack(rows, dim=-2)
+
     def pytorch_fwd(self, in_tensor: Tensor) -> Tensor:
         """Features [..., L * F] of points ``in_tensor`` [..., 3] in [0, 1]^3."""
         assert in_tensor.shape[-1] == 3
@@ -47,10 +64,7 @@ class GridEncoding(HashEncoding):
         c = torch.ceil(scaled).type(torch.int32)
         f = torch.floor(scaled).type(torch.int32)
         offset = scaled - f
-        # the corners [..., 8, L, 3]: with corners before levels, hash_fn adds each level's table
-        # offset as it does for one corner
-        ceil = torch.tensor(_CORNERS, dtype=torch.bool, device=c.device).view(8, 1, 3)
-        hashed = self.hash_fn(torch.where(ceil, c[..., None, :, :], f[..., None, :, :]))  # [..., 8, L]
+        hashed = self._corner_hashes(c, f)  # [..., 8, L]
         feats = self.hash_table.index_select(0, hashed.reshape(-1)).view(*hashed.shape, -1)  # [..., 8, L, F]
         f_0, f_1, f_2, f_3, f_4, f_5, f_6, f_7 = feats.unbind(-3)
         o0, o1, o2 = offset[..., 0:1], offset[..., 1:2], offset[..., 2:3]
