@@ -52,7 +52,7 @@ class EditAdam:
         self._host_steps = 0  # the fallback's step count (it sets its learning rate on the host)
         self._fallback = None if _has_fused_kernel(self.params) else torch.optim.Adam(
             [{"params": [self.params[i] for i in idx], "lr": lr * v, "scale": v} for v, idx in self._groups.items()],
-            lr=lr, betas=betas, eps=eps, foreach=True)  # multi-tensor on a CPU too: the same numbers, faster
+            lr=lr, betas=betas, eps=eps)
         self.exp_avg = [torch.zeros_like(p) for p in self.params]
         self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
         self.steps = [torch.zeros((), dtype=torch.float32, device=p.device) for p in self.params]
