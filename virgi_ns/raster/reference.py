@@ -320,10 +320,9 @@ def rasterize(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, c
         by1 = torch.floor(mu[:, 1] + ey - 0.5).clamp(-big, big).long().minimum(uy0 + TILE_SIZE - 1) + 1
         bw = (bx1 - bx0).clamp(min=0)
         bh = (by1 - by0).clamp(min=0)
-        box = bw * bh
-        box = torch.where(lg > 0, box, torch.zeros_like(box))
-        # chunks of whole units (segments never cross units) of at most ~max_pairs lanes: 16 per box row
-        box_rows = torch.where(box > 0, bh, torch.zeros_like(bh))
+        # each box's rows (none where it is empty or alpha cannot reach 1/255); chunks of whole units
+        # (segments never cross units) of at most ~max_pairs lanes: 16 per box row
+        box_rows = torch.where((lg > 0) & (bw > 0), bh, torch.zeros_like(bh))
         unit_pairs = torch.zeros(n_units, dtype=torch.long, device=dev).index_add_(0, i_unit_d, box_rows * TILE_SIZE)
         unit_pairs = unit_pairs.cpu()
         unit_end = torch.cumsum(unit_pairs, 0)
