@@ -158,12 +158,14 @@ class VirgiTrainer(Trainer):
         from virgi_ns.data.splat import prepare_splat_run
 
         prepare_splat_run(config)  # (already done where ns-train saved the config)
-        threads = distributed.share_cpu_threads(world_size, config.machine.device_type)
+        threads = distributed.share_cpu_threads(world_size, config.machine.device_type, local_rank)
         if world_size > 1:
             config = for_processes(config, world_size)
             if not distributed.is_main():
                 CONSOLE.quiet = True  # one console: rank 0's
-            CONSOLE.log(f"{_describe(config, world_size)}; {threads} CPU threads each")
+            own = distributed.own_cpus()
+            CONSOLE.log(f"{_describe(config, world_size)}; {threads} CPU threads each"
+                        + (f", on {own} CPUs of its own" if own else ""))
         super().__init__(config, local_rank, world_size)
 
     def train(self) -> None:
