@@ -211,7 +211,6 @@ def test_each_process_takes_its_share_of_the_cpu_threads(monkeypatch):
     user's OMP_NUM_THREADS stands. (The two-process trainer test checks it through the trainer.)"""
     before = torch.get_num_threads()
     host = distributed.host_threads()
-    monkeypatch.setattr(distributed, "bind_to_own_cores", lambda rank, processes: 0)  # tested below
     try:
         monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
         assert distributed.processes_per_host(3) == 3  # no process group: all on this host
@@ -235,58 +234,3 @@ def test_each_process_takes_its_share_of_the_cpu_threads(monkeypatch):
         assert distributed.share_cpu_threads(2) == host == torch.get_num_threads()
     finally:
         torch.set_num_threads(before)
-
-
-def test_cpu_lists_parse_as_linux_writes_them():
-    assert distributed.parse_cpu_list("0-3,8,10-11\n") == [0, 1, 2, 3, 8, 10, 11]
-    assert distributed.parse_cpu_list("5") == [5]
-
-
-def _two_socket_core(cpu: int) -> tuple:
-    """A host of 2 sockets x 4 cores x 2 hyperthreads, numbered as Linux does: CPUs 0-7 are the first
-    thread of each core (0-3 on socket 0), 8-15 their second threads."""
-    first = cpu % 8
-    return (first // 4, first % 4)
-
-
-def test_gpu_processes_get_disjoint_whole_cores_near_their_gpu():
-    """Each process takes cores of the socket its GPU hangs on, whole (both hyperthreads), never one
-    another process has; where the host does not say, all allowed CPUs are shared out."""
-    host = list(range(16))
-    socket0, socket1 = [0, 1, 2, 3, 8, 9, 10, 11], [4, 5, 6, 7, 12, 13, 14, 15]
-    # four GPUs, two per socket: each process two whole cores of its GPU's socket
-    plan = distributed.plan_own_cores(host, [socket0, socket0, socket1, socket1], _two_socket_core)
-    assert plan == [[0, 1, 8, 9], [2, 3, 10, 11], [4, 5, 12, 13], [6, 7, 14, 15]]
-    # two GPUs on one socket: its four cores split, the other socket left alone
-    assert distributed.plan_own_cores(host, [socket0, socket0], _two_socket_core) == [[0, 1, 8, 9], [2, 3, 10, 11]]
-    # unknown placement: the whole allowed set shared out by core, siblings kept together
-    plan = distributed.plan_own_cores(host, [None, None], _two_socket_core)
-    assert plan == [[0, 1, 2, 3, 8, 9, 10, 11], [4, 5, 6, 7, 12, 13, 14, 15]]
-    # a scheduler's smaller allowed set: only allowed CPUs, a GPU's node outside it counts as unknown
-    assert distributed.plan_own_cores([0, 1, 8, 9], [socket0, socket1], _two_socket_core) == [[0, 8], [1, 9]]
-    # one process's node unknown: everyone shares out everything (no set overlaps another)
-    assert distributed.plan_own_cores(host, [socket0, None], _two_socket_core) == plan
-    # more processes than cores: none gets a set (and none is bound)
-    assert distributed.plan_own_cores([0, 1], [None] * 3, lambda c: (0, c)) == [[], [], []]
-    flat = [c for cpus in distributed.plan_own_cores(host, [socket0, socket1, None], _two_socket_core) for c in cpus]
-    assert len(flat) == len(set(flat)) == 12  # three processes, eight cores: two whole cores (four CPUs) each
-
-
-def test_a_gpu_process_binds_every_thread_to_its_share(monkeypatch):
-    """bind_to_own_cores sets the affinity of each of the process's threads to its planned CPUs, and
-    leaves a process already bound to no more than its share alone."""
-    calls = {}
-    monkeypatch.setattr(distributed, "_OWN_CPUS", 0)
-    monkeypatch.setattr(distributed.os, "sched_getaffinity", lambda pid: set(range(8)))
-    monkeypatch.setattr(distributed.os, "sched_setaffinity", lambda tid, cpus: calls.__setitem__(tid, sorted(cpus)))
-    monkeypatch.setattr(distributed, "_gpu_local_cpus", lambda index: None)
-    monkeypatch.setattr(distributed, "_physical_core", lambda cpu: (0, cpu))
-    assert distributed.bind_to_own_cores(1, 2) == 4 == distributed.own_cpus()
-    threads = {int(t) for t in os.listdir("/proc/self/task")}
-    assert threads <= set(calls) and all(calls[t] == [4, 5, 6, 7] for t in threads)
-    calls.clear()
-    monkeypatch.setattr(distributed.os, "sched_getaffinity", lambda pid: {4, 5, 6, 7})
-    assert distributed.bind_to_own_cores(1, 2) == 2  # an allowed set of 4 split again: 2 each
-    monkeypatch.setattr(distributed.os, "sched_getaffinity", lambda pid: {4})
-    calls.clear()
-    assert distributed.bind_to_own_cores(0, 2) == 0 and not calls  # one CPU: nothing to share out

@@ -87,11 +87,10 @@ from the process's own launching thread: with a pool as wide as a large host the
 order of magnitude."""
 
 
-def share_cpu_threads(world: int, device_type: str = "cpu", local_rank: int = 0) -> int:
+def share_cpu_threads(world: int, device_type: str = "cpu") -> int:
     """Give this process its share of the host's CPU threads (:func:`host_threads` over the processes
     on the host, at most :data:`GPU_PROCESS_THREADS` where it drives a GPU); returns the count it now
-    uses. Where several processes drive GPUs on one host, each first takes cores of its own
-    (:func:`bind_to_own_cores`) and sizes its pool to them.
+    uses.
 
     Every process otherwise sizes torch's thread pool for the whole host, and the colour stage's
     batch drawing (small CPU ops each step) then waits on threads the other processes, or its own
@@ -102,115 +101,11 @@ def share_cpu_threads(world: int, device_type: str = "cpu", local_rank: int = 0)
     gpu = device_type == "cuda"
     if world <= 1 and not gpu:
         return torch.get_num_threads()
-    per_host = processes_per_host(world)
-    threads = max(1, host_threads() // per_host)
+    threads = max(1, host_threads() // processes_per_host(world))
     if gpu:
-        if per_host > 1:
-            own = bind_to_own_cores(local_rank, per_host)
-            threads = own if own else threads
         threads = min(threads, GPU_PROCESS_THREADS)
     torch.set_num_threads(threads)
     return threads
-
-
-def _read(path: str) -> str | None:
-    try:
-        with open(path) as f:
-            return f.read().strip()
-    except OSError:
-        return None
-
-
-def parse_cpu_list(text: str) -> List[int]:
-    """CPUs of a Linux list such as ``0-3,8,10-11``."""
-    cpus: List[int] = []
-    for part in text.split(","):
-        part = part.strip()
-        if not part:
-            continue
-        lo, _, hi = part.partition("-")
-        cpus.extend(range(int(lo), int(hi or lo) + 1))
-    return cpus
-
-
-def _physical_core(cpu: int) -> tuple:
-    """(socket, core) of a logical CPU: hyperthreads of one core share it."""
-    topo = f"/sys/devices/system/cpu/cpu{cpu}/topology"
-    package, core = _read(f"{topo}/physical_package_id"), _read(f"{topo}/core_id")
-    if package is None or core is None:
-        return (0, cpu)
-    return (int(package), int(core))
-
-
-def _gpu_local_cpus(index: int) -> List[int] | None:
-    """The CPUs on the memory node of CUDA device ``index`` (Linux's PCI sysfs), or None."""
-    try:
-        props = torch.cuda.get_device_properties(index)
-        bus = f"{props.pci_domain_id:04x}:{props.pci_bus_id:02x}:{props.pci_device_id:02x}.0"
-    except (AttributeError, RuntimeError, AssertionError):
-        return None
-    text = _read(f"/sys/bus/pci/devices/{bus}/local_cpulist")
-    return parse_cpu_list(text) if text else None
-
-
-def plan_own_cores(allowed: Sequence[int], local_cpus: Sequence[Sequence[int] | None],
-                   core_of: Callable[[int], tuple] = _physical_core) -> List[List[int]]:
-    """Disjoint CPU sets for the processes of one host, one per entry of ``local_cpus`` (the CPUs near
-    that process's GPU, or None where unknown), all within ``allowed``.
-
-    Processes whose GPUs sit on the same memory node share out that node's allowed CPUs; where any
-    process's node is unknown (or none of its CPUs allowed), all of them share out all allowed CPUs. Each set is whole physical cores
-    (hyperthreads of a core never go to two processes), consecutive on their socket. The sets are
-    empty where a node's processes outnumber its cores."""
-    everywhere = tuple(sorted(set(allowed)))
-    homes = [tuple(c for c in everywhere if c in set(near)) if near is not None else () for near in local_cpus]
-    if not all(homes):  # one process's place unknown: share out the whole allowed set among all of them
-        homes = [everywhere] * len(local_cpus)
-    plan: List[List[int]] = [[] for _ in local_cpus]
-    for home in dict.fromkeys(homes):
-        members = [i for i, h in enumerate(homes) if h == home]
-        cores: Dict[tuple, List[int]] = {}
-        for cpu in home:
-            cores.setdefault(core_of(cpu), []).append(cpu)
-        ordered = [cores[k] for k in sorted(cores)]
-        share = len(ordered) // len(members)
-        for j, i in enumerate(members):
-            plan[i] = sorted(c for core in ordered[j * share:(j + 1) * share] for c in core)
-    return plan
-
-
-def bind_to_own_cores(local_rank: int, processes: int) -> int:
-    """Bind this process (every thread it has, and those it starts later) to CPUs of its own among
-    the ``processes`` driving this host's GPUs 0..processes-1 (nerfstudio gives local rank r GPU r),
-    near its GPU where the host says which CPUs are (:func:`plan_own_cores`). Several GPU processes
-    otherwise float over all cores, and each one's launching thread, on which its steps wait, competes
-    with the others' thread pools. Returns the CPUs it now runs on, or 0 where it changed nothing: a
-    process already bound to no more than its share (by a scheduler or the user) keeps its binding."""
-    try:
-        allowed = sorted(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return 0
-    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-    near = [_gpu_local_cpus(i) if i < count else None for i in range(processes)]
-    mine = plan_own_cores(allowed, near)[local_rank]
-    if not mine or len(mine) >= len(allowed):
-        return 0
-    for task in os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else ["0"]:
-        try:
-            os.sched_setaffinity(int(task), mine)
-        except OSError:  # a thread that ended meanwhile
-            pass
-    global _OWN_CPUS
-    _OWN_CPUS = len(mine)
-    return len(mine)
-
-
-_OWN_CPUS = 0
-
-
-def own_cpus() -> int:
-    """The CPUs :func:`bind_to_own_cores` bound this process to (0: not bound)."""
-    return _OWN_CPUS
 
 
 def prepare_cuda(device) -> None:

@@ -158,14 +158,12 @@ class VirgiTrainer(Trainer):
         from virgi_ns.data.splat import prepare_splat_run
 
         prepare_splat_run(config)  # (already done where ns-train saved the config)
-        threads = distributed.share_cpu_threads(world_size, config.machine.device_type, local_rank)
+        threads = distributed.share_cpu_threads(world_size, config.machine.device_type)
         if world_size > 1:
             config = for_processes(config, world_size)
             if not distributed.is_main():
                 CONSOLE.quiet = True  # one console: rank 0's
-            own = distributed.own_cpus()
-            CONSOLE.log(f"{_describe(config, world_size)}; {threads} CPU threads each"
-                        + (f", on {own} CPUs of its own" if own else ""))
+            CONSOLE.log(f"{_describe(config, world_size)}; {threads} CPU threads each")
         super().__init__(config, local_rank, world_size)
 
     def train(self) -> None:
