@@ -284,7 +284,7 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
     sync()
     cache_s = time.perf_counter() - t0
     edit, warm = b.fit(edited, args.steps, None, args.repeats, original)
-    res, pics = b.measure(edit, scene.rule, lpips=False, keep=args.pictures, edited=edited)
+    res, pics = b.measure(edit, scene.rule, lpips=False, keep=args.pictures, edited=edited, original=original)
     res["mean"] = median_over_seeds(args, b, (edited, args.steps, None, 1, original), {}, scene.rule, edited,
                                     res["mean"], warm)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -311,7 +311,7 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
         fit = (v_edited, v_cfg.pop("steps", args.steps), v_cfg.pop("pixel_batches", None), 1, b.original(v_source))
         v_edit, v_t = b.fit(*fit, **v_cfg)
         v_res, v_pics = b.measure(v_edit, v_rule, lpips=False, keep=args.pictures if args.variant_pictures else 0,
-                                  edited=v_edited)
+                                  edited=v_edited, original=fit[4], config=v_cfg)
         for i, p in enumerate(v_pics):
             _save_png(args.out / f"{scene.name}__{safe_name(v)}_view{i}.png", p)  # 'cup:x' apart from 'x'
         v_res["mean"] = median_over_seeds(args, b, fit, v_cfg, v_rule, v_edited, v_res["mean"], v_t)
@@ -453,7 +453,8 @@ def print_tables(rows: List[dict], device: str) -> None:
               f"{w['cannot']} of the failing rows cannot pass on their run" if w["rows"] > w["passed"] else "")
     console.print(t)
     d = Table(title="diagnostics: the edited view's own fit, and where the segmentation lands")
-    for c in ("scene", "seed", "variant", "start", "changed", "edit view fit (changed px)", "edit view alpha in mask",
+    for c in ("scene", "seed", "variant", "start", "changed", "changed outside the mask / mask unchanged",
+              "target: miss / leak", "edit view fit (changed px)", "edit view alpha in mask",
               "alpha in mask", "alpha outside", "alpha per object (synthetic)"):
         d.add_column(c)
     for r in rows:
@@ -461,6 +462,9 @@ def print_tables(rows: List[dict], device: str) -> None:
                         and k[6:-1] not in ("floor", "backdrop"))
         d.add_row(r["scene"], str(r["seed"]), _label(r), str(r["timing_warm"].get("start")),
                   _f(r["timing_warm"].get("changed_fraction", math.nan), ".1%"),
+                  f"{_f(r.get('edit_changed_outside_mask', math.nan), '.1%')} / "
+                  f"{_f(r.get('edit_mask_unchanged', math.nan), '.1%')}",
+                  f"{_f(r.get('edit_target_miss_psnr', math.nan))} / {_f(r.get('edit_target_leak_psnr', math.nan))}",
                   _f(r.get("edit_fit_changed_psnr", math.nan)), _f(r.get("edit_view_alpha_in_mask", math.nan)),
                   _f(r.get("alpha_in_mask", math.nan)), _f(r.get("alpha_out_mask", math.nan), ".3f"), per)
     console.print(d)

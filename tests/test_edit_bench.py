@@ -45,6 +45,27 @@ def test_psnr_helper_against_direct_formula():
     assert math.isnan(psnr(a, b, torch.zeros(5, 7, dtype=torch.bool)))
 
 
+def test_target_figures_score_the_target_against_the_rule_on_the_render():
+    """Hand-made 1x4 view: the rule recolours pixels 0 and 1 of the render; the target changes pixels 1 and
+    2 (0 left as the render, 2 changed outside the mask) and misses pixel 1 by 0.1 in one channel."""
+    from virgi_ns.bench.recolor import target_figures
+
+    render = torch.zeros(1, 4, 3)
+    truth = render.clone()
+    truth[0, :2] = 1.0
+    mask = torch.tensor([[True, True, False, False]])
+    target = render.clone()
+    target[0, 1] = torch.tensor([1.0, 1.0, 0.9])
+    target[0, 2] = torch.tensor([0.0, 0.2, 0.0])
+    changed = torch.tensor([[False, True, True, False]])
+    f = target_figures(target, changed, truth, mask)
+    # inside the mask: squared errors 3 (pixel 0) and 0.01 (pixel 1) over 6 channel values
+    assert f["edit_target_miss_psnr"] == pytest.approx(-10 * math.log10((3 + 0.01) / 6), abs=1e-4)
+    assert f["edit_target_leak_psnr"] == pytest.approx(-10 * math.log10(0.04 / 6), abs=1e-4)
+    assert f["edit_changed_outside_mask"] == 0.25 and f["edit_mask_unchanged"] == 0.25
+    assert set(target_figures(target, None, truth, mask)) == {"edit_target_miss_psnr", "edit_target_leak_psnr"}
+
+
 def test_recolor_bench_writes_results_and_pictures(pipeline, tmp_path):
     out = tmp_path / "r" / "results.json"
     args = Recolor(load_config=tmp_path / "unused.yml", out=out, rule=BROAD, edit_source="render", steps=40, repeats=1,
@@ -159,6 +180,14 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
                   "alpha_in_mask", "edit_view_alpha_in_mask"):
             assert math.isfinite(r[k]), (r["variant"], k)
         assert 0.0 <= r["alpha_in_mask"] <= 1.0 and 0.0 <= r["alpha_out_mask"] <= 1.0
+    # what the engine was told to fit in its own view: the rule on the render itself is an exact target
+    # (render+original, the edited image fitted as it is), a photo's edit is not
+    assert rows[5]["edit_target_miss_psnr"] >= 100.0 and rows[5]["edit_target_leak_psnr"] >= 100.0
+    assert rows[5]["edit_changed_outside_mask"] == 0.0 and rows[5]["edit_mask_unchanged"] < 0.01
+    assert rows[0]["edit_target_miss_psnr"] < 100.0 and 0.0 <= rows[0]["edit_changed_outside_mask"] < 1.0
+    for r in rows:  # the target's changed pixels are the engine's own: the same share of the view
+        changed = r["edit_changed_outside_mask"] + r["edit_view_mask_fraction"] - r["edit_mask_unchanged"]
+        assert changed == pytest.approx(r["timing_warm"]["changed_fraction"], abs=1e-6), r["variant"]
     # the variants are different fits: their figures differ from the defaults'
     assert len({round(r["propagation_psnr"], 4) for r in rows[:5]}) == 5
     # ... except render+original with the edited target: on a small edit the engine finds the same changed

@@ -141,6 +141,23 @@ def edit_figures(after: torch.Tensor, base: torch.Tensor, photo: torch.Tensor, t
             "mask_fraction": float(mask.float().mean())}
 
 
+def target_figures(target: torch.Tensor, changed: Optional[torch.Tensor], truth_render: torch.Tensor,
+                   mask: torch.Tensor) -> dict:
+    """What the edit is told in its own view, scored as the edit is: the image the engine fits
+    (``target`` [H,W,3]; ``changed`` [H,W] the pixels it changes, None for a whole-image fit) against
+    the rule on the view's render (``truth_render``, whose ``mask`` it recolours) inside the mask and
+    outside it; and the view's share of pixels the edit changes outside the mask, and leaves unchanged
+    inside it. Where these are low the target, not the fit or its propagation, sets the edit's limit:
+    an edited photo changes the pixels the photo shows in the rule's colours, which a blurred or
+    shifted render shows elsewhere."""
+    out = {"edit_target_miss_psnr": psnr(target, truth_render, mask),
+           "edit_target_leak_psnr": psnr(target, truth_render, ~mask)}
+    if changed is not None:
+        out["edit_changed_outside_mask"] = float((changed & ~mask).float().mean())
+        out["edit_mask_unchanged"] = float((mask & ~changed).float().mean())
+    return out
+
+
 def region_colour_error(image: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> dict:
     """How far ``image``'s colour over ``mask`` [H,W] is from ``truth``'s, as a person reads a recolour:
     the circular mean hue's difference in degrees (in (-180, 180]), and the mean saturation's and
@@ -323,10 +340,13 @@ class Bench:
         return out
 
     def measure(self, edit, rule: RecolorRule, lpips: bool = True, keep: int = 0,
-                edited: Optional[torch.Tensor] = None) -> tuple[dict, list]:
+                edited: Optional[torch.Tensor] = None, original: Optional[torch.Tensor] = None,
+                config: Optional[dict] = None) -> tuple[dict, list]:
         """Per-view and mean figures for ``edit``; the first ``keep`` views' pictures too. With the
         ``edited`` image the edit was fitted to, also how closely the edited view itself reaches it
-        on the pixels the edit changed (the fit, apart from its propagation)."""
+        on the pixels the edit changed (the fit, apart from its propagation), and what the engine was
+        told to fit there (:func:`target_figures`: the target the engine builds from ``edited``, the
+        ``original`` it was given and ``config``, the fit's :class:`EditConfig` fields)."""
         from virgi_ns.edit.scene import render_view
         from virgi_ns.edit.stack import EditStack
         from virgi_ns.metrics import image_metrics
@@ -366,10 +386,17 @@ class Bench:
         mean.update({"edit_view_propagation_psnr": psnr(after, truth_render),
                      "edit_view_miss_psnr": psnr(after, truth_render, mask),
                      "edit_view_leak_psnr": psnr(after, truth_render, ~mask),
-                     "edit_view_alpha_in_mask": _masked_mean(ev["segmentation"][..., 0], mask)})
+                     "edit_view_alpha_in_mask": _masked_mean(ev["segmentation"][..., 0], mask),
+                     "edit_view_mask_fraction": float(mask.float().mean())})
         if edited is not None:
+            from virgi_ns.edit.engine import EditConfig
+            from virgi_ns.edit.targets import find_target
+
             changed = (edited - self.edit_photo).abs().amax(-1) > 3.0 / 255.0
             mean["edit_fit_changed_psnr"] = psnr(after, edited, changed)
+            target = find_target(EditConfig(**(config or {})), self.edit_base, edited, original)
+            mean.update(target_figures(target.image, None if target.changed is None else target.changed[..., 0],
+                                       truth_render, mask))
         return {"mean": mean, "views": rows}, pics
 
 
