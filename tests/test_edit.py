@@ -510,6 +510,80 @@ def test_affine_target_is_the_rule_on_the_render_for_a_channel_permuting_edit(wo
     assert miss["affine"] < miss["edited"], miss
 
 
+def test_colour_change_share_counts_how_often_each_colour_was_changed():
+    """:func:`colour_change_share`: the changed share of the photo's pixels of a colour, with the prior as one
+    more pixel; a colour the photo does not show takes the prior."""
+    from virgi_ns.edit.targets import colour_change_share
+
+    hi, lo = 28 / 32, 4 / 32  # on the grid's levels: each pixel counts in one cell
+    red, green, yellow, blue = (torch.tensor(c) for c in ([hi, lo, lo], [lo, hi, lo], [hi, hi, lo], [lo, lo, hi]))
+    photo = torch.stack([red] * 30 + [green] * 30 + [yellow] * 30)
+    changed = torch.tensor([True] * 30 + [False] * 30 + [True, False] * 15)
+    share = colour_change_share(photo, changed)
+    got = share(torch.stack([red, green, yellow, blue, blue]), torch.tensor([0.0, 0.0, 0.0, 0.0, 1.0]))
+    torch.testing.assert_close(got, torch.tensor([30 / 31, 0.0, 15 / 31, 0.0, 1.0]), atol=1e-5, rtol=0)
+    # without a prior: the photo's own share; between the levels, the neighbouring cells' counts blend
+    torch.testing.assert_close(share(torch.stack([red, green, yellow])), torch.tensor([1.0, 0.0, 0.5]))
+    # between two levels the neighbouring cells' counts blend: 30 red pixels, all changed, one level from
+    # 10 unchanged orange ones; half-way between them (30 + 0) / 2 of (30 + 10) / 2
+    orange = red + torch.tensor([0.0, 1 / 32, 0.0])
+    share = colour_change_share(torch.stack([red] * 30 + [orange] * 10), torch.tensor([True] * 30 + [False] * 10))
+    torch.testing.assert_close(share(torch.stack([(red + orange) / 2])), torch.tensor([0.75]))
+
+
+def test_colour_target_follows_the_render_where_a_shifted_photo_disagrees(world):
+    """``changed_target="colour"``: a photo 3 pixels off the render (a misregistered capture) recoloured by a
+    channel-permuting rule. The change applied to the render's colours changes the pixels the rule changes
+    on the render, not those it changed on the photo, to the rule's colours; the affine target keeps the
+    photo's pixels. Held out, the colour target's edit is closer to the rule on the held-out render."""
+    from virgi_ns.edit.targets import find_target
+
+    S, cam = world["S"], world["S"].cameras.index(EDIT_VIEW)
+    render = world["before"][EDIT_VIEW]["rgb"]
+    photo = torch.roll(render, 3, dims=1)
+    rule = RecolorRule(h0=BLUE_TO_RED.h0, h1=BLUE_TO_RED.h1, shift=120, s_min=BLUE_TO_RED.s_min,
+                       v_min=BLUE_TO_RED.v_min)
+    edited, in_photo = recolor(photo, rule)
+    rule_on_render, in_render = recolor(render, rule)
+    assert float((in_photo ^ in_render).float().sum()) > 0.2 * float(in_render.float().sum())  # they disagree
+    targets = {t: find_target(EditConfig(changed_target=t), render, edited, photo) for t in ("affine", "colour")}
+    colour = targets["colour"]
+    assert "render's colours" in colour.mode
+    # the changed pixels are the rule's on the render but for a few (the object's blended rim, sparse in
+    # colour on a 48 x 64 view), at most a third as many off as the photo's; the image three times closer
+    off = {t: int((tg.changed[..., 0] ^ in_render).sum()) for t, tg in targets.items()}
+    assert off["colour"] < off["affine"] / 3, off
+    err = {t: float((tg.image - rule_on_render).abs().amax(-1).mean()) for t, tg in targets.items()}
+    assert err["colour"] < err["affine"] / 3, err
+    miss = {}
+    for t in ("affine", "colour"):
+        eng = EditEngine(S.scene, cam, edited, cfg=EditConfig(steps=60, pixel_batches=1, changed_target=t),
+                         original=photo)
+        stack = _stack(world, eng.fit()[0])
+        truth, _ = recolor(world["before"][HELD_OUT[0]]["rgb"], rule)
+        miss[t] = float((_render(world, HELD_OUT[0], stack)["rgb"] - truth).abs().mean())
+    assert miss["colour"] < miss["affine"], miss
+
+
+def test_colour_target_leaves_paint_on_one_of_two_like_objects_to_the_affine_target():
+    """Paint on one of two blue squares is no change of colours (the other square's blue stays): the
+    colour target is then the affine one, pixel for pixel."""
+    from virgi_ns.edit.targets import colour_change_target, find_target
+
+    photo = torch.full((40, 40, 3), 0.8)
+    photo[5:15, 5:15] = torch.tensor([0.1, 0.2, 0.9])
+    photo[25:35, 25:35] = torch.tensor([0.1, 0.2, 0.9])
+    photo = photo + 0.02 * torch.rand(40, 40, 3, generator=torch.Generator().manual_seed(0))
+    edited = photo.clone()
+    edited[5:15, 5:15] = photo[5:15, 5:15][..., [2, 1, 0]]  # the first square turned red
+    render = (photo + 0.01).clamp(0, 1)
+    changed = (edited - photo).abs().amax(-1) > EditConfig().unchanged_tol
+    assert colour_change_target(render, edited, photo, changed) is None
+    a = find_target(EditConfig(changed_target="affine"), render, edited, photo)
+    c = find_target(EditConfig(changed_target="colour"), render, edited, photo)
+    assert torch.equal(a.image, c.image) and torch.equal(a.changed, c.changed) and a.mode == c.mode
+
+
 def test_staged_recipe_segments_first_and_its_edit_renders_what_it_fitted(world):
     """``recipe="staged"``: the segmentation is a classifier of the view's Gaussians, fixed while the
     layer trains; the saved edit's head gives the same alpha at render time, high on the Gaussians
