@@ -24,7 +24,7 @@ import statistics
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Optional, Union
+from typing import Annotated, Literal, Optional, Union
 
 import numpy as np
 import torch
@@ -90,6 +90,8 @@ class Recolor(_EditedView):
     """Held-out views saved as before | after | truth | mask PNGs."""
     lpips: bool = True
     """Compute LPIPS when its weights are available offline."""
+    changed_target: Literal["affine", "colour", "edited"] = "affine"
+    """What the edit fits the changed pixels of an edited photo to (``EditConfig.changed_target``)."""
 
 
 @dataclass
@@ -432,12 +434,15 @@ def run_recolor(args: Recolor, pipeline=None, console: Optional[Console] = None)
     edited = b.edited_image(rule, args.edit_source)
     with console.status("fitting the edit"):
         edit, timing = b.fit(edited, args.steps, args.pixel_batches, args.repeats,
-                             b.original(args.edit_source), args.whole_photo)
+                             b.original(args.edit_source), args.whole_photo, changed_target=args.changed_target)
     with console.status("measuring"):
-        res, pics = b.measure(edit, rule, args.lpips, args.pictures)
+        res, pics = b.measure(edit, rule, args.lpips, args.pictures, edited=edited,
+                              original=b.original(args.edit_source),
+                              config={"changed_target": args.changed_target, "whole_image": args.whole_photo})
     out = {"config": str(args.load_config), "device": _device_name(b.scene.device),
            "gaussians": int(b.scene.means.shape[0]), "rule": rule.to_dict(), "edit_view": args.edit_view,
-           "edit_source": args.edit_source, "whole_photo": args.whole_photo, "timing": timing, **res}
+           "edit_source": args.edit_source, "whole_photo": args.whole_photo, "changed_target": args.changed_target,
+           "timing": timing, **res}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     for i, p in enumerate(pics):
         _save_png(args.out.with_name(f"{args.out.stem}_view{i}.png"), p)
