@@ -578,10 +578,45 @@ def test_colour_target_leaves_paint_on_one_of_two_like_objects_to_the_affine_tar
     edited[5:15, 5:15] = photo[5:15, 5:15][..., [2, 1, 0]]  # the first square turned red
     render = (photo + 0.01).clamp(0, 1)
     changed = (edited - photo).abs().amax(-1) > EditConfig().unchanged_tol
-    assert colour_change_target(render, edited, photo, changed) is None
+    assert colour_change_target(render, edited, photo, changed, EditConfig().unchanged_tol) is None
     a = find_target(EditConfig(changed_target="affine"), render, edited, photo)
     c = find_target(EditConfig(changed_target="colour"), render, edited, photo)
-    assert torch.equal(a.image, c.image) and torch.equal(a.changed, c.changed) and a.mode == c.mode
+    assert torch.equal(a.image, c.image) and torch.equal(a.changed, c.changed)
+    assert c.mode == a.mode + ": not a change of colours the render shows"
+
+
+def test_colour_target_is_the_affine_one_where_the_render_shows_the_photo(world):
+    """Where the render shows its photo's colours, each pixel is changed as the photo's was: with the photo
+    the render itself, the colour target is the affine one (the edited image on its changed pixels) bit
+    for bit; a touch-up of fewer than SLOPE_MIN_PIXELS pixels, too few to tell a change of colours, is
+    fitted as affine."""
+    from virgi_ns.edit.targets import SLOPE_MIN_PIXELS, find_target
+
+    render = world["before"][EDIT_VIEW]["rgb"]
+    edited = world["edited"]
+    a = find_target(EditConfig(changed_target="affine"), render, edited, render)
+    c = find_target(EditConfig(changed_target="colour"), render, edited, render)
+    assert "render's colours" in c.mode
+    assert torch.equal(a.changed, c.changed) and torch.equal(a.image, c.image)
+    # a rule whose saturation threshold cuts one colour cell: pixels just above it changed, just below not
+    rule = RecolorRule(h0=190, h1=260, shift=120, s_min=0.3, v_min=0.1)
+    image = torch.full((40, 40, 3), 0.5)
+    image[:20] = torch.tensor([0.0, 0.0, 0.8])
+    image[20:22] = torch.tensor([0.8 * 0.69, 0.8 * 0.69, 0.8])  # saturation 0.31: few
+    image[22:37] = torch.tensor([0.8 * 0.71, 0.8 * 0.71, 0.8])  # 0.29: many, so their colour reads unchanged
+    recoloured, _ = recolor(image, rule)
+    a = find_target(EditConfig(changed_target="affine"), image, recoloured, image)
+    c = find_target(EditConfig(changed_target="colour"), image, recoloured, image)
+    assert "render's colours" in c.mode and a.count == 22 * 40
+    assert torch.equal(a.changed, c.changed) and torch.equal(a.image, c.image)
+    # a render that shows none of the changed colours: nothing of it would change, so affine
+    grey = torch.full_like(image, 0.5)
+    c = find_target(EditConfig(changed_target="colour"), grey, recoloured, image)
+    assert c.mode.endswith("not a change of colours the render shows") and c.count == a.count
+    touched = render.clone()
+    touched.reshape(-1, 3)[: SLOPE_MIN_PIXELS - 1] = torch.tensor([1.0, 0.0, 1.0])
+    small = find_target(EditConfig(changed_target="colour"), render, touched, render)
+    assert small.count == SLOPE_MIN_PIXELS - 1 and small.mode.endswith("not a change of colours the render shows")
 
 
 def test_staged_recipe_segments_first_and_its_edit_renders_what_it_fitted(world):

@@ -64,9 +64,9 @@ class EditConfig:
     to the original ones over the changed pixels (:func:`~virgi_ns.edit.targets.change_slope`): exact
     for a change affine in colour (a hue shift of 120 degrees permutes the channels), first order for
     any other; the photo's detail the model never reproduced stays out of the edit. ``colour``: where
-    the change is one of colours, that change applied to the render's own colours, so the pixels it
-    changes are those whose colour in the render the user changed
-    (:func:`~virgi_ns.edit.targets.colour_change_target`; otherwise ``affine``). ``edited``: the
+    the change is one of colours, that change applied to the render's own colours: a render pixel that
+    shows its photo pixel's colour is changed as that pixel was, any other where the photo's pixels of
+    its colour were (:func:`~virgi_ns.edit.targets.colour_change_target`; otherwise ``affine``). ``edited``: the
     edited pixels themselves (the paper's). The same for an edited render; no effect with
     ``whole_image``."""
     recipe: Literal["joint", "staged"] = "joint"

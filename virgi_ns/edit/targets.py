@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Optional
+from typing import Iterator, Optional
 
 import torch
 from jaxtyping import Float
@@ -89,18 +89,17 @@ def find_target(cfg: EditConfig, render: Float[Tensor, "H W 3"], edited: Float[T
         raise InputError("the selection is empty: nothing to edit" if ref == "selection" else
                          f"the edited image does not differ from the {ref}: nothing to edit")
     if ref == "original" and cfg.changed_target == "colour":
-        found = colour_change_target(render, edited, original, changed[..., 0])
+        found = colour_change_target(render, edited, original, changed[..., 0], cfg.unchanged_tol)
         if found is not None:
             image, changed = found
-            count = int(changed.sum())
-            if count == 0:
-                raise InputError("no colour of the render is one the edit changes: nothing to edit")
-            return Target(torch.where(changed, image, render), changed, count,
+            return Target(image, changed, int(changed.sum()),
                           "changed pixels (original given, the change applied to the render's colours)")
     if ref == "original":
         edited = changed_pixels_target(cfg, render, edited, original, changed[..., 0])
         mode = "changed pixels (original given, " + (
             "edited + its slope x (render - photo))" if cfg.changed_target != "edited" else "edited image)")
+        if cfg.changed_target == "colour":
+            mode += ": not a change of colours the render shows"
     else:
         mode = "changed pixels (a selection)" if ref == "selection" else "changed pixels (an edited render)"
     return Target(torch.where(changed, edited, render), changed, count, mode)
@@ -174,21 +173,25 @@ were changed at least this often over the photo (a rule on colours: near 1, shor
 thresholds cut a grid cell; paint on one of two objects of one colour: 0.5)."""
 
 
-def _grid_corners(colours: Float[Tensor, "N 3"], levels: int) -> tuple[Tensor, Tensor]:
-    """The 8 grid cells [N,8] around each colour on a ``levels``^3 grid over [0,1]^3 and their
-    trilinear weights [N,8]."""
+GRID_WEIGHT_SCALE = 1 << 16
+"""Trilinear weights are counted as integers of this many parts: integer sums are the same in any
+order, so the counts (and the decisions taken from them) are the same on every run and device."""
+
+
+def _grid_corners(colours: Float[Tensor, "N 3"], levels: int) -> Iterator[tuple[Tensor, Tensor]]:
+    """For each of the 8 corners of the grid cell around each colour (a ``levels``^3 grid over
+    [0,1]^3): the corner's index [N] and its trilinear weight [N] in :data:`GRID_WEIGHT_SCALE` parts."""
     x = colours.float().clamp(0.0, 1.0) * (levels - 1)
     lo = x.floor().clamp_max(levels - 2)
     f = x - lo
     lo = lo.long()
-    idx, w = [], []
-    for dz in (0, 1):
-        for dy in (0, 1):
-            for dx in (0, 1):
-                d = torch.tensor([dz, dy, dx], device=colours.device)
-                idx.append(((lo[:, 0] + d[0]) * levels + lo[:, 1] + d[1]) * levels + lo[:, 2] + d[2])
-                w.append(torch.where(d.bool(), f, 1.0 - f).prod(-1))
-    return torch.stack(idx, 1), torch.stack(w, 1)
+    for corner in range(8):
+        step = [(corner >> 2) & 1, (corner >> 1) & 1, corner & 1]
+        index = ((lo[:, 0] + step[0]) * levels + lo[:, 1] + step[1]) * levels + lo[:, 2] + step[2]
+        weight = torch.ones_like(f[:, 0])
+        for axis in range(3):
+            weight = weight * (f[:, axis] if step[axis] else 1.0 - f[:, axis])
+        yield index, (weight * GRID_WEIGHT_SCALE).round().long()
 
 
 def colour_change_share(photo: Float[Tensor, "N 3"], changed: Tensor, levels: int = COLOUR_LEVELS):
@@ -197,36 +200,43 @@ def colour_change_share(photo: Float[Tensor, "N 3"], changed: Tensor, levels: in
     [M]: the changed share of the photo's pixels near each colour, with ``prior`` (0 or 1) counted as one
     more pixel there (the answer where the photo shows no such colour); ``prior`` None: the share among
     the photo's pixels alone (0 where it shows no such colour)."""
-    idx, w = _grid_corners(photo.reshape(-1, 3), levels)
-    c = changed.reshape(-1, 1).float()
     cells = levels ** 3
-    n_all = torch.zeros(cells, device=photo.device).index_add_(0, idx.reshape(-1), w.reshape(-1))
-    n_changed = torch.zeros(cells, device=photo.device).index_add_(0, idx.reshape(-1), (w * c).reshape(-1))
+    n_all = torch.zeros(cells, dtype=torch.long, device=photo.device)
+    n_changed = torch.zeros_like(n_all)
+    c = changed.reshape(-1).long()
+    for index, weight in _grid_corners(photo.reshape(-1, 3), levels):
+        n_all.index_add_(0, index, weight)
+        n_changed.index_add_(0, index, weight * c)
 
     def share(colours: Tensor, prior: Optional[Tensor] = None) -> Tensor:
-        i, wq = _grid_corners(colours.reshape(-1, 3), levels)
-        a, ch = (n_all[i] * wq).sum(1), (n_changed[i] * wq).sum(1)
+        a = torch.zeros(colours.reshape(-1, 3).shape[0], dtype=torch.float64, device=colours.device)
+        ch = torch.zeros_like(a)
+        for index, weight in _grid_corners(colours.reshape(-1, 3), levels):
+            a += (n_all[index] * weight).double()
+            ch += (n_changed[index] * weight).double()
         if prior is None:
-            return ch / a.clamp_min(1e-12)
-        return (ch + prior.reshape(-1).float()) / (a + 1.0)
+            return (ch / a.clamp_min(1.0)).float()
+        one = float(GRID_WEIGHT_SCALE) ** 2  # one pixel, in squared weight parts
+        return ((ch + one * prior.reshape(-1).double()) / (a + one)).float()
 
     return share
 
 
 def colour_change_target(render: Float[Tensor, "H W 3"], edited: Float[Tensor, "H W 3"],
-                         original: Float[Tensor, "H W 3"], changed: Tensor
+                         original: Float[Tensor, "H W 3"], changed: Tensor, tol: float
                          ) -> Optional[tuple[Float[Tensor, "H W 3"], Tensor]]:
     """:attr:`EditConfig.changed_target` ``colour``: where the user's change of a photo is a change of
     colours (the changed pixels' colours changed at least :data:`COLOUR_RULE_MIN` of the time over the
-    photo), the change is applied to the render's colours instead of the photo's pixels: each pixel of
-    the render is changed as often as the photo's pixels of its colour were (:func:`colour_change_share`,
-    the pixel's own change in the photo as one more vote), by the change's affine fit in colour
-    (:func:`change_slope`; the photo's changed pixels keep their own residue of it, as ``affine``). The
-    changed pixels are those changed at least half the time. So a pixel the photo shows changed but the
-    render shows in a colour the edit left alone (a blurred or shifted reconstruction) keeps the render,
-    and one the photo shows unchanged but the render shows in a changed colour is changed. Returns
-    (target [H,W,3], changed [H,W,1]), or None where the change is not one of colours, or has fewer than
-    :data:`SLOPE_MIN_PIXELS` pixels (the caller then fits ``affine``)."""
+    photo), the change is applied to the render's colours instead of the photo's pixels. A render pixel
+    within ``tol`` of its photo pixel is changed as the photo's was; any other is changed where the
+    photo's pixels of its colour mostly were (:func:`colour_change_share`, the pixel's own change in the
+    photo as one more vote). A changed pixel takes the change's affine fit in colour
+    (:func:`change_slope`), the photo's changed pixels with their own residue of it, as ``affine``. So a
+    pixel the photo shows changed but the render shows in a colour the edit left alone (a blurred or
+    shifted reconstruction) keeps the render, and one the photo shows unchanged but the render shows in
+    a changed colour is changed. Returns (target [H,W,3], changed [H,W,1]), or None where the change is
+    not one of colours, has fewer than :data:`SLOPE_MIN_PIXELS` pixels, or would change no pixel of the
+    render (the caller then fits ``affine``)."""
     shape = render.shape[:-1]
     flat_changed = changed.reshape(-1)
     photo, new, now = original.reshape(-1, 3), edited.reshape(-1, 3), render.reshape(-1, 3)
@@ -234,15 +244,17 @@ def colour_change_target(render: Float[Tensor, "H W 3"], edited: Float[Tensor, "
     if n < SLOPE_MIN_PIXELS:
         return None
     share = colour_change_share(photo, flat_changed)
-    consistency = float(share(photo[flat_changed]).mean())
-    if consistency < COLOUR_RULE_MIN:
+    if float(share(photo[flat_changed]).mean()) < COLOUR_RULE_MIN:
+        return None
+    same = (now - photo).abs().amax(-1) <= tol
+    take = torch.where(same, flat_changed, share(now, flat_changed) >= 0.5)
+    if not bool(take.any()):
         return None
     slope = change_slope(photo[flat_changed], new[flat_changed])
     offset = (new[flat_changed] - photo[flat_changed] @ slope.T).mean(0)
     moved = torch.where(flat_changed[:, None], new + (now - photo) @ slope.T, now @ slope.T + offset)
-    s = share(now, flat_changed)[:, None]
-    target = (now + s * (moved - now)).clamp(0.0, 1.0)
-    return target.reshape(*shape, 3), (s >= 0.5).reshape(*shape, 1)
+    target = torch.where(take[:, None], moved.clamp(0.0, 1.0), now)
+    return target.reshape(*shape, 3), take.reshape(*shape, 1)
 
 
 KEEP_COLOUR_BINS = 8
