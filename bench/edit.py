@@ -284,7 +284,7 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
     sync()
     cache_s = time.perf_counter() - t0
     edit, warm = b.fit(edited, args.steps, None, args.repeats, original)
-    res, pics = b.measure(edit, scene.rule, lpips=False, keep=args.pictures, edited=edited, original=original)
+    res, pics = b.measure(edit, scene.rule, lpips=False, keep=args.pictures, edited=edited, target=b.fitted_target)
     res["mean"] = median_over_seeds(args, b, (edited, args.steps, None, 1, original), {}, scene.rule, edited,
                                     res["mean"], warm)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -311,7 +311,7 @@ def bench_scene(args: Args, scene: EvalScene, loaded: dict) -> List[dict]:
         fit = (v_edited, v_cfg.pop("steps", args.steps), v_cfg.pop("pixel_batches", None), 1, b.original(v_source))
         v_edit, v_t = b.fit(*fit, **v_cfg)
         v_res, v_pics = b.measure(v_edit, v_rule, lpips=False, keep=args.pictures if args.variant_pictures else 0,
-                                  edited=v_edited, original=fit[4], config=v_cfg)
+                                  edited=v_edited, target=b.fitted_target)
         for i, p in enumerate(v_pics):
             _save_png(args.out / f"{scene.name}__{safe_name(v)}_view{i}.png", p)  # 'cup:x' apart from 'x'
         v_res["mean"] = median_over_seeds(args, b, fit, v_cfg, v_rule, v_edited, v_res["mean"], v_t)
@@ -344,7 +344,7 @@ def median_over_seeds(args: Args, b: Bench, fit: tuple, config: dict, rule, edit
     base = int(config.get("seed", 0))
     for seed in range(base + 1, base + args.edit_seeds):
         edit, timing = b.fit(*fit, **{**config, "seed": seed})
-        runs.append(b.measure(edit, rule, lpips=False, edited=edited)[0]["mean"])
+        runs.append(b.measure(edit, rule, lpips=False, edited=edited, target=b.fitted_target)[0]["mean"])
         losses.append({k: timing[k] for k in LOSS_FIGURES})
     median = {k: float(statistics.median(r[k] for r in runs)) for k, v in first.items()
               if isinstance(v, float) and all(isinstance(r.get(k), float) for r in runs)}

@@ -46,8 +46,8 @@ def test_psnr_helper_against_direct_formula():
 
 
 def test_target_figures_score_the_target_against_the_rule_on_the_render():
-    """Hand-made 1x4 view: the rule recolours pixels 0 and 1 of the render; the target changes pixels 1 and
-    2 (0 left as the render, 2 changed outside the mask) and misses pixel 1 by 0.1 in one channel."""
+    """Hand-made 1x4 view: the rule recolours pixels 0 and 1 of the render; the target changes pixels 1, 2
+    and 3 (0 left as the render, 2 and 3 changed outside the mask) and misses pixel 1 by 0.1 in one channel."""
     from virgi_ns.bench.recolor import target_figures
 
     render = torch.zeros(1, 4, 3)
@@ -57,12 +57,13 @@ def test_target_figures_score_the_target_against_the_rule_on_the_render():
     target = render.clone()
     target[0, 1] = torch.tensor([1.0, 1.0, 0.9])
     target[0, 2] = torch.tensor([0.0, 0.2, 0.0])
-    changed = torch.tensor([[False, True, True, False]])
+    target[0, 3] = torch.tensor([0.0, 0.0, 0.1])
+    changed = torch.tensor([[False, True, True, True]])
     f = target_figures(target, changed, truth, mask)
-    # inside the mask: squared errors 3 (pixel 0) and 0.01 (pixel 1) over 6 channel values
+    # inside the mask: squared errors 3 (pixel 0) and 0.01 (pixel 1) over 6 channel values; outside 0.04 + 0.01
     assert f["edit_target_miss_psnr"] == pytest.approx(-10 * math.log10((3 + 0.01) / 6), abs=1e-4)
-    assert f["edit_target_leak_psnr"] == pytest.approx(-10 * math.log10(0.04 / 6), abs=1e-4)
-    assert f["edit_changed_outside_mask"] == 0.25 and f["edit_mask_unchanged"] == 0.25
+    assert f["edit_target_leak_psnr"] == pytest.approx(-10 * math.log10(0.05 / 6), abs=1e-4)
+    assert f["edit_changed_outside_mask"] == 0.5 and f["edit_mask_unchanged"] == 0.25
     assert set(target_figures(target, None, truth, mask)) == {"edit_target_miss_psnr", "edit_target_leak_psnr"}
 
 
@@ -285,8 +286,23 @@ def test_edit_bench_takes_each_figure_as_the_median_over_edit_seeds(pipeline, be
     (tmp_path / "data" / "tiny").mkdir(parents=True)
     scene = EvalScene("tiny", "tiny", BROAD.rule(), "every saturated pixel")
     args = bench_edit.Args(data=tmp_path / "data", runs={"tiny": tmp_path / "config.yml"}, out=tmp_path / "out",
-                           steps=10, repeats=1, pictures=0, edit_seeds=3, variants=["changed_target=edited"])
+                           steps=10, repeats=1, pictures=0, edit_seeds=3,
+                           variants=["changed_target=edited", "changed_target=colour"])
     rows = bench_edit.bench_scene(args, scene, {})
+    # the target figures are those of the target each row's engine fitted, whatever the seed
+    from virgi_ns.bench.recolor import target_figures
+    from virgi_ns.edit.engine import EditConfig
+    from virgi_ns.edit.recolor import recolor
+    from virgi_ns.edit.targets import find_target
+
+    b, _, _ = bench_edit.scene_bench(args, scene, {})
+    truth, mask = recolor(b.edit_base, BROAD.rule())
+    for row, kind in zip(rows, ("affine", "edited", "colour")):
+        own = find_target(EditConfig(changed_target=kind), b.edit_base, b.edited_image(BROAD.rule(), "photo"),
+                          b.edit_photo)
+        want = target_figures(own.image, own.changed[..., 0], truth, mask)
+        for key, value in want.items():
+            assert row[key] == pytest.approx(value, abs=0.05), (kind, key)
     for row in rows:
         seeds = row["per_seed"]
         assert len(seeds) == 3 and len({s["propagation_psnr"] for s in seeds}) == 3

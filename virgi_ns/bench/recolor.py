@@ -215,6 +215,9 @@ class Bench:
     edit_base: torch.Tensor  # the edit view's unedited render
     truths: Optional[list] = None
     """Per held-out view, the photo of the recoloured scene when it is known (synthetic scenes)."""
+    fitted_target: Optional[object] = None
+    """The :class:`~virgi_ns.edit.targets.Target` the last :meth:`fit` fitted (the engine's own, from its
+    own render of the view), for :meth:`measure`."""
     label_maps: Optional[list] = None
     """Per held-out view, each pixel's object label (index into ``label_names``), when known."""
     label_names: tuple = ()
@@ -294,6 +297,7 @@ class Bench:
             engine = EditEngine(self.scene, self.edit_camera, edited, cfg=cfg, original=original)
             edit, t = engine.fit()
             times.append(t)
+        self.fitted_target = engine.target
         med = lambda xs: float(statistics.median(xs))  # noqa: E731
         return edit, {"setup_s": med([t.setup_s for t in times]), "steps_s": med([t.steps_s for t in times]),
                       "total_s": med([t.total_s for t in times]), "steps": cfg.steps,
@@ -342,13 +346,12 @@ class Bench:
         return out
 
     def measure(self, edit, rule: RecolorRule, lpips: bool = True, keep: int = 0,
-                edited: Optional[torch.Tensor] = None, original: Optional[torch.Tensor] = None,
-                config: Optional[dict] = None) -> tuple[dict, list]:
+                edited: Optional[torch.Tensor] = None, target=None) -> tuple[dict, list]:
         """Per-view and mean figures for ``edit``; the first ``keep`` views' pictures too. With the
         ``edited`` image the edit was fitted to, also how closely the edited view itself reaches it
-        on the pixels the edit changed (the fit, apart from its propagation), and what the engine was
-        told to fit there (:func:`target_figures`: the target the engine builds from ``edited``, the
-        ``original`` it was given and ``config``, the fit's :class:`EditConfig` fields)."""
+        on the pixels the edit changed (the fit, apart from its propagation); with the engine's
+        ``target`` (:attr:`fitted_target`), what the engine was told to fit there
+        (:func:`target_figures`)."""
         from virgi_ns.edit.scene import render_view
         from virgi_ns.edit.stack import EditStack
         from virgi_ns.metrics import image_metrics
@@ -391,13 +394,11 @@ class Bench:
                      "edit_view_alpha_in_mask": _masked_mean(ev["segmentation"][..., 0], mask),
                      "edit_view_mask_fraction": float(mask.float().mean())})
         if edited is not None:
-            from virgi_ns.edit.engine import EditConfig
-            from virgi_ns.edit.targets import find_target
-
             changed = (edited - self.edit_photo).abs().amax(-1) > 3.0 / 255.0
             mean["edit_fit_changed_psnr"] = psnr(after, edited, changed)
-            target = find_target(EditConfig(**(config or {})), self.edit_base, edited, original)
-            mean.update(target_figures(target.image, None if target.changed is None else target.changed[..., 0],
+        if target is not None:
+            mean.update(target_figures(target.image.to(after.device),
+                                       None if target.changed is None else target.changed[..., 0].to(after.device),
                                        truth_render, mask))
         return {"mean": mean, "views": rows}, pics
 
@@ -436,9 +437,7 @@ def run_recolor(args: Recolor, pipeline=None, console: Optional[Console] = None)
         edit, timing = b.fit(edited, args.steps, args.pixel_batches, args.repeats,
                              b.original(args.edit_source), args.whole_photo, changed_target=args.changed_target)
     with console.status("measuring"):
-        res, pics = b.measure(edit, rule, args.lpips, args.pictures, edited=edited,
-                              original=b.original(args.edit_source),
-                              config={"changed_target": args.changed_target, "whole_image": args.whole_photo})
+        res, pics = b.measure(edit, rule, args.lpips, args.pictures, edited=edited, target=b.fitted_target)
     out = {"config": str(args.load_config), "device": _device_name(b.scene.device),
            "gaussians": int(b.scene.means.shape[0]), "rule": rule.to_dict(), "edit_view": args.edit_view,
            "edit_source": args.edit_source, "whole_photo": args.whole_photo, "changed_target": args.changed_target,
