@@ -90,7 +90,7 @@ class Recolor(_EditedView):
     """Held-out views saved as before | after | truth | mask PNGs."""
     lpips: bool = True
     """Compute LPIPS when its weights are available offline."""
-    changed_target: Literal["affine", "colour", "edited"] = "affine"
+    changed_target: Literal["affine", "edited"] = "affine"
     """What the edit fits the changed pixels of an edited photo to (``EditConfig.changed_target``)."""
 
 

@@ -64,13 +64,11 @@ class Apply:
     the edit left unchanged keep the scene's current colours instead of being fitted to the image."""
     whole_image: bool = False
     """Fit every pixel of the edited image, also those equal to the original."""
-    changed_target: Literal["affine", "colour", "edited"] = "affine"
+    changed_target: Literal["affine", "edited"] = "affine"
     """With an original photo: fit the changed pixels to your pixels moved by the render's error as
     your change moves colours (``affine``, the default: your change fitted as an affine function of
-    colour, so the photo's detail the model never reproduced stays out of the edit), to your change
-    of colours applied to the render's own colours where it is one (``colour``: for a render blurrier
-    or shifted from its photo; other edits fit as ``affine``) or to the edited image's own pixels
-    (``edited``, the paper's). No effect with --whole-image."""
+    colour, so the photo's detail the model never reproduced stays out of the edit) or to the edited
+    image's own pixels (``edited``, the paper's). No effect with --whole-image."""
     recipe: Literal["joint", "staged"] = "joint"
     """``joint``: the segmentation and the new colour are fitted together (the paper's recipe);
     ``staged``: the segmentation first, from which Gaussians your change covers, so parts of another

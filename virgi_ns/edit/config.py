@@ -57,16 +57,13 @@ class EditConfig:
     effect on a whole-image fit."""
     whole_image: bool = False
     """Fit every pixel to the edited image (no original, no edited-render detection)."""
-    changed_target: Literal["affine", "colour", "edited"] = "affine"
+    changed_target: Literal["affine", "edited"] = "affine"
     """What the changed pixels of an edited photo (``original`` given) are fitted to. ``affine``: the
     edited pixel moved by the model's reconstruction error there as the user's change moves colours,
     ``edited + J (render - original)``, ``J`` the slope of the best affine fit of the edited colours
     to the original ones over the changed pixels (:func:`~virgi_ns.edit.targets.change_slope`): exact
     for a change affine in colour (a hue shift of 120 degrees permutes the channels), first order for
-    any other; the photo's detail the model never reproduced stays out of the edit. ``colour``: where
-    the change is one of colours, that change applied to the render's own colours: a render pixel that
-    shows its photo pixel's colour is changed as that pixel was, any other where the photo's pixels of
-    its colour were (:func:`~virgi_ns.edit.targets.colour_change_target`; otherwise ``affine``). ``edited``: the
+    any other; the photo's detail the model never reproduced stays out of the edit. ``edited``: the
     edited pixels themselves (the paper's). The same for an edited render; no effect with
     ``whole_image``."""
     recipe: Literal["joint", "staged"] = "joint"
@@ -117,9 +114,8 @@ class EditConfig:
         if self.batch_composite not in COMPOSITE_KINDS:
             raise ValueError(f"EditConfig.batch_composite must be one of {', '.join(COMPOSITE_KINDS)}, "
                              f"got {self.batch_composite!r}")
-        if self.changed_target not in ("affine", "colour", "edited"):
-            raise ValueError("EditConfig.changed_target must be 'affine', 'colour' or 'edited', "
-                             f"got {self.changed_target!r}")
+        if self.changed_target not in ("affine", "edited"):
+            raise ValueError(f"EditConfig.changed_target must be 'affine' or 'edited', got {self.changed_target!r}")
         if self.unchanged_weights not in ("count", "colour"):
             raise ValueError(f"EditConfig.unchanged_weights must be 'count' or 'colour', got {self.unchanged_weights!r}")
         if self.recipe not in ("joint", "staged"):

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Iterator, Optional
+from typing import Optional
 
 import torch
 from jaxtyping import Float
@@ -88,18 +88,10 @@ def find_target(cfg: EditConfig, render: Float[Tensor, "H W 3"], edited: Float[T
     if count == 0:
         raise InputError("the selection is empty: nothing to edit" if ref == "selection" else
                          f"the edited image does not differ from the {ref}: nothing to edit")
-    if ref == "original" and cfg.changed_target == "colour":
-        found = colour_change_target(render, edited, original, changed[..., 0], cfg.unchanged_tol)
-        if found is not None:
-            image, changed = found
-            return Target(image, changed, int(changed.sum()),
-                          "changed pixels (original given, the change applied to the render's colours)")
     if ref == "original":
         edited = changed_pixels_target(cfg, render, edited, original, changed[..., 0])
         mode = "changed pixels (original given, " + (
-            "edited + its slope x (render - photo))" if cfg.changed_target != "edited" else "edited image)")
-        if cfg.changed_target == "colour":
-            mode += ": not a change of colours the render shows"
+            "edited + its slope x (render - photo))" if cfg.changed_target == "affine" else "edited image)")
     else:
         mode = "changed pixels (a selection)" if ref == "selection" else "changed pixels (an edited render)"
     return Target(torch.where(changed, edited, render), changed, count, mode)
@@ -156,105 +148,11 @@ def changed_pixels_target(cfg: EditConfig, render: Float[Tensor, "H W 3"], edite
     are fitted to, by ``cfg.changed_target``, as an image [H,W,3] read on the changed pixels only:
     ``affine``, ``edited + J (render - original)`` with ``J`` = :func:`change_slope` over the changed
     pixels; ``edited``, the edited image."""
-    if cfg.changed_target != "edited":
+    if cfg.changed_target == "affine":
         changed = changed.reshape(render.shape[:-1])
         slope = change_slope(original[changed], edited[changed])
         return (edited + (render - original) @ slope.T).clamp(0.0, 1.0)
     return edited
-
-
-COLOUR_LEVELS = 33
-"""Grid levels per channel of :func:`colour_change_share` (a level every 8 of 255): about a render's
-reconstruction error, so a colour the photo shows changed counts for the render's colours near it."""
-
-COLOUR_RULE_MIN = 0.8
-""":func:`colour_change_target` treats an edit as a change of colours when the changed pixels' colours
-were changed at least this often over the photo (a rule on colours: near 1, short of it only where its
-thresholds cut a grid cell; paint on one of two objects of one colour: 0.5)."""
-
-
-GRID_WEIGHT_SCALE = 1 << 16
-"""Trilinear weights are counted as integers of this many parts: integer sums are the same in any
-order, so the counts (and the decisions taken from them) are the same on every run and device."""
-
-
-def _grid_corners(colours: Float[Tensor, "N 3"], levels: int) -> Iterator[tuple[Tensor, Tensor]]:
-    """For each of the 8 corners of the grid cell around each colour (a ``levels``^3 grid over
-    [0,1]^3): the corner's index [N] and its trilinear weight [N] in :data:`GRID_WEIGHT_SCALE` parts."""
-    x = colours.float().clamp(0.0, 1.0) * (levels - 1)
-    lo = x.floor().clamp_max(levels - 2)
-    f = x - lo
-    lo = lo.long()
-    for corner in range(8):
-        step = [(corner >> 2) & 1, (corner >> 1) & 1, corner & 1]
-        index = ((lo[:, 0] + step[0]) * levels + lo[:, 1] + step[1]) * levels + lo[:, 2] + step[2]
-        weight = torch.ones_like(f[:, 0])
-        for axis in range(3):
-            weight = weight * (f[:, axis] if step[axis] else 1.0 - f[:, axis])
-        yield index, (weight * GRID_WEIGHT_SCALE).round().long()
-
-
-def colour_change_share(photo: Float[Tensor, "N 3"], changed: Tensor, levels: int = COLOUR_LEVELS):
-    """How often the user's edit changed each colour of the photo: trilinear counts of all pixels and of
-    the ``changed`` [N] ones on a ``levels``^3 colour grid. Returns ``share(colours [M,3], prior [M])`` ->
-    [M]: the changed share of the photo's pixels near each colour, with ``prior`` (0 or 1) counted as one
-    more pixel there (the answer where the photo shows no such colour); ``prior`` None: the share among
-    the photo's pixels alone (0 where it shows no such colour)."""
-    cells = levels ** 3
-    n_all = torch.zeros(cells, dtype=torch.long, device=photo.device)
-    n_changed = torch.zeros_like(n_all)
-    c = changed.reshape(-1).long()
-    for index, weight in _grid_corners(photo.reshape(-1, 3), levels):
-        n_all.index_add_(0, index, weight)
-        n_changed.index_add_(0, index, weight * c)
-
-    def share(colours: Tensor, prior: Optional[Tensor] = None) -> Tensor:
-        a = torch.zeros(colours.reshape(-1, 3).shape[0], dtype=torch.float64, device=colours.device)
-        ch = torch.zeros_like(a)
-        for index, weight in _grid_corners(colours.reshape(-1, 3), levels):
-            a += (n_all[index] * weight).double()
-            ch += (n_changed[index] * weight).double()
-        if prior is None:
-            return (ch / a.clamp_min(1.0)).float()
-        one = float(GRID_WEIGHT_SCALE) ** 2  # one pixel, in squared weight parts
-        return ((ch + one * prior.reshape(-1).double()) / (a + one)).float()
-
-    return share
-
-
-def colour_change_target(render: Float[Tensor, "H W 3"], edited: Float[Tensor, "H W 3"],
-                         original: Float[Tensor, "H W 3"], changed: Tensor, tol: float
-                         ) -> Optional[tuple[Float[Tensor, "H W 3"], Tensor]]:
-    """:attr:`EditConfig.changed_target` ``colour``: where the user's change of a photo is a change of
-    colours (the changed pixels' colours changed at least :data:`COLOUR_RULE_MIN` of the time over the
-    photo), the change is applied to the render's colours instead of the photo's pixels. A render pixel
-    within ``tol`` of its photo pixel is changed as the photo's was; any other is changed where the
-    photo's pixels of its colour mostly were (:func:`colour_change_share`, the pixel's own change in the
-    photo as one more vote). A changed pixel takes the change's affine fit in colour
-    (:func:`change_slope`), the photo's changed pixels with their own residue of it, as ``affine``. So a
-    pixel the photo shows changed but the render shows in a colour the edit left alone (a blurred or
-    shifted reconstruction) keeps the render, and one the photo shows unchanged but the render shows in
-    a changed colour is changed. Returns (target [H,W,3], changed [H,W,1]), or None where the change is
-    not one of colours, has fewer than :data:`SLOPE_MIN_PIXELS` pixels, or would change no pixel of the
-    render (the caller then fits ``affine``)."""
-    shape = render.shape[:-1]
-    flat_changed = changed.reshape(-1)
-    photo, new, now = original.reshape(-1, 3), edited.reshape(-1, 3), render.reshape(-1, 3)
-    n = int(flat_changed.sum())
-    if n < SLOPE_MIN_PIXELS:
-        return None
-    share = colour_change_share(photo, flat_changed)
-    if float(share(photo[flat_changed]).mean()) < COLOUR_RULE_MIN:
-        return None
-    same = (now - photo).abs().amax(-1) <= tol
-    take = torch.where(same, flat_changed, share(now, flat_changed) >= 0.5)
-    if not bool(take.any()):
-        return None
-    slope = change_slope(photo[flat_changed], new[flat_changed])
-    offset = (new[flat_changed] - photo[flat_changed] @ slope.T).mean(0)
-    moved = torch.where(flat_changed[:, None], new + (now - photo) @ slope.T, now @ slope.T + offset)
-    target = torch.where(take[:, None], moved.clamp(0.0, 1.0), now)
-    return target.reshape(*shape, 3), take.reshape(*shape, 1)
 
 
 KEEP_COLOUR_BINS = 8
