@@ -424,7 +424,8 @@ def worst_case(rows: List[dict]) -> dict:
             "passed": sum(all(r["targets"].values()) for r in d), "rows": len(d),
             "cannot": sum(any(lim["reachable"] is False for lim in limits(r).values()) for r in d),
             "pick_difference_db": nanmin([r["pick"].get("difference_db", math.nan) for r in d if "pick" in r]),
-            "pick_passed": sum(r["pick"]["pass"] for r in d if "pick" in r), "pick_rows": sum("pick" in r for r in d)}
+            "pick_passed": sum(r["pick"]["pass"] for r in d if "pick" in r), "pick_rows": sum("pick" in r for r in d),
+            "pick_cannot": sum(bool(r["pick"].get("judged", {}).get("cannot")) for r in d if "pick" in r)}
 
 
 def _label(row: dict) -> str:
@@ -495,10 +496,11 @@ def print_pick(rows: List[dict], latencies: List[dict]) -> None:
                       _f(p["selected"], ".1%"), _f(p["iou"], ".3f"),
                       f"{_f(p['propagation_psnr'])} ({_f(p['miss_psnr'])}, {_f(p['leak_psnr'])})", obj,
                       _f(p["rule_propagation_psnr"]), _f(p["difference_db"], "+.2f"), _f(p["fit_s"], ".3f"),
-                      j["reason"], ("PASS (" + j["by"] + ")") if p["pass"] else "FAIL")
+                      j["reason"], ("PASS (" + j["by"] + ")") if p["pass"]
+                      else ("CANNOT (" + j["by"] + ")") if j.get("cannot") else f"FAIL ({j['by']})")
         w = worst_case(rows)
         t.add_row("worst case", "", "", "", "", "", "", "", "", _f(w["pick_difference_db"], "+.2f"), "", "",
-                  f"{w['pick_passed']}/{w['pick_rows']} pass")
+                  f"{w['pick_passed']}/{w['pick_rows']} pass, {w.get('pick_cannot', 0)} cannot")
         console.print(t)
     for lat in latencies:
         console.print(latency_line(lat))

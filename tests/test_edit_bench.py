@@ -346,8 +346,10 @@ def _check_pick(rows, pipeline, rule, picture_png):
     assert np.array_equal(mask, rule_mask(render, rule).numpy())
     assert p["iou"] == pytest.approx((sel & mask).sum() / (sel | mask).sum()) and p["iou"] > 0
     assert p["selected"] == pytest.approx(sel.mean())
-    for k in ("propagation_psnr", "miss_psnr", "leak_psnr", "edit_view_propagation_psnr", "fit_s"):
+    for k in ("propagation_psnr", "miss_psnr", "leak_psnr", "edit_view_propagation_psnr", "fit_s",
+              "perfect_click_propagation_psnr", "perfect_click_miss_psnr", "perfect_click_leak_psnr"):
         assert math.isfinite(p[k]), k
+    assert p["judged"]["cannot"] is False or p["pass"] is False
     assert p["rule_propagation_psnr"] == rows[0]["propagation_psnr"]
     assert p["difference_db"] == pytest.approx(p["propagation_psnr"] - rows[0]["propagation_psnr"])
     judge_pick, mask_class = bench_module("clicks").judge_pick, bench_module("clicks").mask_class
@@ -674,6 +676,60 @@ def test_a_click_passes_by_its_own_targets_or_within_a_db_of_the_rule_edit():
     # a row recorded without a class: judged as one object
     old = judge_pick({k: v for k, v in _pick("x", difference_db=-0.5).items() if k not in ("class", "largest_share")})
     assert old["pass"] and old["class"] == "n/a" and "class n/a" in old["reason"]
+
+
+def test_a_click_that_misses_where_a_perfect_click_misses_too_cannot():
+    """The click's ceiling, a perfect click: at it (within 0.1 dB) a click passes; below it, "cannot" where the
+    perfect click misses its own targets and 1 dB of the rule edit too, "short of" where it does not; a row
+    recorded without the figures is judged as before."""
+    judge_pick = bench_module("clicks").judge_pick
+    perfect = lambda p, m, l: {"perfect_click_propagation_psnr": p, "perfect_click_miss_psnr": m,  # noqa: E731
+                               "perfect_click_leak_psnr": l}
+    base = {"propagation_psnr": 29.3, "miss_psnr": 24.3, "leak_psnr": 46.8, "rule_propagation_psnr": 35.4,
+            "difference_db": -6.1}
+    for klass in ("one object", "many parts"):
+        hopeless = judge_pick(_pick(klass, **base, **perfect(32.2, 27.0, 45.0)))  # one hue cannot follow the rule
+        assert hopeless["pass"] is False and hopeless["cannot"] is True and "32.20" in hopeless["by"]
+        short = judge_pick(_pick(klass, **base, **perfect(35.1, 31.0, 40.0)))  # its own targets: reachable
+        assert short["pass"] is False and short["cannot"] is False and short["by"].startswith("short of")
+        near_rule = judge_pick(_pick(klass, **base, **perfect(34.5, 29.0, 40.0)))  # 0.9 dB under the rule edit
+        assert near_rule["cannot"] is False
+        at = judge_pick(_pick(klass, **base, **perfect(29.39, 24.0, 47.0)))
+        assert at["pass"] is True and at["cannot"] is False and "perfect click" in at["by"]
+        assert judge_pick(_pick(klass, **base, **perfect(29.41, 24.0, 47.0)))["pass"] is False
+        assert judge_pick(_pick(klass, **base))["cannot"] is False  # no perfect click measured
+    # a click that passes is not judged against the perfect click
+    ok = judge_pick(_pick("one object", difference_db=-0.5, **perfect(20.0, 20.0, 20.0)))
+    assert ok["pass"] and ok["cannot"] is False and ok["by"] == "within 1 dB of the rule edit"
+
+
+def test_a_perfect_clicks_colours_against_colorsys():
+    """The perfect click recolours each colour the rule takes as the click's hue mode does (the colour's hue,
+    the saturation scaled so that the clicked pixel gets the colour's, the value kept) and leaves the rest:
+    checked colour by colour with colorsys."""
+    import colorsys
+
+    from virgi_ns.edit.recolor import RecolorRule, rule_mask
+
+    clicks = bench_module("clicks")
+    rule = RecolorRule(190.0, 250.0, 150.0, 0.1, 0.15)
+    g = torch.Generator().manual_seed(3)
+    colours = torch.rand(200, 3, generator=g, dtype=torch.float64)
+    colours[:40] = torch.tensor([0.1, 0.3, 0.8], dtype=torch.float64) * torch.rand(40, 1, generator=g, dtype=torch.float64)
+    reference = torch.tensor([0.2, 0.4, 0.9], dtype=torch.float64)
+    colour = (0.9, 0.2, 0.1)
+    out = clicks.perfect_click_colours(colours, rule, colour, reference)
+    takes = rule_mask(colours, rule)
+    assert 40 <= int(takes.sum()) < 200
+    t_h, t_s, _ = colorsys.rgb_to_hsv(*colour)
+    r_s = colorsys.rgb_to_hsv(*reference.tolist())[1]
+    for c, o, t in zip(colours.tolist(), out.tolist(), takes.tolist()):
+        if not t:
+            assert o == pytest.approx(c, abs=1e-12)
+            continue
+        _, s, v = colorsys.rgb_to_hsv(*c)
+        want = colorsys.hsv_to_rgb(t_h, min(1.0, s * t_s / r_s), v)
+        assert o == pytest.approx(want, abs=1e-6)
 
 
 def test_a_click_on_one_of_several_objects_is_judged_by_its_objects_miss_and_the_leak_outside_it():
