@@ -294,17 +294,14 @@ def perfect_click(b, rule: RecolorRule, colour: tuple[float, float, float], x: i
     on the render as the click is (``perfect_click_`` + propagation / miss / leak, the views' means). Why:
     one colour cannot always express the rule (a hue shift keeps a plant's 100 degrees of leaves apart; one
     hue does not), and a click that misses where even this misses "cannot", as an edit below its ceiling."""
-    from virgi_ns.bench.recolor import _mean, psnr
+    from virgi_ns.bench.recolor import _mean, against_rule
     from virgi_ns.edit.scene import render_view
 
     reference = b.edit_base[y, x].clamp(0.0, 1.0)
     rows = []
     for cams, base in zip(b.views, b.base):
         after = render_view(b.scene, cams, 0, colour_map=lambda c: perfect_click_colours(c, rule, colour, reference))
-        after = after["rgb"].clamp(0, 1)
-        truth, mask = recolor(base, rule)
-        rows.append({"propagation_psnr": psnr(after, truth), "miss_psnr": psnr(after, truth, mask),
-                     "leak_psnr": psnr(after, truth, ~mask)})
+        rows.append(against_rule(after["rgb"].clamp(0, 1), *recolor(base, rule)))
     return {f"perfect_click_{k}": _mean([r[k] for r in rows]) for k in CLICK_TARGETS} if rows else {}
 
 

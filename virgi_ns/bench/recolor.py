@@ -128,6 +128,13 @@ def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> float:
     return float(x[mask].float().mean()) if bool(mask.any()) else math.nan
 
 
+def against_rule(after: torch.Tensor, truth_render: torch.Tensor, mask: torch.Tensor) -> dict:
+    """``after`` against the rule on the render (``truth_render``, whose ``mask`` it recolours) over the whole
+    view (propagation), inside the mask (miss) and outside it (leak)."""
+    return {"propagation_psnr": psnr(after, truth_render), "miss_psnr": psnr(after, truth_render, mask),
+            "leak_psnr": psnr(after, truth_render, ~mask)}
+
+
 def edit_figures(after: torch.Tensor, base: torch.Tensor, photo: torch.Tensor, truth_render: torch.Tensor,
                  truth_photo: torch.Tensor, mask: torch.Tensor) -> dict:
     """One view's edit figures: ``after`` (the edited render) against ``truth_render`` (the rule applied
@@ -137,9 +144,7 @@ def edit_figures(after: torch.Tensor, base: torch.Tensor, photo: torch.Tensor, t
     rule's thresholds can amplify the reconstruction error); the mask's share of the view."""
     return {"unedited_psnr": psnr(base, photo),
             "perfect_edit_recolour_psnr": psnr(truth_render, truth_photo),
-            "propagation_psnr": psnr(after, truth_render),
-            "miss_psnr": psnr(after, truth_render, mask),
-            "leak_psnr": psnr(after, truth_render, ~mask),
+            **against_rule(after, truth_render, mask),
             "mask_fraction": float(mask.float().mean())}
 
 
@@ -321,9 +326,7 @@ class Bench:
             # edit of the diffuse colour (this method's) can reach
             dif = render_view(self.scene, self.views[i], 0, diffuse_map=lambda c: recolor(c, rule)[0])["rgb"]
             dif = dif.clamp(0, 1)
-            self._reference[key] = {"per_gaussian_rule_propagation_psnr": psnr(ref, truth),
-                                    "per_gaussian_rule_miss_psnr": psnr(ref, truth, mask),
-                                    "per_gaussian_rule_leak_psnr": psnr(ref, truth, ~mask),
+            self._reference[key] = {**{f"per_gaussian_rule_{k}": v for k, v in against_rule(ref, truth, mask).items()},
                                     "diffuse_rule_propagation_psnr": psnr(dif, truth),
                                     "diffuse_rule_miss_psnr": psnr(dif, truth, mask),
                                     # the recoloured region's colour of both: the ceilings of the edit's
@@ -388,9 +391,7 @@ class Bench:
         ev = render_view(self.scene, self.edit_camera, 0, stack)
         after = ev["rgb"].clamp(0, 1)
         truth_render, mask = recolor(self.edit_base, rule)
-        mean.update({"edit_view_propagation_psnr": psnr(after, truth_render),
-                     "edit_view_miss_psnr": psnr(after, truth_render, mask),
-                     "edit_view_leak_psnr": psnr(after, truth_render, ~mask),
+        mean.update({**{f"edit_view_{k}": v for k, v in against_rule(after, truth_render, mask).items()},
                      "edit_view_alpha_in_mask": _masked_mean(ev["segmentation"][..., 0], mask),
                      "edit_view_mask_fraction": float(mask.float().mean())})
         if edited is not None:
@@ -531,4 +532,4 @@ def entrypoint() -> None:
     cli_entry(lambda: main(sys.argv[1:]))
 
 
-__all__ = ["Bench", "Recolor", "AccuracyTime", "RuleArgs", "run_recolor", "run_accuracy_time", "psnr", "summary"]
+__all__ = ["Bench", "Recolor", "AccuracyTime", "RuleArgs", "against_rule", "run_recolor", "run_accuracy_time", "psnr", "summary"]
