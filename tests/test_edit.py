@@ -293,28 +293,6 @@ def test_stack_persists_and_reloads(world, tmp_path):
     assert (tmp_path / "edits" / "edit_0001.pt").stat().st_size < 64_000
 
 
-def test_a_colour_reading_segmentation_is_saved_and_applied_as_fitted(world, tmp_path):
-    """``seg_colour``: the head reads the base run's diffuse colour through the field's own last layer; the
-    edit written to a file (format 2) and read back gives the fitted alpha on the view's Gaussians, and
-    its renders; an edit without it is still written as format 1."""
-    S = world["S"]
-    cfg = EditConfig(steps=20, seg_colour=True)
-    eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), world["edited"], EditStack(S.scene.fingerprint()), cfg)
-    edit, _ = eng.fit()
-    head = S.scene.field.diffuse_head
-    assert edit.seg.colour and torch.equal(edit.seg.colour_weight, head.weight.float())
-    assert eng.seg_input.shape[1] == eng.feats.shape[1] + eng.h_diff.shape[1] + 3
-    path = edit.save(tmp_path / "colour.pt")
-    assert torch.load(path, weights_only=True)["version"] == 2
-    again = Edit.load(path)
-    fitted = torch.sigmoid(eng.seg.logits_of(eng.seg_input))
-    torch.testing.assert_close(again.alpha(eng.feats, eng.h_diff).float(), fitted, atol=1e-6, rtol=0)
-    v = HELD_OUT[0]
-    torch.testing.assert_close(_render(world, v, _stack(world, again))["rgb"], _render(world, v, _stack(world, edit))["rgb"],
-                               atol=1e-6, rtol=0)
-    assert torch.load(world["edit"].save(tmp_path / "plain.pt"), weights_only=True)["version"] == 1
-
-
 def test_foreign_and_damaged_edit_files_are_refused(world, tmp_path):
     fp = world["S"].scene.fingerprint()
     stack = EditStack.open(tmp_path / "run", fp)
@@ -704,8 +682,7 @@ def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe, most):
 
 
 @pytest.mark.gpu
-@pytest.mark.parametrize("seg_colour", [False, True])
-def test_written_out_heads_give_the_autograd_edit(world, seg_colour):
+def test_written_out_heads_give_the_autograd_edit(world):
     """``fused_heads`` (virgi_ns.edit.heads): from the same state, a step with the heads' backward
     written out gives every parameter autograd's gradient (on a target every pixel is far from: where
     a pixel's L1 error is 0 up to rounding, its sign is rounding's); a whole fit then renders
@@ -722,13 +699,13 @@ def test_written_out_heads_give_the_autograd_edit(world, seg_colour):
     edited = world["edited"].cuda()
     grads, fits = {}, {}
     for written in (True, False):
-        cfg = EditConfig(steps=30, batch_composite="fused", fused_heads=written, whole_image=True, seg_colour=seg_colour)
+        cfg = EditConfig(steps=30, batch_composite="fused", fused_heads=written, whole_image=True)
         eng = EditEngine(gpu, cam, 0.1 + 0.8 * edited, EditStack(gpu.fingerprint()), cfg)
         assert (eng._heads is not None) == written
         with torch.enable_grad():
             eng.step(0)
         grads[written] = [p.grad.clone() for p in (eng.weight, eng.bias, *eng.seg.parameters())]
-        cfg = EditConfig(steps=30, batch_composite="fused", fused_heads=written, seg_colour=seg_colour)
+        cfg = EditConfig(steps=30, batch_composite="fused", fused_heads=written)
         eng = EditEngine(gpu, cam, edited, EditStack(gpu.fingerprint()), cfg)
         edit, timing = eng.fit()
         fits[written] = (eng.preview()["rgb"], timing.final_loss, edit)

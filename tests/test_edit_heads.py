@@ -4,8 +4,6 @@ same edit through autograd: tests/test_edit.py)."""
 
 from __future__ import annotations
 
-import math
-
 import pytest
 import torch
 
@@ -15,19 +13,18 @@ from virgi_ns.edit.stack import SegmentationHead
 F_DIM, H_DIM, WIDTH, U = 20, 24, 40, 300  # widths unlike the defaults', and a width not a multiple of 32
 
 
-def _heads(dtype: torch.dtype, device: str = "cpu", seed: int = 0, colour: bool = False):
+def _heads(dtype: torch.dtype, device: str = "cpu", seed: int = 0):
     """A segmentation head, a copied layer and their inputs, with every quantity of order one (the
-    output weights not near zero, so alpha varies and every gradient is far from vanishing); with
-    ``colour``, the head's input has three more columns after h_diff, as a colour-reading head's."""
+    output weights not near zero, so alpha varies and every gradient is far from vanishing)."""
     g = torch.Generator().manual_seed(seed)
-    seg = SegmentationHead(F_DIM, H_DIM, WIDTH, init_bias=0.3, colour=colour)
+    seg = SegmentationHead(F_DIM, H_DIM, WIDTH, init_bias=0.3)
     with torch.no_grad():
         for p in seg.parameters():
             p.copy_(torch.randn(p.shape, generator=g) * 0.5)
     seg = seg.to(device, dtype)
     weight = (torch.randn(3, H_DIM, generator=g) * 0.3).to(device, dtype).requires_grad_(True)
     bias = (torch.randn(3, generator=g) * 0.3).to(device, dtype).requires_grad_(True)
-    x = torch.randn(U, F_DIM + H_DIM + (3 if colour else 0), generator=g).to(device, dtype)
+    x = torch.randn(U, F_DIM + H_DIM, generator=g).to(device, dtype)
     inp = HeadsInputs(x, F_DIM, torch.randn(U, 3, generator=g).to(device, dtype),
                       torch.randn(U, 3, generator=g).to(device, dtype), 0.7)
     grad_c = torch.randn(U, 3, generator=g).to(device, dtype)
@@ -37,7 +34,7 @@ def _heads(dtype: torch.dtype, device: str = "cpu", seed: int = 0, colour: bool 
 def _autograd(seg, weight, bias, inp, grad_c) -> dict:
     """The engine's own forward (EditEngine.colours) through autograd."""
     alpha = torch.sigmoid(seg.logits_of(inp.x))
-    c_dp = torch.nn.functional.linear(inp.x[:, F_DIM : F_DIM + H_DIM], weight, bias)
+    c_dp = torch.nn.functional.linear(inp.x[:, F_DIM:], weight, bias)
     C = torch.sigmoid(alpha * c_dp + (1.0 - alpha) * inp.cd + inp.k * inp.cs)
     params = {"l1.weight": seg.l1.weight, "l1.bias": seg.l1.bias, "l2.weight": seg.l2.weight,
               "l2.bias": seg.l2.bias, "weight": weight, "bias": bias}
@@ -45,9 +42,8 @@ def _autograd(seg, weight, bias, inp, grad_c) -> dict:
     return {"C": C.detach(), **dict(zip(params, grads))}
 
 
-@pytest.mark.parametrize("colour", [False, True])
-def test_the_written_out_backward_is_autograds_in_float64(colour):
-    seg, weight, bias, inp, grad_c = _heads(torch.float64, colour=colour)
+def test_the_written_out_backward_is_autograds_in_float64():
+    seg, weight, bias, inp, grad_c = _heads(torch.float64)
     want = _autograd(seg, weight, bias, inp, grad_c)
     with torch.no_grad():
         fwd = reference_forward(seg, weight, bias, inp)
@@ -81,13 +77,12 @@ def _gpu_kernels() -> bool:
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not _gpu_kernels(), reason="needs a CUDA GPU and the extension")
-@pytest.mark.parametrize("colour", [False, True])
-def test_the_kernels_match_the_float64_reference_on_a_gpu(colour):
-    seg, weight, bias, inp, grad_c = _heads(torch.float32, "cuda", colour=colour)
+def test_the_kernels_match_the_float64_reference_on_a_gpu():
+    seg, weight, bias, inp, grad_c = _heads(torch.float32, "cuda")
     heads = FusedHeads(seg, weight, bias, inp)
     heads.step(_Sets(grad_c))
     with torch.no_grad():  # the oracle: the reference in float64 from the same float32 values
-        seg64 = SegmentationHead(F_DIM, H_DIM, WIDTH, colour=colour).to("cuda", torch.float64)
+        seg64 = SegmentationHead(F_DIM, H_DIM, WIDTH).to("cuda", torch.float64)
         seg64.load_state_dict({k: v.double() for k, v in seg.state_dict().items()})
         inp64 = HeadsInputs(inp.x.double(), F_DIM, inp.cd.double(), inp.cs.double(), inp.k)
         fwd = reference_forward(seg64, weight.double(), bias.double(), inp64)
@@ -98,22 +93,3 @@ def test_the_kernels_match_the_float64_reference_on_a_gpu(colour):
         scale = float(want[name].abs().max())
         assert g.shape == want[name].shape, name
         assert float((g.double() - want[name]).abs().max()) <= 1e-5 * scale, name
-
-
-def test_a_colour_reading_head_reads_the_base_layers_colour():
-    """Its input is [f, h_diff, 2 sigmoid(W0 h_diff + b0) - 1], written out here by hand per Gaussian."""
-    g = torch.Generator().manual_seed(3)
-    seg = SegmentationHead(F_DIM, H_DIM, WIDTH, colour=True).double()
-    w0, b0 = torch.randn(3, H_DIM, generator=g, dtype=torch.float64), torch.randn(3, generator=g, dtype=torch.float64)
-    seg.set_colour_map(w0, b0)
-    f = torch.randn(5, F_DIM, generator=g, dtype=torch.float64)
-    h = torch.randn(5, H_DIM, generator=g, dtype=torch.float64)
-    x = seg.inputs(f, h)
-    assert x.shape == (5, F_DIM + H_DIM + 3)
-    for i in range(5):
-        logits = [sum(float(w0[c, j]) * float(h[i, j]) for j in range(H_DIM)) + float(b0[c]) for c in range(3)]
-        want = [2.0 / (1.0 + math.exp(-z)) - 1.0 for z in logits]
-        assert torch.allclose(x[i, F_DIM + H_DIM :], torch.tensor(want, dtype=torch.float64), atol=1e-12)
-    assert torch.equal(x[:, :F_DIM], f) and torch.equal(x[:, F_DIM : F_DIM + H_DIM], h)
-    with pytest.raises(ValueError):
-        SegmentationHead(F_DIM, H_DIM, WIDTH).set_colour_map(w0, b0)

@@ -81,10 +81,6 @@ class EditConfig:
     classifier on; every step uses all of them."""
     seg_width: int = 64
     """Hidden width of the segmentation head."""
-    seg_colour: bool = False
-    """The segmentation head also reads each Gaussian's diffuse colour (under the base run's last diffuse
-    layer), so that it can keep apart Gaussians of different colours that share hash features: a
-    texture's two colours, small parts packed on a body. Off: the paper's head, over ``[f, h_diff]``."""
     seg_init_bias: float = -4.0
     """Initial output bias of the segmentation head: alpha starts at its sigmoid, so a fresh edit is
     close to a no-op."""

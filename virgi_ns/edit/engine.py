@@ -9,7 +9,7 @@ segmentation head::
 
     c_d'  = W h_diff + b                       (W, b: the base diffuse head, or for a large edit
                                                 M W, M b + t, the colour map's start)
-    alpha = sigmoid(MLP_seg([f, h_diff]))      (starts near 0; ``seg_colour``: also the Gaussian's colour)
+    alpha = sigmoid(MLP_seg([f, h_diff]))      (starts near 0)
     c_d'' = alpha c_d' + (1 - alpha) c_d
     C'    = sigmoid(c_d'' + k c_s)
     loss  = L1(A C' + T bg, I_target)          (Adam, one pixel set per step)
@@ -134,12 +134,10 @@ class EditEngine:
         # the view's render through the stack [H,W,3]: what unchanged pixels keep
         self.current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), self.contrib, self.background)[0]
         cfg = self.cfg
-        head = sc.field.diffuse_head
         self.seg = copy.deepcopy(fresh_segmentation(self.feats.shape[1], self.h_diff.shape[1], cfg.seg_width,
-                                                    cfg.seg_init_bias, cfg.seed, torch.device(dev), cfg.seg_colour))
-        if cfg.seg_colour:
-            self.seg.set_colour_map(head.weight, head.bias)
+                                                    cfg.seg_init_bias, cfg.seed, torch.device(dev)))
         self.seg_input = self.seg.inputs(self.feats, self.h_diff)
+        head = sc.field.diffuse_head
         self.weight = head.weight.detach().float().clone().requires_grad_(True)
         self.bias = head.bias.detach().float().clone().requires_grad_(True)
 

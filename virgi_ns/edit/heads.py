@@ -1,13 +1,13 @@
 """An edit's heads: the segmentation head, and both heads' step written out for the GPU.
 
-- :class:`SegmentationHead`: ``alpha = sigmoid(MLP_seg([f, h_diff]))`` (optionally also reading each
-  Gaussian's diffuse colour), which Gaussians an edit recolours; :func:`fresh_segmentation`, a fresh one drawn from a seed.
+- :class:`SegmentationHead`: ``alpha = sigmoid(MLP_seg([f, h_diff]))``, which Gaussians an edit
+  recolours; :func:`fresh_segmentation`, a fresh one drawn from a seed.
 - :class:`FusedHeads`: one step of the joint recipe's two heads (the segmentation head and the copied
   last diffuse layer, :mod:`virgi_ns.edit.engine`) on the GPU. Through autograd a step's heads are
   dozens of small kernels; here the same step is two cuBLAS products and two kernels of ours
   (``csrc/edit_heads.cu``)::
 
-    pre    = x W1^T + b1                           x = [f, h_diff(, colour)] (constant during an edit)
+    pre    = x W1^T + b1                           x = [f, h_diff] (constant during an edit)
     alpha  = sigmoid(relu(pre) . w2 + b2)
     c_dp   = Wd h_diff + bd
     C      = sigmoid(alpha c_dp + (1 - alpha) c_d + k c_s)
@@ -32,46 +32,24 @@ from torch import Tensor, nn
 
 
 class SegmentationHead(nn.Module):
-    """``alpha = sigmoid(l2(relu(l1(x))))``: which Gaussians an edit recolours, from
-    ``x = [f, h_diff]`` (the paper's), or with ``colour`` ``x = [f, h_diff, 2 sigmoid(W0 h_diff + b0) - 1]``:
-    also each Gaussian's diffuse colour under the base run's last diffuse layer ``(W0, b0)``
-    (:meth:`set_colour_map`), so that Gaussians which share hash features but differ in colour (a texture,
-    small parts packed on a body) can be told apart. Either way alpha is a function of ``(f, h_diff)``
-    alone, the same wherever the edit is applied.
+    """``alpha = sigmoid(l2(relu(l1([f, h_diff]))))``: which Gaussians an edit recolours.
 
     The output bias starts at ``init_bias`` (negative) and the output weights near zero, so a
     fresh head gives ``alpha ~ sigmoid(init_bias)`` everywhere: the edit starts as a no-op."""
 
-    def __init__(self, feature_dim: int, hidden_dim: int, width: int = 64, init_bias: float = -4.0,
-                 colour: bool = False) -> None:
+    def __init__(self, feature_dim: int, hidden_dim: int, width: int = 64, init_bias: float = -4.0) -> None:
         super().__init__()
-        self.feature_dim, self.hidden_dim, self.width, self.colour = feature_dim, hidden_dim, width, colour
-        self.l1 = nn.Linear(feature_dim + hidden_dim + (3 if colour else 0), width)
+        self.feature_dim, self.hidden_dim, self.width = feature_dim, hidden_dim, width
+        self.l1 = nn.Linear(feature_dim + hidden_dim, width)
         self.l2 = nn.Linear(width, 1)
         nn.init.normal_(self.l2.weight, std=1e-2)
         nn.init.constant_(self.l2.bias, init_bias)
-        if colour:
-            self.register_buffer("colour_weight", torch.zeros(3, hidden_dim))
-            self.register_buffer("colour_bias", torch.zeros(3))
 
-    @torch.no_grad()
-    def set_colour_map(self, weight: Float[Tensor, "3 H"], bias: Float[Tensor, "3"]) -> None:
-        """The base run's last diffuse layer, from which a ``colour`` head reads each Gaussian's colour."""
-        if not self.colour:
-            raise ValueError("this segmentation head reads no colour")
-        self.colour_weight.copy_(weight)
-        self.colour_bias.copy_(bias)
+    def inputs(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N FH"]:
+        """``[f, h_diff]``, the head's input (constant during an edit, so callers may cache it)."""
+        return torch.cat([feats.to(self.l1.weight.dtype), h_diff.to(self.l1.weight.dtype)], dim=-1)
 
-    def inputs(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N Dx"]:
-        """The head's input ``x`` (constant during an edit, so callers may cache it)."""
-        dtype = self.l1.weight.dtype
-        parts = [feats.to(dtype), h_diff.to(dtype)]
-        if self.colour:
-            logits = nn.functional.linear(parts[1], self.colour_weight.to(dtype), self.colour_bias.to(dtype))
-            parts.append(2.0 * torch.sigmoid(logits) - 1.0)
-        return torch.cat(parts, dim=-1)
-
-    def logits_of(self, x: Float[Tensor, "N Dx"]) -> Float[Tensor, "N 1"]:
+    def logits_of(self, x: Float[Tensor, "N FH"]) -> Float[Tensor, "N 1"]:
         return self.l2(torch.relu(self.l1(x)))
 
     def logits(self, feats: Float[Tensor, "N F"], h_diff: Float[Tensor, "N H"]) -> Float[Tensor, "N 1"]:
@@ -88,13 +66,13 @@ warm-up, :mod:`virgi_ns.edit.warmup`) cannot draw from it between a seed and its
 
 @functools.lru_cache(maxsize=8)
 def fresh_segmentation(feature_dim: int, hidden_dim: int, width: int, init_bias: float, seed: int,
-                       device: torch.device, colour: bool = False) -> SegmentationHead:
+                       device: torch.device) -> SegmentationHead:
     """A fresh segmentation head drawn on the CPU with ``seed`` (the same on every device), moved to
     ``device`` and kept there for the next edit of the same shape (building it and moving it waits for
     the GPU's queue). Callers copy it."""
     with GLOBAL_RNG_LOCK, torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        head = SegmentationHead(feature_dim, hidden_dim, width, init_bias, colour)
+        head = SegmentationHead(feature_dim, hidden_dim, width, init_bias)
     return head.to(device)
 
 
@@ -104,8 +82,8 @@ MAX_WIDTH = 256
 
 @dataclass
 class HeadsInputs:
-    """What a step's heads read besides their parameters: the head input ``x`` [U, Dx]
-    (:meth:`SegmentationHead.inputs`, h_diff from column ``hd_offset``), the stack's diffuse logits ``cd`` and the specular logits
+    """What a step's heads read besides their parameters: the head input ``x = [f, h_diff]`` [U, Dx]
+    (h_diff from column ``hd_offset``), the stack's diffuse logits ``cd`` and the specular logits
     ``cs`` [U, 3] of the view's Gaussians, and the specular strength ``k``."""
 
     x: Tensor

@@ -37,9 +37,7 @@ from virgi_ns.edit.manifest import EDITS_DIR, MANIFEST, edits_dir, read_manifest
 from virgi_ns.errors import InputError, atomic_path
 
 EDIT_FORMAT = "virgi-edit"
-EDIT_VERSION = 2
-"""The newest edit format this package writes and reads: 2 adds a segmentation head that reads colour
-(``seg_dims`` ``[f, h, width, 1]``); an edit without one is still written as 1, which older readers take."""
+EDIT_VERSION = 1
 
 
 # ------------------------------------------------------------------------------- edit
@@ -100,11 +98,11 @@ class Edit:
     def to_payload(self) -> dict:
         return {
             "format": EDIT_FORMAT,
-            "version": EDIT_VERSION if self.seg.colour else 1,
+            "version": EDIT_VERSION,
             "fingerprint": self.fingerprint,
             "head_weight": self.head_weight.detach().cpu().float().clone(),
             "head_bias": self.head_bias.detach().cpu().float().clone(),
-            "seg_dims": [self.seg.feature_dim, self.seg.hidden_dim, self.seg.width] + ([1] if self.seg.colour else []),
+            "seg_dims": [self.seg.feature_dim, self.seg.hidden_dim, self.seg.width],
             "seg_state": {k: v.detach().cpu().float().clone() for k, v in self.seg.state_dict().items()},
             "source": self.source.to_dict(),
             "info": json.dumps(self.info),
@@ -131,8 +129,8 @@ class Edit:
         if int(d.get("version", -1)) > EDIT_VERSION:
             raise InputError(f"{path} was written by a newer virgi-ns (edit format {d.get('version')})")
         try:
-            fdim, hdim, width, *colour = (int(x) for x in d["seg_dims"])
-            seg = SegmentationHead(fdim, hdim, width, colour=bool(colour and colour[0]))
+            fdim, hdim, width = (int(x) for x in d["seg_dims"])
+            seg = SegmentationHead(fdim, hdim, width)
             seg.load_state_dict(d["seg_state"])
             w, b = d["head_weight"], d["head_bias"]
             if w.shape != (3, hdim) or b.shape != (3,):
