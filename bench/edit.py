@@ -500,7 +500,7 @@ def print_pick(rows: List[dict], latencies: List[dict]) -> None:
                       else ("CANNOT (" + j["by"] + ")") if j.get("cannot") else f"FAIL ({j['by']})")
         w = worst_case(rows)
         t.add_row("worst case", "", "", "", "", "", "", "", "", _f(w["pick_difference_db"], "+.2f"), "", "",
-                  f"{w['pick_passed']}/{w['pick_rows']} pass, {w.get('pick_cannot', 0)} cannot")
+                  f"{w['pick_passed']}/{w['pick_rows']} pass, {w['pick_cannot']} cannot")
         console.print(t)
     for lat in latencies:
         console.print(latency_line(lat))

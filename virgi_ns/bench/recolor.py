@@ -157,8 +157,8 @@ def target_figures(target: torch.Tensor, changed: Optional[torch.Tensor], truth_
     inside it. Where these are low the target, not the fit or its propagation, sets the edit's limit:
     an edited photo changes the pixels the photo shows in the rule's colours, which a blurred or
     shifted render shows elsewhere."""
-    out = {"edit_target_miss_psnr": psnr(target, truth_render, mask),
-           "edit_target_leak_psnr": psnr(target, truth_render, ~mask)}
+    told = against_rule(target, truth_render, mask)
+    out = {"edit_target_miss_psnr": told["miss_psnr"], "edit_target_leak_psnr": told["leak_psnr"]}
     if changed is not None:
         out["edit_changed_outside_mask"] = float((changed & ~mask).float().mean())
         out["edit_mask_unchanged"] = float((mask & ~changed).float().mean())
