@@ -19,7 +19,8 @@ for each pass). Per kind (``--variants``, default every kind):
 
 A kind that fails is a row with its error; the others go on. The fastest kind that passed the check is
 named (by warm edit time), and, when the fastest forward and backward kinds differ, their pair
-``FWD/BWD`` is measured too (``--no-combo``: not). ``--cpu-smoke`` runs a tiny scene on the CPU (tests).
+``FWD/BWD`` is measured too (``--no-combo``: not). ``--changed-region`` times an edit of part of the render
+instead of a random image. ``--cpu-smoke`` runs a tiny scene on the CPU (tests).
 
     python bench/edit_step.py --out bench_out/edit_step
 """
@@ -47,6 +48,7 @@ from common.settings import edit_settings
 from virgi_ns.edit.engine import EditConfig, EditEngine
 from virgi_ns.edit.fitting import sync
 from virgi_ns.edit.pixels import CompositeOp, csr_matrix, row_offsets
+from virgi_ns.edit.scene import render_view
 from virgi_ns.errors import InputError, cli_entry
 
 console = Console(width=220)
@@ -220,6 +222,10 @@ class Args:
     budget_s: float = 90.0
     """Past this many seconds since the start, the remaining kinds are checked and timed per call
     but their warm edits are skipped (the row says so)."""
+    changed_region: float = 0.0
+    """0: the edited image is random (a whole-image fit). Above 0: it is the view's render with a centred
+    box over this share of its pixels recoloured, so the edit fits the changed pixels, as an edited
+    photo's does."""
     cpu_smoke: bool = False
     """A tiny scene on the CPU (a test of this script, not a measurement)."""
 
@@ -244,6 +250,18 @@ def _timer(dev: torch.device, fn: Callable[[], object], repeats: int, warmup: in
     return float(statistics.median(times))
 
 
+def edited_render(scene, cams, share: float) -> Tensor:
+    """The view's render with a centred box over ``share`` of its pixels inverted (``1 - rgb``)."""
+    if not 0 < share < 1:
+        raise InputError(f"--changed-region must be in (0, 1), got {share:g}")
+    rgb = render_view(scene, cams, 0)["rgb"].clone()
+    H, W = rgb.shape[:2]
+    h, w = max(1, round(H * share**0.5)), max(1, round(W * share**0.5))
+    y, x = (H - h) // 2, (W - w) // 2
+    rgb[y : y + h, x : x + w] = 1.0 - rgb[y : y + h, x : x + w]
+    return rgb
+
+
 class Bench:
     """The scene, its edited image and the csr kind's reference on the first pixel batch."""
 
@@ -257,8 +275,11 @@ class Bench:
             self.dev = torch.device("cuda")
         self.scene, self.cams = million_scene(args.gaussians, args.width, args.height, self.dev.type)
         self.scene.precompute_features()
-        g = torch.Generator(device=self.dev).manual_seed(1)
-        self.edited = torch.rand(args.height, args.width, 3, generator=g, device=self.dev)
+        if args.changed_region > 0:
+            self.edited = edited_render(self.scene, self.cams, args.changed_region)
+        else:
+            g = torch.Generator(device=self.dev).manual_seed(1)
+            self.edited = torch.rand(args.height, args.width, 3, generator=g, device=self.dev)
         self.ref: dict = {}
         self.t0 = time.perf_counter()
 
@@ -351,6 +372,7 @@ class Bench:
             eng = self.engine(kind)
             b0 = eng.batches[0]
             row["batch_pixels"] = int(b0.target.shape[0])
+            row["changed_fraction"] = float(eng.changed_fraction)
             row["batch_entries"] = int(b0.sets.pixel_offsets[b0.pixels + 1].sum() - b0.sets.pixel_offsets[b0.pixels].sum()
                                        if b0.sets is not None else b0.op.forward_side.gather.numel()
                                        if isinstance(b0.op, ContestantOp) else b0.op.matrix.values().numel())
@@ -434,7 +456,8 @@ def main(args: Args) -> dict:
     kinds = ["csr"] + [v for v in args.variants if v != "csr"]
     rows: List[dict] = []
     result: dict = {"device": device, **provenance(), "gaussians": args.gaussians,
-                    "image": f"{args.width}x{args.height}", "tol": args.tol, "rows": rows}
+                    "image": f"{args.width}x{args.height}", "changed_region": args.changed_region, "tol": args.tol,
+                    "rows": rows}
     for k in kinds:
         rows.append(b.row(k))
         if "error" in rows[0]:

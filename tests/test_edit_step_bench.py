@@ -36,3 +36,15 @@ def test_edit_step_bench_cpu_smoke(tmp_path):
     best = saved["fastest"]
     assert best["edit"] in rows and best["edit"] != "no_such_kind" and best["fwd"] in rows and best["bwd"] in rows
     assert res["fastest"] == best
+
+
+def test_edit_step_bench_times_an_edit_of_part_of_the_render(tmp_path):
+    """``--changed-region``: the edited image is the render with a box recoloured, so the timed edit fits
+    the changed pixels (their share of the view about the box's), not the whole image."""
+    with script_module("bench/edit_step.py", "bench_edit_step") as mod:
+        res = mod.main(mod.Args(out=tmp_path / "es", cpu_smoke=True, variants=["fused"], changed_region=0.1))
+    rows = {r["variant"]: r for r in res["rows"]}
+    for kind in ("csr", "fused"):
+        assert "error" not in rows[kind], rows[kind].get("traceback")
+        assert 0.05 < rows[kind]["changed_fraction"] < 0.12 and rows[kind]["steps_s"] > 0
+    assert res["changed_region"] == 0.1
