@@ -294,10 +294,9 @@ class Bench:
         b = eng.batches[0]
         if not self.ref:  # the csr row: the reference colours, gradient and products
             gen = torch.Generator(device=self.dev).manual_seed(2)
-            C = eng.colours()[0].detach()
             # off the fit's start, where an unchanged pixel's residual is zero and the sign of its L1
-            # gradient is decided by the order of float sums
-            C = C + 0.01 * torch.randn(C.shape, generator=gen, device=self.dev)
+            # gradient is decided by the order of float sums: a shift leaves every covered pixel's sign fixed
+            C = eng.colours()[0].detach() + 0.05
             grad = torch.randn(b.target.shape, generator=gen, device=self.dev)
             Cg = C.clone().requires_grad_(True)
             with torch.enable_grad():
