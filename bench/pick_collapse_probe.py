@@ -28,7 +28,7 @@ def main() -> None:
 
     def watched_commit(stack, session, edit, replace=None):
         n = default_commit(stack, session, edit, replace)
-        seg = render_view(b.scene, b.edit_camera, 0, stack, seg_index=0)["segmentation"][..., 0]
+        seg = render_view(b.scene, b.edit_camera, 0, stack, seg_index=1)["segmentation"][..., 0]
         sel = session.mask.to(seg.device)
         seen.update(alpha_in_selection=float(seg[sel].mean()), alpha_outside=float(seg[~sel].mean()),
                     selected=float(sel.float().mean()))
