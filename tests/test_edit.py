@@ -847,3 +847,36 @@ def test_the_schedule_is_the_constant_fit_with_its_rate_decayed_step_by_step(wor
     split.fit(8)
     split.fit(n - 8)
     torch.testing.assert_close(split.weight, eng.weight, atol=1e-6, rtol=1e-6)
+
+
+def test_a_fit_that_leaves_the_changed_pixels_where_they_were_says_so(world):
+    """``changed_progress``: how far the fit moved the changed pixels towards their target, against the same
+    figure computed here from the preview; a fit that stalls (a 7x7 patch outvoted by the unchanged pixels at a
+    tiny share) gets the note, one that takes the edit does not, and a whole-image fit has no figure."""
+    from virgi_ns.edit.engine import SMALL_PROGRESS
+
+    S = world["S"]
+    rgb = world["before"][EDIT_VIEW]["rgb"]
+    edited, mask = recolor(rgb, BLUE_TO_RED)
+    ys, xs = torch.nonzero(mask, as_tuple=True)
+    cy, cx = int(ys.float().mean()), int(xs.float().mean())
+    patch = torch.zeros_like(mask)
+    patch[cy - 3 : cy + 4, cx - 3 : cx + 4] = True
+    patch &= mask
+    small = torch.where(patch[..., None], edited, rgb)
+    cam = S.cameras.index(EDIT_VIEW)
+    taken = EditEngine(S.scene, cam, small, cfg=EditConfig(steps=40), original=rgb)
+    assert taken.changed_progress() == pytest.approx(0.0, abs=1e-6)  # before any step: nothing moved
+    taken.fit()
+    stalled = EditEngine(S.scene, cam, small, cfg=EditConfig(steps=40, changed_share=0.02), original=rgb)
+    stalled.fit()
+    for eng in (taken, stalled):  # against the preview and the edited patch, computed here
+        after = eng.preview()["rgb"][patch]
+        want = 1.0 - float((after - small[patch]).abs().mean()) / float((eng.current[patch] - small[patch]).abs().mean())
+        assert eng.changed_progress() == pytest.approx(want, abs=1e-4)
+    assert taken.changed_progress() > 0.5 and taken.small_progress_note() is None
+    assert stalled.changed_progress() < SMALL_PROGRESS
+    assert "changes almost nothing" in stalled.small_progress_note()
+    whole = EditEngine(S.scene, cam, small, cfg=EditConfig(steps=5, whole_image=True))
+    whole.fit()
+    assert whole.changed_progress() is None and whole.small_progress_note() is None

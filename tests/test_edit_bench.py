@@ -181,6 +181,7 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
                   "alpha_in_mask", "edit_view_alpha_in_mask"):
             assert math.isfinite(r[k]), (r["variant"], k)
         assert 0.0 <= r["alpha_in_mask"] <= 1.0 and 0.0 <= r["alpha_out_mask"] <= 1.0
+        assert 0.3 < r["timing_warm"]["changed_progress"] <= 1.0, r["variant"]  # every fit here takes its edit
     # what the engine was told to fit in its own view: the rule on the render itself is an exact target
     # (render+original, the edited image fitted as it is), a photo's edit is not
     assert rows[5]["edit_target_miss_psnr"] >= 100.0 and rows[5]["edit_target_leak_psnr"] >= 100.0
@@ -211,6 +212,7 @@ def test_edit_bench_measures_a_scene_and_its_variants_on_one_run(pipeline, bench
     assert w["miss_psnr"] == rows[0]["miss_psnr"] and w["rows"] == 1
     bench_edit.print_tables(rows, "cpu")
     _check_pick(rows, pipeline, scene.rule, args.out / "tiny_pick.png")
+    assert 0.3 < rows[0]["pick"]["changed_progress"] <= 1.0
     assert "pick" not in rows[1]  # the pick is measured once, beside the engine defaults
     # a refused pick is a failed row with its reason
     failed = {**rows[0], "pick": {"error": "no pixel to click", "rule_propagation_psnr": 30.0, "pass": False}}

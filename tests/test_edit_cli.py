@@ -235,6 +235,25 @@ def test_original_image_limits_the_fit_to_changed_pixels(saved, tmp_path):
         run(Reset(saved["config"]), _quiet(), pl)
 
 
+def test_an_edit_that_barely_moves_its_changed_pixels_is_saved_with_a_warning(saved, tmp_path):
+    """One step leaves the changed pixels nearly where they were: the summary says so on a line of its own,
+    with what to try; the full fit's summary has no such line."""
+    pl = saved["pipeline"]
+    cam = pl.datamanager.train_dataset.cameras[0:1]
+    with torch.no_grad():
+        rgb = pl.model.get_outputs_for_camera(cam)["rgb"].cpu()
+    orig = tmp_path / "render.png"
+    Image.fromarray((rgb.numpy() * 255 + 0.5).astype(np.uint8)).save(orig)
+    try:
+        short = run(_apply(saved, original=orig, steps=1), _quiet(), pl)
+        full = run(_apply(saved, original=orig, steps=60), _quiet(), pl)
+    finally:
+        run(Reset(saved["config"]), _quiet(), pl)
+    assert short.count("\n") == 1 and short.splitlines()[1].startswith("warning: the fit moved the changed pixels"), short
+    assert "--recipe staged" in short and "changes almost nothing" in short
+    assert "warning" not in full, full
+
+
 def _objects(pipeline, index: int):
     """(render, the matte red sphere's pixels, the glossy blue sphere's pixels) of training view ``index``."""
     cam = pipeline.datamanager.train_dataset.cameras[index : index + 1]
@@ -269,7 +288,7 @@ def test_pick_recolours_the_clicked_sphere_only_and_saves_what_it_selected(saved
     assert int(red.sum()) > 20 and int(blue.sum()) > 20
     try:
         msg = run(_pick(saved), _quiet(), pl)
-        assert msg.startswith("edit 1 saved") and "hue -> #20c040" in msg, msg
+        assert msg.startswith("edit 1 saved") and "hue -> #20c040" in msg and "warning" not in msg, msg
         assert _listing(saved["config"]) == ["edit_0001.pt", "edit_0001_edited.png", "edit_0001_selection.png",
                                              "stack.json"]
         sel = np.asarray(Image.open(saved["config"].parent / "edits" / "edit_0001_selection.png")) > 127
@@ -290,6 +309,9 @@ def test_pick_recolours_the_clicked_sphere_only_and_saves_what_it_selected(saved
         run(_pick(saved, pixel=_central(red0), unchanged_weights="colour", steps=5), _quiet(), pl)
         assert EditStack.open(saved["config"].parent, model.fingerprint()).entries[0].edit.info["unchanged_weights"] \
             == "colour"
+        run(Undo(saved["config"]), _quiet(), pl)
+        short = run(_pick(saved, steps=1), _quiet(), pl)  # one step leaves the sphere red: saved, with a warning
+        assert short.splitlines()[1].startswith("warning: the fit moved") and "pick again" in short, short
         run(Undo(saved["config"]), _quiet(), pl)
     finally:
         model.set_edit_stack(None)

@@ -122,7 +122,7 @@ def test_panel_save_upload_apply_undo(run, tmp_path):
     assert not panel.status_is_error, panel.status
     panel.apply_edit(wait=True, steps=120)
     assert not panel.status_is_error, panel.status
-    assert "edit 1 applied" in panel.status and panel.progress == 0.0
+    assert "edit 1 applied" in panel.status and panel.progress == 0.0 and "Warning" not in panel.status
     stack = model.edit_stack
     assert len(stack) == 1 and (tmp_path / "edits" / "stack.json").is_file()
     after = render(model, cam)
@@ -193,6 +193,13 @@ def test_panel_save_upload_apply_undo(run, tmp_path):
     panel.set_display("segmentation")
     assert panel.status_is_error and "needs an edit" in panel.status
 
+    # one step leaves the painted pixels nearly where they were: applied, with a warning in the status line
+    panel._on_upload(up)
+    panel.apply_edit(wait=True, steps=1)
+    assert not panel.status_is_error and "edit 1 applied" in panel.status, panel.status
+    assert "Warning: the fit moved the changed pixels" in panel.status, panel.status
+    panel.undo()
+
 
 def test_panel_pick_live_commit_replace_undo(run, tmp_path):
     """Pick mode without a browser: a click (``pick_at``) shows a live edit, nothing written; a pause
@@ -236,6 +243,7 @@ def test_panel_pick_live_commit_replace_undo(run, tmp_path):
     panel.commit_after_s = 0.05  # wakes the worker, asleep until a commit due in 600 s
     panel.wait_pick(commit=True, timeout=30)
     assert model.live_edit is None and len(model.edit_stack) == 1, panel.status
+    assert "committed from the pick" in panel.status and "Warning" not in panel.status, panel.status
     assert files() == ["edit_0001.pt", "edit_0001_edited.png", "edit_0001_selection.png", "stack.json"]
     np.testing.assert_array_equal(model.edit_stack.entries[0].edit.head_weight.cpu().numpy(),
                                   topped.head_weight.cpu().numpy())  # the release commits the topped-up fit

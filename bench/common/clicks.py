@@ -344,7 +344,7 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0,
            "propagation_psnr": m["propagation_psnr"], "miss_psnr": m["miss_psnr"], "leak_psnr": m["leak_psnr"],
            "edit_view_propagation_psnr": m["edit_view_propagation_psnr"],
            "rule_propagation_psnr": rule_propagation, "difference_db": m["propagation_psnr"] - rule_propagation,
-           "fit_s": fit_s, "steps": session.steps_done,
+           "fit_s": fit_s, "steps": session.steps_done, "changed_progress": session.engine.changed_progress(),
            "per_view_propagation": [v["propagation_psnr"] for v in res["views"]],
            "class": klass, "declared": click, "largest_share": share}
     if klass == "several objects":  # the clicked object: the click's component of the mask (the largest)

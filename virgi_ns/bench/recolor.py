@@ -307,7 +307,7 @@ class Bench:
         return edit, {"setup_s": med([t.setup_s for t in times]), "steps_s": med([t.steps_s for t in times]),
                       "total_s": med([t.total_s for t in times]), "steps": cfg.steps,
                       "pixel_batches": cfg.pixel_batches, "final_l1": times[-1].final_loss,
-                      "fit_l1": engine.fit_loss(),
+                      "fit_l1": engine.fit_loss(), "changed_progress": engine.changed_progress(),
                       "start": edit.info.get("start"), "changed_fraction": edit.info.get("changed_fraction")}
 
     def _per_gaussian_rule(self, i: int, rule: RecolorRule, truth: torch.Tensor, mask: torch.Tensor) -> dict:

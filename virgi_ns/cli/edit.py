@@ -387,9 +387,16 @@ def apply(args: Apply, console: "Console", pipeline=None) -> str:
         task = bar.add_task("edit", total=cfg.steps)
         edit, timing = engine.fit(progress=lambda done, total: bar.update(task, completed=done))
     number = stack.add(edit)
-    return (f"edit {number} saved to {stack.directory / stack.entries[-1].file} ({where}; {timing.steps} steps, "
-            f"setup {timing.setup_s:.3f} s + steps {timing.steps_s:.3f} s, L1 {timing.final_loss:.4f}; fitted "
-            f"{engine.mode}, {engine.changed_fraction:.0%} of the view)")
+    return _noted(f"edit {number} saved to {stack.directory / stack.entries[-1].file} ({where}; {timing.steps} steps, "
+                  f"setup {timing.setup_s:.3f} s + steps {timing.steps_s:.3f} s, L1 {timing.final_loss:.4f}; fitted "
+                  f"{engine.mode}, {engine.changed_fraction:.0%} of the view)", engine,
+                  "try --recipe staged, more --steps, or paint more of the object")
+
+
+def _noted(summary: str, engine, remedy: str) -> str:
+    """``summary``, and a warning line where the fit left the changed pixels nearly unchanged."""
+    note = engine.small_progress_note()
+    return summary if note is None else f"{summary}\nwarning: {note}; {remedy} (`virgi-edit undo` removes it)"
 
 
 def _warm_up_while_loading(pipeline) -> None:
@@ -439,9 +446,10 @@ def pick(args: Pick, console: "Console", pipeline=None) -> str:
                               depth_edges=args.depth_edges)
     number = commit(stack, session, edit)
     st = session.settings
-    return (f"edit {number} saved to {stack.directory / stack.entries[-1].file} (pick at {x} {y} of {where}: "
-            f"{st['selected']:.0%} of the view selected, {args.mode} -> {st['colour']}; edited image and selection "
-            f"beside it: {Path(stack.entries[-1].file).stem}_edited.png, _selection.png)")
+    return _noted(f"edit {number} saved to {stack.directory / stack.entries[-1].file} (pick at {x} {y} of {where}: "
+                  f"{st['selected']:.0%} of the view selected, {args.mode} -> {st['colour']}; edited image and "
+                  f"selection beside it: {Path(stack.entries[-1].file).stem}_edited.png, _selection.png)",
+                  session.engine, "pick again at another pixel or --tolerance")
 
 
 def run(cmd: object, console: Optional["Console"] = None, pipeline=None) -> str:

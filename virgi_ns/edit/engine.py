@@ -46,6 +46,11 @@ from virgi_ns.edit.targets import MAP_START_SHARE, Target, find_target, logit_co
 from virgi_ns.errors import InputError
 from virgi_ns.raster import Cameras, Request, composite
 
+SMALL_PROGRESS = 0.1
+"""A fit that moved its changed pixels less than this share of the way from the render to their target
+has not taken the edit (its segmentation stayed near its start): the commands say so
+(:meth:`EditEngine.small_progress_note`)."""
+
 
 class EditEngine:
     """Fits one edit of ``scene`` from ``edited`` [H,W,3] (float, [0,1]) seen by ``camera`` (one
@@ -387,6 +392,30 @@ class EditEngine:
                     self.source, self.fingerprint, info)
 
     @torch.no_grad()
+    def changed_progress(self) -> Optional[float]:
+        """How far the current heads moved the changed pixels of the edit view towards their target:
+        ``1 - mean|preview - target| / mean|render - target|`` over them (1: reached, 0: unmoved, below 0:
+        moved away). None for a whole-image fit, or where they already showed their target."""
+        t = self.target
+        if t is None or t.changed is None:
+            return None
+        m = t.changed[..., 0]
+        goal = t.image[m]
+        before = float((self.current[m] - goal).abs().mean())
+        if not before > 0.0:
+            return None
+        return 1.0 - float((self.preview()["rgb"][m] - goal).abs().mean()) / before
+
+    def small_progress_note(self) -> Optional[str]:
+        """A line for the user where the fit left its changed pixels nearly where they were
+        (:data:`SMALL_PROGRESS`), else None."""
+        p = self.changed_progress()
+        if p is None or p >= SMALL_PROGRESS:
+            return None
+        return (f"the fit moved the changed pixels only {max(p, 0.0):.0%} of the way to their new colour: "
+                f"this edit changes almost nothing")
+
+    @torch.no_grad()
     def preview(self) -> dict[str, Tensor]:
         """The edited view under the current heads: ``rgb`` [H,W,3] and ``alpha`` [H,W,1]."""
         C, alpha = self.colours()
@@ -408,4 +437,4 @@ def _check_images(edited: Tensor, original: Optional[Tensor], changed: Optional[
                          f"{tuple(changed.shape)}")
 
 
-__all__ = ["EditConfig", "EditEngine", "EditTiming"]
+__all__ = ["SMALL_PROGRESS", "EditConfig", "EditEngine", "EditTiming"]

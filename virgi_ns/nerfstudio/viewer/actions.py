@@ -198,8 +198,10 @@ class PanelActions:
             number = stack.add(edit)
         self._refresh_edits()
         self._rerender()
+        note = engine.small_progress_note()
         return (f"edit {number} applied from {name} ({timing.steps} steps, {timing.total_s:.1f} s, "
-                f"L1 {timing.final_loss:.4f}; fitted {engine.mode}, {engine.changed_fraction:.0%} of the view)")
+                f"L1 {timing.final_loss:.4f}; fitted {engine.mode}, {engine.changed_fraction:.0%} of the view)"
+                + ("" if note is None else f". Warning: {note}; paint more of the object, or undo it"))
 
     def wait(self, timeout: Optional[float] = None) -> None:
         """Join a running edit or export (for scripts and tests)."""

@@ -266,8 +266,10 @@ class PickActions:
         self._pick_live, self._pick_committed = None, number
         self._refresh_edits()
         self._rerender()
+        note = session.engine.small_progress_note()
         self.set_status(f"edit {number} committed from the pick at {session.x} {session.y} "
-                        f"({session.settings['selected']:.0%} of the view)")
+                        f"({session.settings['selected']:.0%} of the view)"
+                        + ("" if note is None else f". Warning: {note}; pick again elsewhere"))
 
 
 __all__ = ["COMMIT_AFTER_S", "LIVE_STEPS", "PickActions"]
