@@ -74,6 +74,14 @@ class EditConfig:
     part of another colour inside a recoloured object keeps its colour; then the copied layer, from
     the colour map of the changed pixels, with the segmentation fixed. Needs the changed pixels (a
     whole-image fit runs ``joint``)."""
+    seg_start: Literal["fresh", "classifier"] = "fresh"
+    """The joint recipe's segmentation head at a fresh fit with changed pixels: ``fresh`` (near alpha 0
+    everywhere, the paper's), or ``classifier``: first trained as the ``staged`` recipe's classifier of the
+    Gaussians the changed pixels cover, then fitted jointly with the layer (so a small share of the loss
+    cannot leave it off)."""
+    count_share: bool = False
+    """Weigh every pixel alike (the changed pixels carry their own fraction of the loss) instead of
+    ``changed_share``."""
     seg_steps: int = 300
     """``staged``: Adam steps of the segmentation classifier."""
     seg_samples: int = 65536
@@ -118,6 +126,8 @@ class EditConfig:
             raise ValueError(f"EditConfig.changed_target must be 'affine' or 'edited', got {self.changed_target!r}")
         if self.unchanged_weights not in ("count", "colour"):
             raise ValueError(f"EditConfig.unchanged_weights must be 'count' or 'colour', got {self.unchanged_weights!r}")
+        if self.seg_start not in ("fresh", "classifier"):
+            raise ValueError(f"EditConfig.seg_start must be 'fresh' or 'classifier', got {self.seg_start!r}")
         if self.recipe not in ("joint", "staged"):
             raise ValueError(f"EditConfig.recipe must be 'joint' or 'staged', got {self.recipe!r}")
         if self.seg_steps < 0 or self.seg_samples < 2:

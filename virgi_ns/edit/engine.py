@@ -178,8 +178,11 @@ class EditEngine:
         if flat is not None and self.cfg.unchanged_weights == "colour":
             c = self.contrib
             keep = unchanged_pixel_weights(c.pixel, c.pair, c.weight, torch.sigmoid(self.c_d), flat)
+        share = self.cfg.changed_share
+        if self.cfg.count_share and flat is not None:
+            share = min(max(target.fraction, 1e-4), 1.0 - 1e-4)
         self.batches = pixel_batches(self.contrib, image, self.background, self.cfg.pixel_batches, self.cfg.seed,
-                                     flat, self.cfg.changed_share, kind, target.count, keep)
+                                     flat, share, kind, target.count, keep)
         for b in self.batches:
             if b.pixels is None:  # the whole image: its own copy, which a warm retarget writes into
                 b.target = b.target.clone()
@@ -230,6 +233,11 @@ class EditEngine:
             self._graphs = None
             for p in self.seg.parameters():
                 p.requires_grad_(True)
+        elif not staged and not warm and self.cfg.seg_start == "classifier" and target.changed is not None:
+            self._classify(target, warm=False, steps=self.cfg.seg_steps if seg_steps is None else seg_steps)
+            for p in self.seg.parameters():
+                p.requires_grad_(True)
+            self._graphs = None
 
     def _classify(self, target: Target, warm: bool, steps: int) -> Tensor:
         """The ``staged`` recipe's segmentation: each of the view's Gaussians labelled by where its pixel
