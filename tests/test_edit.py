@@ -847,3 +847,23 @@ def test_the_schedule_is_the_constant_fit_with_its_rate_decayed_step_by_step(wor
     split.fit(8)
     split.fit(n - 8)
     torch.testing.assert_close(split.weight, eng.weight, atol=1e-6, rtol=1e-6)
+
+
+@pytest.mark.gpu
+def test_the_recorded_classifier_steps_give_the_eager_classifier():
+    """The staged classifier's steps replayed from one CUDA graph train the head as the eager steps do."""
+    from virgi_ns.edit.fitting import train_classifier
+    from virgi_ns.edit.heads import SegmentationHead
+
+    if not torch.cuda.is_available():
+        pytest.skip("needs a CUDA GPU")
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(4096, 24, generator=g).cuda()
+    y = (x[:, :1] + 0.3 * x[:, 1:2] > 0).float()
+    alphas = {}
+    for graphs in (True, False):
+        torch.manual_seed(0)
+        seg = SegmentationHead(12, 12, 32).cuda()
+        alphas[graphs] = train_classifier(seg, x, y, x, EditConfig(cuda_graphs=graphs), steps=50)
+    assert float((alphas[True] - alphas[False]).abs().max()) < 1e-4
+    assert float(((alphas[True] > 0.5).float() - y).abs().mean()) < 0.05  # it learnt the labels

@@ -12,6 +12,7 @@ recorded CUDA graphs the steps replay.
 from __future__ import annotations
 
 import time
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Callable, Iterator, Optional
@@ -134,21 +135,51 @@ def train_classifier(seg: SegmentationHead, x: Tensor, y: Tensor, seg_input: Ten
     [S, F+H] with labels ``y`` [S, 1] (binary cross-entropy, Adam at :data:`SEG_LR`, ``steps`` steps, default
     ``cfg.seg_steps``, on all of them every step), then frozen; returns its alpha [U, 1] on the view's
     Gaussians (``seg_input``), fixed for the layer's steps. ``warm``: on from the head's state instead of
-    its fresh output bias."""
+    its fresh output bias. On a GPU with ``cfg.cuda_graphs`` the steps after the first replay one recorded
+    CUDA graph (the same kernels without a Python round trip each); where a step cannot be recorded they
+    run eagerly."""
     if not warm:
         torch.nn.init.constant_(seg.l2.bias, 0.0)
     params = list(seg.parameters())
     for p in params:
         p.requires_grad_(True)
     opt = EditAdam(params, lr=SEG_LR)
+    n = cfg.seg_steps if steps is None else steps
+
+    def step() -> None:
+        opt.zero_grad()
+        torch.nn.functional.binary_cross_entropy_with_logits(seg.logits_of(x), y).backward()
+        opt.step()
+
     with torch.enable_grad():
-        for _ in range(cfg.seg_steps if steps is None else steps):
-            opt.zero_grad()
-            torch.nn.functional.binary_cross_entropy_with_logits(seg.logits_of(x), y).backward()
-            opt.step()
+        done = 0
+        if cfg.cuda_graphs and x.is_cuda and n > 2:
+            done = _classifier_graphed(step, x.device, n)
+        for _ in range(done, n):
+            step()
     for p in params:
         p.requires_grad_(False)
     return torch.sigmoid(seg.logits_of(seg_input))
+
+
+def _classifier_graphed(step: Callable[[], None], device: torch.device, n: int) -> int:
+    """``n`` classifier steps: the first eager (it creates Adam's state), the rest replays of the second,
+    recorded; returns the steps done (1 where the step cannot be recorded: the caller runs the rest)."""
+    side = torch.cuda.Stream(device)
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        step()
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    try:
+        with capture(graph, side):
+            step()
+    except RuntimeError as e:  # a kernel that cannot be recorded
+        warnings.warn(f"the segmentation classifier runs without a CUDA graph: {str(e).splitlines()[0]}")
+        return 1
+    for _ in range(n - 1):  # recording ran nothing: steps 2..n are its replays
+        graph.replay()
+    return n
 
 
 @contextmanager
