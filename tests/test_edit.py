@@ -847,3 +847,22 @@ def test_the_schedule_is_the_constant_fit_with_its_rate_decayed_step_by_step(wor
     split.fit(8)
     split.fit(n - 8)
     torch.testing.assert_close(split.weight, eng.weight, atol=1e-6, rtol=1e-6)
+
+
+def test_the_count_share_weighs_every_pixel_alike_and_the_map_start_starts_a_small_edit_from_the_map(world):
+    """``count_share``: the changed pixels carry their own fraction of each set's loss, so every pixel weighs
+    the same; ``map_start``: a small edit's copied layer starts from the colour map, as a large one's does."""
+    S = world["S"]
+    rgb = world["before"][EDIT_VIEW]["rgb"]
+    edited, mask = recolor(rgb, BLUE_TO_RED)
+    small = torch.where(mask[..., None], edited, rgb)
+    eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), small, cfg=EditConfig(count_share=True, map_start=True),
+                     original=rgb)
+    assert 0.0 < eng.changed_fraction < 0.2 and eng.colour_map is not None
+    for b in eng.batches:
+        assert float(b.weight.max() / b.weight.min()) < 1.02  # (a set holds the changed pixels to within one)
+    plain = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), small, original=rgb)
+    assert plain.colour_map is None
+    changed = mask.reshape(-1)[plain.batches[0].pixels]
+    w = plain.batches[0].weight
+    assert abs(float(w[changed].sum()) - 0.5) < 1e-4  # the default share

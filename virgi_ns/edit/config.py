@@ -48,6 +48,12 @@ class EditConfig:
     """With the changed pixels known: the share of the loss they carry (the unchanged ones carry the
     rest), whatever their numbers, so a small edit is not outvoted by the many pixels asking for no
     change."""
+    count_share: bool = False
+    """Weigh every pixel alike (the changed pixels carry their own fraction of the loss) instead of
+    ``changed_share``."""
+    map_start: bool = False
+    """Start the copied layer from the colour map of the changed pixels on every edit that has them, not
+    only on those changing :data:`~virgi_ns.edit.targets.MAP_START_SHARE` of the view or more."""
     unchanged_weights: Literal["count", "colour"] = "count"
     """How the unchanged pixels split their share of the loss. ``count``: each the same. ``colour``: half of
     it as ``count``, the other half split equally over the colours that the edited image shows only

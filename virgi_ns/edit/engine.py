@@ -178,8 +178,11 @@ class EditEngine:
         if flat is not None and self.cfg.unchanged_weights == "colour":
             c = self.contrib
             keep = unchanged_pixel_weights(c.pixel, c.pair, c.weight, torch.sigmoid(self.c_d), flat)
+        share = self.cfg.changed_share
+        if self.cfg.count_share and flat is not None:
+            share = min(max(target.fraction, 1e-4), 1.0 - 1e-4)
         self.batches = pixel_batches(self.contrib, image, self.background, self.cfg.pixel_batches, self.cfg.seed,
-                                     flat, self.cfg.changed_share, kind, target.count, keep)
+                                     flat, share, kind, target.count, keep)
         for b in self.batches:
             if b.pixels is None:  # the whole image: its own copy, which a warm retarget writes into
                 b.target = b.target.clone()
@@ -193,7 +196,7 @@ class EditEngine:
         flat, image = target.flat, target.image.reshape(-1, 3)
         head = self.scene.field.diffuse_head
         self.colour_map = None
-        if flat is not None and (staged or target.fraction >= MAP_START_SHARE):
+        if flat is not None and (staged or self.cfg.map_start or target.fraction >= MAP_START_SHARE):
             # fitted on the current render (earlier edits and specular included) but applied to the base
             # layer: with a stack, c_d' starts at M c_d_base + t, only a starting point
             self.colour_map = logit_colour_map(self.current.reshape(-1, 3)[flat], image[flat], self.cfg.seed)
