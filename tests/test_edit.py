@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import sys
 from pathlib import Path
@@ -880,3 +881,43 @@ def test_a_fit_that_leaves_the_changed_pixels_where_they_were_says_so(world):
     whole = EditEngine(S.scene, cam, small, cfg=EditConfig(steps=5, whole_image=True))
     whole.fit()
     assert whole.changed_progress() is None and whole.small_progress_note() is None
+
+
+def test_the_probe_start_is_the_weighted_least_squares_output_layer(world):
+    """``seg_start="probe"``: before any step the output layer is the ridge-regularised weighted least-squares
+    fit of the logits +-4 on the hidden features (each class half the weight, a fifth of the negative half on
+    the scene's weak negatives), against numpy's solve in float64; the edited object starts near alpha 1, the
+    rest near its fresh alpha; the fit after it still reaches the edit."""
+    import numpy as np
+
+    from virgi_ns.edit.fitting import PROBE_RIDGE, SEG_PRIOR_SHARE, gaussian_labels, probe_segmentation
+    from virgi_ns.edit.heads import fresh_segmentation
+
+    S = world["S"]
+    rgb = world["before"][EDIT_VIEW]["rgb"]
+    edited, mask = recolor(rgb, BLUE_TO_RED)
+    eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), edited, cfg=EditConfig(seg_start="probe"), original=rgb)
+    a0 = eng.preview()["alpha"][..., 0]
+    assert float(a0[mask].mean()) > 0.7 and float(a0[~mask].mean()) < 0.05
+    # the same solve by hand, on a fresh head and a prior of our own
+    c = eng.contrib
+    label, trust = gaussian_labels(c.pair.long(), c.weight.float(), eng.target.flat[c.pixel.long()],
+                                   eng.gaussians.numel())
+    seg = copy.deepcopy(fresh_segmentation(eng.feats.shape[1], eng.h_diff.shape[1], 64, -4.0, 0, torch.device("cpu")))
+    prior = eng.seg_input[:7] + 0.1
+    probe_segmentation(seg, eng.seg_input, label, trust, prior, -4.0)
+    with torch.no_grad():
+        h = torch.relu(seg.l1(torch.cat([eng.seg_input, prior]))).double().numpy()
+    lab, tr = label.numpy(), trust.double().numpy()
+    w = np.concatenate([np.where(lab, 0.5 * tr / (tr * lab).sum(), (0.5 - 0.5 * SEG_PRIOR_SHARE) * tr / (tr * ~lab).sum()),
+                        np.full(7, 0.5 * SEG_PRIOR_SHARE / 7)])
+    t = np.concatenate([np.where(lab, 4.0, -4.0), np.full(7, -4.0)])
+    a = np.concatenate([h, np.ones((h.shape[0], 1))], 1)
+    m = (a * w[:, None]).T @ a + np.diag([PROBE_RIDGE] * h.shape[1] + [0.0])
+    want = np.linalg.solve(m, (a * w[:, None]).T @ t)
+    got = np.concatenate([seg.l2.weight.detach().double().numpy()[0], seg.l2.bias.detach().double().numpy()])
+    np.testing.assert_allclose(got, want, rtol=1e-3, atol=1e-3 * np.abs(want).max())
+    stack = _stack(world, eng.fit()[0])
+    b = world["before"][HELD_OUT[0]]["rgb"]
+    truth, m_ = recolor(b, BLUE_TO_RED)
+    assert float((_render(world, HELD_OUT[0], stack)["rgb"] - truth).abs()[m_].mean()) < 0.1

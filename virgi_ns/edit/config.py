@@ -74,6 +74,11 @@ class EditConfig:
     part of another colour inside a recoloured object keeps its colour; then the copied layer, from
     the colour map of the changed pixels, with the segmentation fixed. Needs the changed pixels (a
     whole-image fit runs ``joint``)."""
+    seg_start: Literal["fresh", "probe"] = "fresh"
+    """The joint recipe's segmentation head at a fresh fit with changed pixels: ``fresh`` (alpha near
+    ``sigmoid(seg_init_bias)`` everywhere, the paper's), or ``probe``: its output layer first solved in
+    closed form (:func:`~virgi_ns.edit.fitting.probe_segmentation`) so that the Gaussians the changed pixels
+    cover start near alpha 1 and the others near their fresh alpha."""
     seg_steps: int = 300
     """``staged``: Adam steps of the segmentation classifier."""
     seg_samples: int = 65536
@@ -118,6 +123,8 @@ class EditConfig:
             raise ValueError(f"EditConfig.changed_target must be 'affine' or 'edited', got {self.changed_target!r}")
         if self.unchanged_weights not in ("count", "colour"):
             raise ValueError(f"EditConfig.unchanged_weights must be 'count' or 'colour', got {self.unchanged_weights!r}")
+        if self.seg_start not in ("fresh", "probe"):
+            raise ValueError(f"EditConfig.seg_start must be 'fresh' or 'probe', got {self.seg_start!r}")
         if self.recipe not in ("joint", "staged"):
             raise ValueError(f"EditConfig.recipe must be 'joint' or 'staged', got {self.recipe!r}")
         if self.seg_steps < 0 or self.seg_samples < 2:

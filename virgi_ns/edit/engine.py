@@ -34,9 +34,9 @@ from jaxtyping import Float
 from torch import Tensor
 
 from virgi_ns.edit.config import EditConfig
-from virgi_ns.edit.fitting import (EditTiming, GraphedSteps, Stopwatch, capture, classifier_samples,
-                                   constant_segmentation, gaussian_labels, schedule, segmentation_rate,
-                                   train_classifier)
+from virgi_ns.edit.fitting import (PROBE_SAMPLES, EditTiming, GraphedSteps, Stopwatch, capture,
+                                   classifier_samples, constant_segmentation, gaussian_labels, probe_segmentation,
+                                   schedule, segmentation_rate, train_classifier)
 from virgi_ns.edit.heads import FusedHeads, HeadsInputs, fresh_segmentation
 from virgi_ns.edit.optim import EditAdam
 from virgi_ns.edit.pixels import PixelBatch, pixel_batches, resolve_composite
@@ -235,6 +235,19 @@ class EditEngine:
             self._graphs = None
             for p in self.seg.parameters():
                 p.requires_grad_(True)
+        if not staged and not warm and self.cfg.seg_start == "probe" and target.changed is not None:
+            self._probe(target)
+
+    def _probe(self, target: Target) -> None:
+        """The joint recipe's segmentation started by :func:`~virgi_ns.edit.fitting.probe_segmentation` on
+        the view's Gaussians, labelled as the staged recipe labels them."""
+        c, dev = self.contrib, self.h_diff.device
+        label, trust = gaussian_labels(c.pair.to(dev).long(), c.weight.detach().to(dev).float(),
+                                       target.flat[c.pixel.to(dev).long()], self.gaussians.numel())
+        g = torch.Generator(device=dev).manual_seed(self.cfg.seed)
+        anywhere = torch.randint(0, self.scene.means.shape[0], (PROBE_SAMPLES,), device=dev, generator=g)
+        f, _, h2 = self.scene.gaussian_features(anywhere)
+        probe_segmentation(self.seg, self.seg_input, label, trust, self.seg.inputs(f, h2), self.cfg.seg_init_bias)
 
     def _classify(self, target: Target, warm: bool, steps: int) -> Tensor:
         """The ``staged`` recipe's segmentation: each of the view's Gaussians labelled by where its pixel

@@ -118,6 +118,41 @@ def classifier_samples(label: Tensor, trust: Tensor, cfg: EditConfig, scene_size
     return idx, anywhere
 
 
+PROBE_SAMPLES = 4096
+"""``probe_segmentation``: unlabelled Gaussians of the whole scene drawn as its weak negatives."""
+
+PROBE_RIDGE = 1e-3
+"""``probe_segmentation``: ridge on the output weights (the class weights sum to 1), which keeps the solve
+defined where a class is empty or the hidden features are collinear."""
+
+
+def probe_segmentation(seg: SegmentationHead, seg_input: Tensor, label: Tensor, trust: Tensor, prior: Tensor,
+                       init_bias: float) -> None:
+    """``seg``'s output layer set (in place) by weighted least squares on its hidden features, its first
+    layer kept: the logit ``-init_bias`` on the labelled Gaussians, ``init_bias`` on the others, each class
+    weighing half by ``trust`` and :data:`SEG_PRIOR_SHARE` of the negative half on ``prior`` (the head's
+    input for unlabelled Gaussians of the whole scene, weak negatives). No host sync.
+
+    Args:
+        seg_input: [U, F+H] the view's Gaussians' input; label, trust: [U] (:func:`gaussian_labels`).
+        prior: [R, F+H]."""
+    with torch.no_grad():
+        pos, neg = trust * label, trust * ~label
+        w = torch.cat([0.5 * pos / pos.sum().clamp_min(1e-12)
+                       + (0.5 - 0.5 * SEG_PRIOR_SHARE) * neg / neg.sum().clamp_min(1e-12),
+                       torch.full((prior.shape[0],), 0.5 * SEG_PRIOR_SHARE / max(prior.shape[0], 1), device=trust.device)])
+        t = torch.cat([torch.where(label, -init_bias, init_bias).float(),
+                       torch.full((prior.shape[0],), float(init_bias), device=trust.device)])
+        h = torch.relu(seg.l1(torch.cat([seg_input, prior])))
+        a = torch.cat([h, torch.ones_like(h[:, :1])], 1)
+        aw = a * w[:, None]
+        m = aw.T @ a
+        m.diagonal()[:-1] += PROBE_RIDGE
+        sol, _ = torch.linalg.solve_ex(m, aw.T @ t)
+        seg.l2.weight.copy_(sol[:-1][None])
+        seg.l2.bias.copy_(sol[-1:])
+
+
 def constant_segmentation(seg: SegmentationHead, seg_input: Tensor, positive: bool) -> Tensor:
     """``seg`` set (in place) to a constant alpha, near 1 (``positive``) or near 0, frozen; returns it on the
     view's Gaussians ([U, 1]; ``seg_input`` [U, F+H])."""
@@ -202,6 +237,6 @@ class Stopwatch:
         self.seconds = time.perf_counter() - self._t0
 
 
-__all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Stopwatch",
-           "capture", "classifier_samples", "constant_segmentation", "gaussian_labels", "schedule",
-           "segmentation_rate", "sync", "train_classifier"]
+__all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "PROBE_RIDGE", "PROBE_SAMPLES", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming",
+           "GraphedSteps", "Stopwatch", "capture", "classifier_samples", "constant_segmentation", "gaussian_labels",
+           "probe_segmentation", "schedule", "segmentation_rate", "sync", "train_classifier"]
