@@ -49,6 +49,7 @@ from virgi_ns.edit.engine import EditConfig, EditEngine
 from virgi_ns.edit.fitting import sync
 from virgi_ns.edit.pixels import CompositeOp, csr_matrix, row_offsets
 from virgi_ns.edit.scene import render_view
+from virgi_ns.edit.targets import RENDER_MATCH_MIN
 from virgi_ns.errors import InputError, cli_entry
 
 console = Console(width=220)
@@ -223,9 +224,9 @@ class Args:
     """Past this many seconds since the start, the remaining kinds are checked and timed per call
     but their warm edits are skipped (the row says so)."""
     changed_region: float = 0.0
-    """0: the edited image is random (a whole-image fit). Above 0: it is the view's render with a centred
-    box over this share of its pixels recoloured, so the edit fits the changed pixels, as an edited
-    photo's does."""
+    """0: the edited image is random (a whole-image fit). Above 0 (below a half, where the engine still reads
+    the image as an edited render): it is the view's render with a centred box over this share of its pixels
+    recoloured, so the edit fits the changed pixels, as an edited photo's does."""
     cpu_smoke: bool = False
     """A tiny scene on the CPU (a test of this script, not a measurement)."""
 
@@ -252,8 +253,8 @@ def _timer(dev: torch.device, fn: Callable[[], object], repeats: int, warmup: in
 
 def edited_render(scene, cams, share: float) -> Tensor:
     """The view's render with a centred box over ``share`` of its pixels inverted (``1 - rgb``)."""
-    if not 0 < share < 1:
-        raise InputError(f"--changed-region must be in (0, 1), got {share:g}")
+    if not 0 < share < RENDER_MATCH_MIN:  # the engine reads an image that matches its render less as a whole-image edit
+        raise InputError(f"--changed-region must be in (0, {RENDER_MATCH_MIN:g}), got {share:g}")
     rgb = render_view(scene, cams, 0)["rgb"].clone()
     H, W = rgb.shape[:2]
     h, w = max(1, round(H * share**0.5)), max(1, round(W * share**0.5))

@@ -880,3 +880,7 @@ def test_a_fit_that_leaves_the_changed_pixels_where_they_were_says_so(world):
     whole = EditEngine(S.scene, cam, small, cfg=EditConfig(steps=5, whole_image=True))
     whole.fit()
     assert whole.changed_progress() is None and whole.small_progress_note() is None
+    # a selection recoloured to its own colour asks nothing of its pixels: no figure, no warning
+    same = EditEngine(S.scene, cam, rgb, cfg=EditConfig(steps=5), changed=patch)
+    same.fit()
+    assert same.changed_progress() is None and same.small_progress_note() is None

@@ -390,7 +390,8 @@ def apply(args: Apply, console: "Console", pipeline=None) -> str:
     return _noted(f"edit {number} saved to {stack.directory / stack.entries[-1].file} ({where}; {timing.steps} steps, "
                   f"setup {timing.setup_s:.3f} s + steps {timing.steps_s:.3f} s, L1 {timing.final_loss:.4f}; fitted "
                   f"{engine.mode}, {engine.changed_fraction:.0%} of the view)", engine,
-                  "try --recipe staged, more --steps, or paint more of the object")
+                  ("more --steps, or paint more of the object" if engine.recipe == "staged"
+                   else "try --recipe staged, more --steps, or paint more of the object"))
 
 
 def _noted(summary: str, engine, remedy: str) -> str:

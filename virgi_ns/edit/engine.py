@@ -48,8 +48,7 @@ from virgi_ns.raster import Cameras, Request, composite
 
 SMALL_PROGRESS = 0.1
 """A fit that moved its changed pixels less than this share of the way from the render to their target
-has not taken the edit (its segmentation stayed near its start): the commands say so
-(:meth:`EditEngine.small_progress_note`)."""
+has not taken the edit: the commands say so (:meth:`EditEngine.small_progress_note`)."""
 
 
 class EditEngine:
@@ -395,16 +394,17 @@ class EditEngine:
     def changed_progress(self) -> Optional[float]:
         """How far the current heads moved the changed pixels of the edit view towards their target:
         ``1 - mean|preview - target| / mean|render - target|`` over them (1: reached, 0: unmoved, below 0:
-        moved away). None for a whole-image fit, or where they already showed their target."""
+        moved away). None for a whole-image fit, or where the render already showed their target to within
+        ``unchanged_tol`` on average (nothing was asked of them). One read from the GPU."""
         t = self.target
         if t is None or t.changed is None:
             return None
-        m = t.changed[..., 0]
-        goal = t.image[m]
-        before = float((self.current[m] - goal).abs().mean())
-        if not before > 0.0:
+        m = t.changed.to(t.image.dtype)
+        before, after = torch.stack([((self.current - t.image).abs() * m).sum(),
+                                     ((self.preview()["rgb"] - t.image).abs() * m).sum()]).tolist()
+        if not before > self.cfg.unchanged_tol * 3.0 * max(t.count or 0, 1):
             return None
-        return 1.0 - float((self.preview()["rgb"][m] - goal).abs().mean()) / before
+        return 1.0 - after / before
 
     def small_progress_note(self) -> Optional[str]:
         """A line for the user where the fit left its changed pixels nearly where they were
