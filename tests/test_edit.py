@@ -542,12 +542,9 @@ def test_staged_recipe_segments_first_and_its_edit_renders_what_it_fitted(world)
             EditConfig(**bad)
 
 
-def test_a_small_edit_is_not_outvoted_by_the_unchanged_pixels(world):
-    """A user recolours a 7x7 patch of the blue object (under 1% of the view). With the original
-    known, the changed pixels carry half the loss (``changed_share``): the whole object turns red in
-    the held-out views. Weighted by their number instead, the unchanged pixels (asking for no change
-    at all) win and nothing happens."""
-    S = world["S"]
+def _patch_edit(world) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(the edit view's render, a 7x7 patch at the centre of its blue object, the render with that patch
+    recoloured blue -> red): a user's edit of a small part of an object."""
     rgb = world["before"][EDIT_VIEW]["rgb"]
     edited, mask = recolor(rgb, BLUE_TO_RED)
     ys, xs = torch.nonzero(mask, as_tuple=True)
@@ -555,8 +552,17 @@ def test_a_small_edit_is_not_outvoted_by_the_unchanged_pixels(world):
     patch = torch.zeros_like(mask)
     patch[cy - 3 : cy + 4, cx - 3 : cx + 4] = True
     patch &= mask
+    return rgb, patch, torch.where(patch[..., None], edited, rgb)
+
+
+def test_a_small_edit_is_not_outvoted_by_the_unchanged_pixels(world):
+    """A user recolours a 7x7 patch of the blue object (under 1% of the view). With the original
+    known, the changed pixels carry half the loss (``changed_share``): the whole object turns red in
+    the held-out views. Weighted by their number instead, the unchanged pixels (asking for no change
+    at all) win and nothing happens."""
+    S = world["S"]
+    rgb, patch, small = _patch_edit(world)
     assert 0 < float(patch.float().mean()) < 0.01
-    small = torch.where(patch[..., None], edited, rgb)
     miss = {}
     for name, share in (("balanced", 0.5), ("by count", float(patch.float().mean()))):
         eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), small, cfg=EditConfig(steps=40, changed_share=share),
@@ -856,14 +862,7 @@ def test_a_fit_that_leaves_the_changed_pixels_where_they_were_says_so(world):
     from virgi_ns.edit.engine import SMALL_PROGRESS
 
     S = world["S"]
-    rgb = world["before"][EDIT_VIEW]["rgb"]
-    edited, mask = recolor(rgb, BLUE_TO_RED)
-    ys, xs = torch.nonzero(mask, as_tuple=True)
-    cy, cx = int(ys.float().mean()), int(xs.float().mean())
-    patch = torch.zeros_like(mask)
-    patch[cy - 3 : cy + 4, cx - 3 : cx + 4] = True
-    patch &= mask
-    small = torch.where(patch[..., None], edited, rgb)
+    rgb, patch, small = _patch_edit(world)
     cam = S.cameras.index(EDIT_VIEW)
     taken = EditEngine(S.scene, cam, small, cfg=EditConfig(steps=40), original=rgb)
     assert taken.changed_progress() == pytest.approx(0.0, abs=1e-6)  # before any step: nothing moved

@@ -190,6 +190,15 @@ def test_rgba_is_accepted_with_a_note_and_resize_and_image_name_work(saved, tmp_
     assert run(Reset(saved["config"]), _quiet(), saved["pipeline"]).startswith("reset: removed 2")
 
 
+def _render_saved(pipeline, path: Path) -> tuple[torch.Tensor, Path]:
+    """(training view 0's render, ``path``, where it is saved as an 8-bit PNG: an --original)."""
+    cam = pipeline.datamanager.train_dataset.cameras[0:1]
+    with torch.no_grad():
+        rgb = pipeline.model.get_outputs_for_camera(cam)["rgb"].cpu()
+    Image.fromarray((rgb.numpy() * 255 + 0.5).astype(np.uint8)).save(path)
+    return rgb, path
+
+
 def test_original_image_limits_the_fit_to_changed_pixels(saved, tmp_path):
     """--original (here the render the edit was made from): the saved edit records the share of
     pixels the rule changed; --whole-image fits them all; an --original of another size is refused
@@ -197,11 +206,7 @@ def test_original_image_limits_the_fit_to_changed_pixels(saved, tmp_path):
     from virgi_ns.edit.stack import EditStack
 
     pl = saved["pipeline"]
-    cam = pl.datamanager.train_dataset.cameras[0:1]
-    with torch.no_grad():
-        rgb = pl.model.get_outputs_for_camera(cam)["rgb"].cpu()
-    orig = tmp_path / "render.png"
-    Image.fromarray((rgb.numpy() * 255 + 0.5).astype(np.uint8)).save(orig)
+    rgb, orig = _render_saved(pl, tmp_path / "render.png")
     _, mask = recolor(rgb, RULE)
     try:
         first = run(_apply(saved, original=orig), _quiet(), pl)
@@ -239,11 +244,7 @@ def test_an_edit_that_barely_moves_its_changed_pixels_is_saved_with_a_warning(sa
     """One step leaves the changed pixels nearly where they were: the summary says so on a line of its own,
     with what to try; the full fit's summary has no such line."""
     pl = saved["pipeline"]
-    cam = pl.datamanager.train_dataset.cameras[0:1]
-    with torch.no_grad():
-        rgb = pl.model.get_outputs_for_camera(cam)["rgb"].cpu()
-    orig = tmp_path / "render.png"
-    Image.fromarray((rgb.numpy() * 255 + 0.5).astype(np.uint8)).save(orig)
+    _, orig = _render_saved(pl, tmp_path / "render.png")
     try:
         short = run(_apply(saved, original=orig, steps=1), _quiet(), pl)
         full = run(_apply(saved, original=orig, steps=60), _quiet(), pl)
