@@ -240,8 +240,10 @@ class EditEngine:
         weight lands (:func:`~virgi_ns.edit.fitting.gaussian_labels`), the head trained as their classifier
         with unlabelled Gaussians of the whole scene as weak negatives; returns its alpha [U, 1]."""
         c, dev = self.contrib, self.h_diff.device
-        label, trust = gaussian_labels(c.pair.to(dev).long(), c.weight.detach().to(dev).float(),
-                                       target.flat[c.pixel.to(dev).long()], self.gaussians.numel())
+        # the entries' indices as they are (int32 from the kernels): a copy to int64 costs more than the sums
+        on_changed = torch.index_select(target.flat, 0, c.pixel.to(dev))
+        label, trust = gaussian_labels(c.pair.to(dev), c.weight.detach().to(dev).float(), on_changed,
+                                       self.gaussians.numel())
         for p in self.seg.parameters():
             p.requires_grad_(False)
         drawn = classifier_samples(label, trust, self.cfg, self.scene.means.shape[0])

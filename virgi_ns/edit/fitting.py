@@ -87,11 +87,11 @@ def gaussian_labels(pair: Tensor, weight: Tensor, on_changed: Tensor, count: int
     on changed pixels above one half; trust [U], its weight times how clear that share is).
 
     Args:
-        pair: [E] the Gaussian of each contribution entry.
+        pair: [E] the Gaussian of each contribution entry (int32 or int64).
         weight: [E] its weight.
         on_changed: [E] bool, whether its pixel changed."""
     mass = torch.zeros(count, device=weight.device).index_add_(0, pair, weight)
-    changed = torch.zeros(count, device=weight.device).index_add_(0, pair, weight * on_changed.float())
+    changed = torch.zeros(count, device=weight.device).index_add_(0, pair, weight * on_changed)
     share = changed / mass.clamp_min(1e-12)
     return share > 0.5, mass * (2.0 * share - 1.0).abs()
 
