@@ -542,6 +542,47 @@ def test_staged_recipe_segments_first_and_its_edit_renders_what_it_fitted(world)
             EditConfig(**bad)
 
 
+def test_the_classifier_gradients_are_autograds():
+    """The staged classifier's written-out gradient (``classifier_gradients``) is autograd's gradient of the
+    mean binary cross-entropy of the head's logits, in float64, with units on both sides of the ReLU."""
+    from virgi_ns.edit.fitting import classifier_gradients
+    from virgi_ns.edit.heads import SegmentationHead
+
+    g = torch.Generator().manual_seed(3)
+    torch.manual_seed(3)
+    seg = SegmentationHead(5, 7, 16).double()
+    torch.nn.init.normal_(seg.l2.weight, std=0.5)
+    x = torch.randn(300, 12, generator=g, dtype=torch.float64)
+    y = (torch.rand(300, 1, generator=g) > 0.4).double()
+    loss = torch.nn.functional.binary_cross_entropy_with_logits(seg.logits_of(x), y)
+    expected = torch.autograd.grad(loss, list(seg.parameters()))
+    for p in seg.parameters():
+        p.requires_grad_(False)
+    classifier_gradients(seg, x, y)
+    for p, e in zip(seg.parameters(), expected):
+        torch.testing.assert_close(p.grad, e, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.gpu
+def test_the_recorded_classifier_steps_give_the_eager_classifier():
+    """The staged classifier's steps replayed from one CUDA graph train the head as the eager steps do."""
+    from virgi_ns.edit.fitting import train_classifier
+    from virgi_ns.edit.heads import SegmentationHead
+
+    if not torch.cuda.is_available():
+        pytest.skip("needs a CUDA GPU")
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(4096, 24, generator=g).cuda()
+    y = (x[:, :1] + 0.3 * x[:, 1:2] > 0).float()
+    alphas = {}
+    for graphs in (True, False):
+        torch.manual_seed(0)
+        seg = SegmentationHead(12, 12, 32).cuda()
+        alphas[graphs] = train_classifier(seg, x, y, x, EditConfig(cuda_graphs=graphs), steps=50)
+    assert float((alphas[True] - alphas[False]).abs().max()) < 1e-4
+    assert float(((alphas[True] > 0.5).float() - y).abs().mean()) < 0.05  # it learnt the labels
+
+
 def _patch_edit(world) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(the edit view's render, a 7x7 patch at the centre of its blue object, the render with that patch
     recoloured blue -> red): a user's edit of a small part of an object."""

@@ -26,6 +26,7 @@ recorded CUDA graphs). The result is an :class:`~virgi_ns.edit.stack.Edit` for t
 from __future__ import annotations
 
 import copy
+import functools
 import warnings
 from typing import Callable, Optional
 
@@ -34,9 +35,9 @@ from jaxtyping import Float
 from torch import Tensor
 
 from virgi_ns.edit.config import EditConfig
-from virgi_ns.edit.fitting import (EditTiming, GraphedSteps, Stopwatch, capture, classifier_samples,
+from virgi_ns.edit.fitting import (EditTiming, GraphedSteps, Stopwatch, classifier_samples,
                                    constant_segmentation, gaussian_labels, schedule, segmentation_rate,
-                                   train_classifier)
+                                   train_classifier, warm_up_and_record)
 from virgi_ns.edit.heads import FusedHeads, HeadsInputs, fresh_segmentation
 from virgi_ns.edit.optim import EditAdam
 from virgi_ns.edit.pixels import PixelBatch, pixel_batches, resolve_composite
@@ -361,25 +362,14 @@ class EditEngine:
         start = 0
         if self._graphs is None:
             count = 1 if self.batches[0].sets is not None else len(self.batches)
-            # one eager step on a side stream: it creates Adam's state and warms the libraries up
-            side = torch.cuda.Stream(self.scene.device)
-            side.wait_stream(torch.cuda.current_stream())
-            with torch.cuda.stream(side):
-                loss = self.step(0)
-            torch.cuda.current_stream().wait_stream(side)
-            graphs: list = []
-            losses: list[Tensor] = []
-            try:
-                for b in range(count):
-                    graph = torch.cuda.CUDAGraph()
-                    with capture(graph, side, graphs[0].pool() if graphs else None):
-                        losses.append(self.step(b))
-                    graphs.append(graph)
-            except RuntimeError as e:  # a kernel that cannot be recorded (a library's host sync)
-                warnings.warn(f"edit steps run without CUDA graphs: {str(e).splitlines()[0]}")
+            loss, graphs, recorded = warm_up_and_record(lambda: self.step(0),
+                                                        [functools.partial(self.step, b) for b in range(count)],
+                                                        self.scene.device)
+            if graphs is None:
+                warnings.warn(f"edit steps run without CUDA graphs: {recorded}")
                 self.cfg.cuda_graphs = False
                 return 1, loss
-            self._graphs, start = GraphedSteps(graphs, losses), 1
+            self._graphs, start = GraphedSteps(graphs, recorded), 1
         return n, self._graphs.replay(start, n, progress)
 
     def edit(self, timing: Optional[EditTiming] = None) -> Edit:

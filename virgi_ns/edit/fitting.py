@@ -5,16 +5,18 @@ recorded CUDA graphs the steps replay.
   cosine to 0; :func:`segmentation_rate`: the segmentation head's multiple of it.
 - :func:`gaussian_labels`, :func:`classifier_samples`, :func:`train_classifier`: the ``staged`` recipe's first
   stage, the segmentation head trained as a classifier of the view's Gaussians.
-- :func:`capture`, :class:`GraphedSteps`: a fit's steps recorded once as CUDA graphs and replayed.
+- :func:`warm_up_and_record`, :func:`capture`, :class:`GraphedSteps`: steps recorded once as CUDA graphs and
+  replayed.
 - :class:`EditTiming`, :class:`Stopwatch`: what a fit took.
 """
 
 from __future__ import annotations
 
 import time
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Callable, Iterator, Optional
+from typing import Callable, Iterator, Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -128,27 +130,83 @@ def constant_segmentation(seg: SegmentationHead, seg_input: Tensor, positive: bo
     return torch.sigmoid(seg.logits_of(seg_input))
 
 
+def classifier_gradients(seg: SegmentationHead, x: Tensor, y: Tensor) -> None:
+    """The gradient of the classifier's loss (binary cross-entropy of ``seg``'s logits on ``x`` [S, F+H]
+    against ``y`` [S, 1], the mean over the samples) in each of ``seg``'s parameters' ``.grad``, written
+    out: autograd's result in fewer kernels, which a recorded step replays."""
+    l1, l2 = seg.l1, seg.l2
+    pre = torch.addmm(l1.bias, x, l1.weight.t())
+    hidden = torch.relu(pre)
+    d_logit = (torch.sigmoid(torch.addmm(l2.bias, hidden, l2.weight.t())) - y) / x.shape[0]
+    l2.weight.grad = d_logit.t() @ hidden
+    l2.bias.grad = d_logit.sum(0)
+    d_pre = (d_logit @ l2.weight) * (pre > 0)
+    l1.weight.grad = d_pre.t() @ x
+    l1.bias.grad = d_pre.sum(0)
+
+
 def train_classifier(seg: SegmentationHead, x: Tensor, y: Tensor, seg_input: Tensor, cfg: EditConfig,
                      warm: bool = False, steps: Optional[int] = None) -> Tensor:
     """The ``staged`` recipe's first stage: ``seg`` trained (in place) as a classifier of the inputs ``x``
     [S, F+H] with labels ``y`` [S, 1] (binary cross-entropy, Adam at :data:`SEG_LR`, ``steps`` steps, default
     ``cfg.seg_steps``, on all of them every step), then frozen; returns its alpha [U, 1] on the view's
     Gaussians (``seg_input``), fixed for the layer's steps. ``warm``: on from the head's state instead of
-    its fresh output bias."""
+    its fresh output bias. On a GPU with ``cfg.cuda_graphs`` the steps after the first replay one recorded
+    CUDA graph (the same kernels without a Python round trip each); where a step cannot be recorded they
+    run eagerly."""
     if not warm:
         torch.nn.init.constant_(seg.l2.bias, 0.0)
     params = list(seg.parameters())
     for p in params:
-        p.requires_grad_(True)
-    opt = EditAdam(params, lr=SEG_LR)
-    with torch.enable_grad():
-        for _ in range(cfg.seg_steps if steps is None else steps):
-            opt.zero_grad()
-            torch.nn.functional.binary_cross_entropy_with_logits(seg.logits_of(x), y).backward()
-            opt.step()
-    for p in params:
         p.requires_grad_(False)
-    return torch.sigmoid(seg.logits_of(seg_input))
+    opt = EditAdam(params, lr=SEG_LR)
+    n = cfg.seg_steps if steps is None else steps
+
+    def step() -> None:
+        classifier_gradients(seg, x, y)
+        opt.step()
+
+    with torch.no_grad():
+        done = 0
+        if cfg.cuda_graphs and x.is_cuda and n > 2:
+            _, graphs, note = warm_up_and_record(step, [step], x.device)
+            if graphs is None:
+                warnings.warn(f"the segmentation classifier runs without a CUDA graph: {note}")
+                done = 1
+            else:  # recording ran nothing: steps 2..n are its replays
+                for _ in range(n - 1):
+                    graphs[0].replay()
+                done = n
+        for _ in range(done, n):
+            step()
+        for p in params:
+            p.grad = None
+        return torch.sigmoid(seg.logits_of(seg_input))
+
+
+def warm_up_and_record(warm_up: Callable[[], object], steps: Sequence[Callable[[], object]], device: torch.device
+                       ) -> tuple[object, Optional[list], list]:
+    """``warm_up`` run once eagerly on a side stream (it creates Adam's state and warms the libraries
+    up), then each of ``steps`` recorded into a CUDA graph of its own, sharing one memory pool; recording
+    runs nothing. Returns (``warm_up``'s result, the graphs, each recorded call's result), or
+    (``warm_up``'s result, None, the error's first line) where a kernel cannot be recorded (a library's
+    host sync): the caller runs on eagerly."""
+    side = torch.cuda.Stream(device)
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        first = warm_up()
+    torch.cuda.current_stream().wait_stream(side)
+    graphs: list = []
+    results: list = []
+    try:
+        for step in steps:
+            graph = torch.cuda.CUDAGraph()
+            with capture(graph, side, graphs[0].pool() if graphs else None):
+                results.append(step())
+            graphs.append(graph)
+    except RuntimeError as e:
+        return first, None, str(e).splitlines()[0]
+    return first, graphs, results
 
 
 @contextmanager
@@ -203,5 +261,5 @@ class Stopwatch:
 
 
 __all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Stopwatch",
-           "capture", "classifier_samples", "constant_segmentation", "gaussian_labels", "schedule",
-           "segmentation_rate", "sync", "train_classifier"]
+           "capture", "classifier_gradients", "classifier_samples", "constant_segmentation", "gaussian_labels", "schedule",
+           "segmentation_rate", "sync", "train_classifier", "warm_up_and_record"]
