@@ -278,9 +278,10 @@ def _pick(saved, **kw) -> Pick:
     return Pick(**args)
 
 
-def test_pick_recolours_the_clicked_sphere_only_and_saves_what_it_selected(saved):
+def test_pick_recolours_the_clicked_sphere_only_and_saves_what_it_selected(saved, monkeypatch):
     """A pick on the red sphere in view 0 turns it green in another view and leaves the blue one;
-    the edited image and the selection lie beside the edit; undo removes all three."""
+    the edited image and the selection lie beside the edit; undo removes all three. A one-step joint fit
+    stalls and is refitted staged, said in a line; kept as it is, it is saved with a warning."""
     from virgi_ns.edit.stack import EditStack
 
     pl = saved["pipeline"]
@@ -311,7 +312,18 @@ def test_pick_recolours_the_clicked_sphere_only_and_saves_what_it_selected(saved
         assert EditStack.open(saved["config"].parent, model.fingerprint()).entries[0].edit.info["unchanged_weights"] \
             == "colour"
         run(Undo(saved["config"]), _quiet(), pl)
-        short = run(_pick(saved, steps=1), _quiet(), pl)  # one step leaves the sphere red: saved, with a warning
+        # one joint step leaves the sphere red: the selection is fitted again staged, from the colour map
+        short = run(_pick(saved, steps=1), _quiet(), pl)
+        assert short.splitlines()[1].startswith("the joint fit left the selection nearly unchanged") \
+            and "refitted staged" in short and "warning" not in short, short
+        assert EditStack.open(saved["config"].parent, model.fingerprint()).entries[0].edit.info["recipe"] == "staged"
+        run(Undo(saved["config"]), _quiet(), pl)
+        from virgi_ns.edit.pick import PickSession
+
+        # no refit: the stalled fit is saved, with a warning
+        monkeypatch.setattr(PickSession, "_restage_if_collapsed", lambda self, edit: edit)
+        short = run(_pick(saved, steps=1), _quiet(), pl)
+        monkeypatch.undo()
         assert short.splitlines()[1].startswith("warning: the fit moved") and "pick again" in short, short
         run(Undo(saved["config"]), _quiet(), pl)
     finally:

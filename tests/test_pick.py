@@ -111,6 +111,48 @@ def test_hue_pick_recolours_the_object_in_held_out_views_and_leaves_the_others(w
     assert float((after - before).abs()[others].mean()) < 0.01
 
 
+def test_a_collapsed_joint_fit_is_refitted_staged_and_recolours_the_object(world):
+    """A joint fit whose segmentation starts dead (its output bias at -30: alpha and every gradient through
+    it near 0) leaves the changed pixels where they were; the session fits the selection again ``staged``,
+    keeps that fit, and the sphere turns red in a held-out view while the other spheres stay."""
+    from virgi_ns.edit.engine import SMALL_PROGRESS, EditConfig
+
+    S = world["S"]
+    session = PickSession(S.scene, S.cameras.index(EDIT_VIEW), *world["pixel"], EditStack(S.scene.fingerprint()),
+                          EditConfig(seg_init_bias=-30.0))
+    edit = session.update(parse_colour(RED), 0.2, "hue")
+    info = edit.info["restaged"]
+    assert info["joint_progress"] < SMALL_PROGRESS < info["staged_progress"]
+    assert session.engine.recipe == "staged" and edit.info["recipe"] == "staged"
+    assert session.engine.changed_progress() == pytest.approx(info["staged_progress"])
+    v = HELD_OUT[0]
+    st = EditStack(S.scene.fingerprint())
+    st.add(edit)
+    after, before, cov = render_view(S.scene, S.cameras, v, st)["rgb"], world["before"][v], world["cover"][v]
+    blue, others = cov[..., es.BLUE] > 0.9, cov[..., es.GREEN] + cov[..., es.YELLOW] > 0.99
+    ha = _hsv(after)
+    coloured = blue.numpy() & (ha[..., 1] > 0.3)
+    assert int(coloured.sum()) > 50 and np.median(_hue_gap(ha[..., 0][coloured], RED_HUE)) < 15
+    assert float((after - before).abs()[others].mean()) < 0.02
+
+
+def test_a_fit_that_moves_its_pixels_is_kept_as_it_is(world, monkeypatch):
+    """The default pick's joint fits reach their colour: none is refitted (no second engine is built), and
+    the session keeps its engine."""
+    import virgi_ns.edit.pick as pick
+
+    for session, edit in world["sessions"].values():
+        assert "restaged" not in edit.info and session.engine.recipe == "joint"
+        assert session.engine.changed_progress() > 0.5
+    built = []
+    monkeypatch.setattr(pick, "EditEngine", lambda *a, **k: built.append(1) or EditEngine(*a, **k))
+    S = world["S"]
+    session = PickSession(S.scene, S.cameras.index(EDIT_VIEW), *world["pixel"], EditStack(S.scene.fingerprint()),
+                          pick_config("cpu"))
+    session.update(parse_colour(RED), 0.2, "hue")
+    assert len(built) == 1 and session.engine.recipe == "joint"
+
+
 def test_a_click_on_the_highlight_recolours_as_a_click_on_the_surface(world):
     """In hue mode the clicked pixel's saturation is the reference; a click on the sphere's near-white
     highlight (its render keeps under half its diffuse colour's saturation) takes the selection's

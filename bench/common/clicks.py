@@ -338,13 +338,14 @@ def measure_pick(b, rule: RecolorRule, rule_propagation: float, keep: int = 0,
     union = int((sel | mask).sum())
     m = res["mean"]
     out = {"pixel": [x, y], "depth": depth, "colour": session.settings["colour"], "mode": MODE,
-           "criterion": session.criterion, "reference": session.reference, "recipe": cfg.recipe,
+           "criterion": session.criterion, "reference": session.reference, "recipe": session.engine.recipe,
            "contiguous": session.settings["contiguous"], "tolerance": TOLERANCE, "selected": session.settings["selected"],
            "iou": int((sel & mask).sum()) / union if union else float("nan"),
            "propagation_psnr": m["propagation_psnr"], "miss_psnr": m["miss_psnr"], "leak_psnr": m["leak_psnr"],
            "edit_view_propagation_psnr": m["edit_view_propagation_psnr"],
            "rule_propagation_psnr": rule_propagation, "difference_db": m["propagation_psnr"] - rule_propagation,
            "fit_s": fit_s, "steps": session.steps_done, "changed_progress": session.engine.changed_progress(),
+           "restaged": edit.info.get("restaged"),
            "per_view_propagation": [v["propagation_psnr"] for v in res["views"]],
            "class": klass, "declared": click, "largest_share": share}
     if klass == "several objects":  # the clicked object: the click's component of the mask (the largest)

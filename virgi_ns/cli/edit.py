@@ -394,6 +394,13 @@ def apply(args: Apply, console: "Console", pipeline=None) -> str:
                    else "try --recipe staged, more --steps, or paint more of the object"))
 
 
+def _restaged_note(edit) -> str:
+    """A line where the pick's joint fit stalled and the selection was fitted again ``staged``."""
+    r = edit.info.get("restaged")
+    return "" if r is None else (f"\nthe joint fit left the selection nearly unchanged ({max(r['joint_progress'], 0.0):.0%} "
+                                 f"of the way); refitted staged ({r['staged_progress']:.0%})")
+
+
 def _noted(summary: str, engine, remedy: str) -> str:
     """``summary``, and a warning line where the fit left the changed pixels nearly unchanged."""
     note = engine.small_progress_note()
@@ -449,7 +456,8 @@ def pick(args: Pick, console: "Console", pipeline=None) -> str:
     st = session.settings
     return _noted(f"edit {number} saved to {stack.directory / stack.entries[-1].file} (pick at {x} {y} of {where}: "
                   f"{st['selected']:.0%} of the view selected, {args.mode} -> {st['colour']}; edited image and "
-                  f"selection beside it: {Path(stack.entries[-1].file).stem}_edited.png, _selection.png)",
+                  f"selection beside it: {Path(stack.entries[-1].file).stem}_edited.png, _selection.png)"
+                  + _restaged_note(edit),
                   session.engine, "pick again at another pixel or --tolerance")
 
 

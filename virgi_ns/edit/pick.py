@@ -37,7 +37,8 @@ The viewer panel's Pick mode and ``virgi-edit pick`` share this module (plain to
 
 The edit fits the selection as its changed pixels (the rest keeps the render), with the engine's
 ``joint`` recipe (:data:`PICK_RECIPE`; or ``staged``, whose segmentation is first a classifier of the
-Gaussians the selection covers).
+Gaussians the selection covers). A joint fit that ends with the changed pixels nearly where they were is
+fitted again ``staged``, and the fit that moved them further is kept.
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from virgi_ns.edit.engine import EditConfig, EditEngine
+from virgi_ns.edit.engine import SMALL_PROGRESS, EditConfig, EditEngine
 from virgi_ns.edit.recolor import hsv_to_rgb, rgb_to_hsv
 from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.edit.stack import Edit, EditSource, EditStack
@@ -104,9 +105,14 @@ PICK_RECIPE = "joint"
 def pick_config(device: torch.device, recipe: str = PICK_RECIPE) -> EditConfig:
     """The edit settings of a pick: ``recipe`` (default :data:`PICK_RECIPE`); with ``staged`` on a CPU
     its classifier trains on fewer samples and steps (a CPU's budget for an interactive tool)."""
-    if recipe == "staged" and torch.device(device).type != "cuda":
-        return EditConfig(recipe="staged", seg_samples=8192, seg_steps=150)
-    return EditConfig(recipe=recipe)
+    return staged_config(EditConfig(), device) if recipe == "staged" else EditConfig(recipe=recipe)
+
+
+def staged_config(cfg: EditConfig, device: torch.device) -> EditConfig:
+    """``cfg`` with the ``staged`` recipe; on a CPU its classifier on 8,192 samples for 150 steps."""
+    if torch.device(device).type != "cuda":
+        return dataclasses.replace(cfg, recipe="staged", seg_samples=8192, seg_steps=150)
+    return dataclasses.replace(cfg, recipe="staged")
 
 
 # ------------------------------------------------------------------------- selection
@@ -512,11 +518,36 @@ class PickSession:
         return max(0, self.engine.cfg.steps - self.steps_done)
 
     def refine(self, steps: int) -> Edit:
-        """``steps`` more steps of the current fit; returns the edit."""
+        """``steps`` more steps of the current fit; returns the edit. Where they complete a ``joint`` fit
+        that left the changed pixels nearly where they were, the selection is fitted again ``staged``
+        (:meth:`_restage_if_collapsed`)."""
         edit, _ = self.engine.fit(max(0, int(steps)))
         self.steps_done += max(0, int(steps))
+        if self.steps_done >= self.engine.cfg.steps and self.engine.recipe == "joint":
+            edit = self._restage_if_collapsed(edit)
         edit.info["pick"] = dict(self.settings)
         return edit
+
+    def _restage_if_collapsed(self, edit: Edit) -> Edit:
+        """``edit``, or where its fit moved the changed pixels less than :data:`SMALL_PROGRESS` of the way
+        (the joint segmentation stalled at alpha near 0), the same selection fitted from a fresh start with
+        the ``staged`` recipe, whose segmentation is a classifier of the selected Gaussians and cannot stall:
+        whichever moved them further, the session going on with its engine. The staged edit's ``info``
+        keeps both figures (``restaged``)."""
+        joint = self.engine.changed_progress()
+        if joint is None or joint >= SMALL_PROGRESS:
+            return edit
+        old = self.engine
+        staged = EditEngine(old.scene, old.camera, None, old.stack, staged_config(old.cfg, old.scene.device),
+                            old.source)
+        staged.retarget(self.edited, self.mask)
+        staged_edit, _ = staged.fit()
+        progress = staged.changed_progress()
+        if progress is None or progress <= joint:
+            return edit
+        self.engine = staged
+        staged_edit.info["restaged"] = {"joint_progress": joint, "staged_progress": progress}
+        return staged_edit
 
 
 def _png(path: Path, image: np.ndarray) -> None:
@@ -560,4 +591,4 @@ def commit(stack: EditStack, session: PickSession, edit: Edit, replace: Optional
 __all__ = ["CHROMA_BAND", "CRITERIA", "DEFAULT_CRITERION", "DEFAULT_REFERENCE", "DEPTH_JUMP", "MIN_COVER", "MODES",
            "NEUTRAL_CHROMA", "PICK_RECIPE", "REFERENCES", "PickSession", "ViewMaps", "check_criterion", "check_mode",
            "check_pixel", "check_tolerance", "chromaticity", "colour_hex", "commit", "connected_to",
-           "median_contributor", "parse_colour", "pick_config", "recolour", "select", "surface_depth", "view_maps"]
+           "median_contributor", "parse_colour", "pick_config", "recolour", "select", "staged_config", "surface_depth", "view_maps"]

@@ -268,7 +268,8 @@ class PickActions:
         self._rerender()
         note = session.engine.small_progress_note()
         self.set_status(f"edit {number} committed from the pick at {session.x} {session.y} "
-                        f"({session.settings['selected']:.0%} of the view)"
+                        f"({session.settings['selected']:.0%} of the view"
+                        + ("; refitted staged, the joint fit having stalled" if "restaged" in edit.info else "") + ")"
                         + ("" if note is None else f". Warning: {note}; pick again elsewhere"))
 
 
