@@ -120,3 +120,11 @@ def one_thread() -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(threads)
+
+
+def on_gpu(scene: FrozenScene) -> FrozenScene:
+    """``scene`` on the GPU, with its own copy of the colour field."""
+    import copy
+
+    return FrozenScene(scene.means.cuda(), scene.quats.cuda(), scene.scales.cuda(), scene.opacities.cuda(),
+                       copy.deepcopy(scene.field).cuda(), scene.background.cuda(), backend="auto")

@@ -686,16 +686,6 @@ def test_colour_map_start_fits_a_channel_swap_sooner(world, monkeypatch):
     assert loss[True] < 0.8 * loss[False], loss
 
 
-def _on_gpu(scene):
-    """The world's scene on the GPU, with its own copy of the colour field."""
-    import copy
-
-    from virgi_ns.edit.scene import FrozenScene
-
-    return FrozenScene(scene.means.cuda(), scene.quats.cuda(), scene.scales.cuda(), scene.opacities.cuda(),
-                       copy.deepcopy(scene.field).cuda(), scene.background.cuda(), backend="auto")
-
-
 @pytest.mark.gpu
 @pytest.mark.parametrize("recipe,most", [("joint", False), ("staged", False), ("joint", True)])
 def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe, most):
@@ -705,7 +695,7 @@ def test_cuda_graph_steps_give_the_eager_steps_edit(world, recipe, most):
     segmentation head's own rate."""
     S = world["S"]
     sc = S.scene
-    gpu = _on_gpu(sc)
+    gpu = es.on_gpu(sc)
     cam = S.cameras.index(EDIT_VIEW)
     edited = world["edited"].cuda()
     H = edited.shape[0]
@@ -741,7 +731,7 @@ def test_written_out_heads_give_the_autograd_edit(world):
         pytest.skip("needs our CUDA extension")
     S = world["S"]
     sc = S.scene
-    gpu = _on_gpu(sc)
+    gpu = es.on_gpu(sc)
     cam = S.cameras.index(EDIT_VIEW)
     edited = world["edited"].cuda()
     grads, fits = {}, {}

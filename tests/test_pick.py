@@ -136,6 +136,25 @@ def test_a_collapsed_joint_fit_is_refitted_staged_and_recolours_the_object(world
     assert float((after - before).abs()[others].mean()) < 0.02
 
 
+@pytest.mark.gpu
+def test_a_collapsed_click_is_refitted_staged_on_the_gpu(world):
+    """The same collapse on the GPU, where the staged classifier's steps replay a recorded CUDA graph: the
+    refit reaches the colour and its alpha covers the selection."""
+    from virgi_ns.edit.engine import SMALL_PROGRESS, EditConfig
+
+    if not torch.cuda.is_available():
+        pytest.skip("needs a CUDA GPU")
+    S = world["S"]
+    gpu = es.on_gpu(S.scene)
+    session = PickSession(gpu, S.cameras.index(EDIT_VIEW), *world["pixel"], EditStack(gpu.fingerprint()),
+                          EditConfig(seg_init_bias=-30.0))
+    edit = session.update(parse_colour(RED), 0.2, "hue")
+    info = edit.info["restaged"]
+    assert info["joint_progress"] < SMALL_PROGRESS and info["staged_progress"] > 0.5
+    alpha = session.engine.preview()["alpha"][..., 0]
+    assert session.engine.recipe == "staged" and float(alpha[session.mask].mean()) > 0.8
+
+
 def test_a_fit_that_moves_its_pixels_is_kept_as_it_is(world, monkeypatch):
     """The default pick's joint fits reach their colour: none is refitted (no second engine is built), and
     the session keeps its engine."""

@@ -519,11 +519,13 @@ class PickSession:
 
     def refine(self, steps: int) -> Edit:
         """``steps`` more steps of the current fit; returns the edit. Where they complete a ``joint`` fit
-        that left the changed pixels nearly where they were, the selection is fitted again ``staged``
-        (:meth:`_restage_if_collapsed`)."""
+        of at least the default steps that left the changed pixels nearly where they were, the selection
+        is fitted again ``staged`` (:meth:`_restage_if_collapsed`); a fit shortened on purpose is partial,
+        not stalled."""
         edit, _ = self.engine.fit(max(0, int(steps)))
         self.steps_done += max(0, int(steps))
-        if self.steps_done >= self.engine.cfg.steps and self.engine.recipe == "joint":
+        full = self.engine.cfg.steps >= EditConfig.steps
+        if full and self.steps_done >= self.engine.cfg.steps and self.engine.recipe == "joint":
             edit = self._restage_if_collapsed(edit)
         edit.info["pick"] = dict(self.settings)
         return edit
