@@ -48,13 +48,15 @@ class EditConfig:
     """With the changed pixels known: the share of the loss they carry (the unchanged ones carry the
     rest), whatever their numbers, so a small edit is not outvoted by the many pixels asking for no
     change."""
-    unchanged_weights: Literal["count", "colour"] = "count"
+    unchanged_weights: Literal["count", "colour", "alpha"] = "count"
     """How the unchanged pixels split their share of the loss. ``count``: each the same. ``colour``: half of
     it as ``count``, the other half split equally over the colours that the edited image shows only
     unchanged (:func:`~virgi_ns.edit.targets.unchanged_pixel_weights`: each pixel keyed by the binned
     diffuse colour of the Gaussian weighing most in it), so a part of another colour that the image
-    shows unchanged is held to its colour however few pixels it covers beside the background's. No
-    effect on a whole-image fit."""
+    shows unchanged is held to its colour however few pixels it covers beside the background's.
+    ``alpha`` (``staged`` only; ``count`` elsewhere): in proportion to the frozen segmentation's alpha over
+    each pixel, so the unchanged pixels the edit could change hold their colour with the whole share instead
+    of a part of it spread over pixels the copied layer cannot reach. No effect on a whole-image fit."""
     whole_image: bool = False
     """Fit every pixel to the edited image (no original, no edited-render detection)."""
     changed_target: Literal["affine", "edited"] = "affine"
@@ -116,8 +118,9 @@ class EditConfig:
                              f"got {self.batch_composite!r}")
         if self.changed_target not in ("affine", "edited"):
             raise ValueError(f"EditConfig.changed_target must be 'affine' or 'edited', got {self.changed_target!r}")
-        if self.unchanged_weights not in ("count", "colour"):
-            raise ValueError(f"EditConfig.unchanged_weights must be 'count' or 'colour', got {self.unchanged_weights!r}")
+        if self.unchanged_weights not in ("count", "colour", "alpha"):
+            raise ValueError(f"EditConfig.unchanged_weights must be 'count', 'colour' or 'alpha', "
+                             f"got {self.unchanged_weights!r}")
         if self.recipe not in ("joint", "staged"):
             raise ValueError(f"EditConfig.recipe must be 'joint' or 'staged', got {self.recipe!r}")
         if self.seg_steps < 0 or self.seg_samples < 2:

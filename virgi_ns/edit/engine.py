@@ -163,6 +163,10 @@ class EditEngine:
         staged = self.recipe == "staged"
         self._start_layer(target, warm, previous, staged)
         self._set_segmentation(target, warm, same, staged, seg_steps)
+        if staged and self.cfg.unchanged_weights == "alpha" and not same:  # the sets weighed by the segmentation
+            self.target = None
+            self._set_batches(target, warm)
+            self.target = target
         self._set_heads()
         self._set_optimizer(staged)
 
@@ -183,6 +187,11 @@ class EditEngine:
         if flat is not None and self.cfg.unchanged_weights == "colour":
             c = self.contrib
             keep = unchanged_pixel_weights(c.pixel, c.pair, c.weight, torch.sigmoid(self.c_d), flat)
+        elif flat is not None and self.cfg.unchanged_weights == "alpha" and self.alpha_fixed is not None:
+            covered = composite(self.alpha_fixed, self.contrib)[0].reshape(-1)
+            keep = torch.where(flat, torch.zeros((), device=covered.device), covered)
+            # where the segmentation covers no unchanged pixel, they weigh alike
+            keep = torch.where(keep.sum() > 1e-6, keep, (~flat).float())
         self.batches = pixel_batches(self.contrib, image, self.background, self.cfg.pixel_batches, self.cfg.seed,
                                      flat, self.cfg.changed_share, kind, target.count, keep)
         for b in self.batches:
