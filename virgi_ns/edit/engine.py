@@ -47,6 +47,8 @@ from virgi_ns.edit.targets import MAP_START_SHARE, Target, find_target, logit_co
 from virgi_ns.errors import InputError
 from virgi_ns.raster import Cameras, Request, composite
 
+_UNMEASURED = object()  # EditEngine.changed_progress not yet computed for the current heads
+
 SMALL_PROGRESS = 0.1
 """A fit that moved its changed pixels less than this share of the way from the render to their target
 has not taken the edit: the commands say so (:meth:`EditEngine.small_progress_note`)."""
@@ -101,6 +103,7 @@ class EditEngine:
         self.opt: Optional[EditAdam] = None
         self._graphs: Optional[GraphedSteps] = None  # the recorded steps (_fit_graphed)
         self._heads: Optional[FusedHeads] = None  # the written-out heads (_set_heads), else autograd
+        self._progress: object = _UNMEASURED  # changed_progress() of the current heads, once asked
         with Stopwatch(scene.device) as watch:
             self._setup_view()
             if edited is not None:
@@ -157,6 +160,7 @@ class EditEngine:
         """The loss's target (:func:`~virgi_ns.edit.targets.find_target`), its pixel sets, and the heads'
         start: fresh, or (``warm``) from the current fit (:meth:`retarget`)."""
         target = find_target(self.cfg, self.current, edited, original, selection)
+        self._progress = _UNMEASURED
         previous, same = self._set_batches(target, warm)
         self.target = target
         self.recipe = self.cfg.recipe if target.changed is not None else "joint"
@@ -311,6 +315,7 @@ class EditEngine:
     def step(self, i: int) -> Tensor:
         """Step ``i`` of a fit: one Adam step on pixel set ``i % len(self.batches)`` (the ``fused`` kind
         takes the set its device counter names, which :meth:`fit` keeps equal to it)."""
+        self._progress = _UNMEASURED
         if self._heads is not None:  # the fused kind's sets and the written-out heads
             loss = self._heads.step(self.batches[0].sets)
             self.opt.step()
@@ -328,6 +333,7 @@ class EditEngine:
         total)`` is called every 10 steps (it never forces a GPU sync)."""
         n = self.cfg.steps if steps is None else int(steps)
         dev = self.scene.device
+        self._progress = _UNMEASURED
         with Stopwatch(dev) as watch:
             loss = torch.zeros((), device=dev)
             sets = self.batches[0].sets
@@ -387,7 +393,13 @@ class EditEngine:
         """How far the current heads moved the changed pixels of the edit view towards their target:
         ``1 - mean|preview - target| / mean|render - target|`` over them (1: reached, 0: unmoved, below 0:
         moved away). None for a whole-image fit, or where the render already showed their target to within
-        ``unchanged_tol`` on average (nothing was asked of them). One read from the GPU."""
+        ``unchanged_tol`` on average (nothing was asked of them). One read from the GPU, kept until the heads
+        or the target change (a pick's refit check and the commands' warning ask for it in turn)."""
+        if self._progress is _UNMEASURED:
+            self._progress = self._measure_progress()
+        return self._progress  # type: ignore[return-value]
+
+    def _measure_progress(self) -> Optional[float]:
         t = self.target
         if t is None or t.changed is None:
             return None
