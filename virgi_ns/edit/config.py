@@ -79,6 +79,11 @@ class EditConfig:
     seg_samples: int = 65536
     """``staged``: Gaussians drawn (by their label weight, half from each class) to train the
     classifier on; every step uses all of them."""
+    seg_prior_start: bool = False
+    """A fresh joint fit of an edit that changes at least ``MAP_START_SHARE`` of the view starts its
+    segmentation at alpha = the changed share of the view (its output bias the share's logit) instead of
+    ``seg_init_bias``: before its own pixels say otherwise, a Gaussian of the view is as likely to be in
+    the edit as a pixel is."""
     seg_width: int = 64
     """Hidden width of the segmentation head."""
     seg_init_bias: float = -4.0

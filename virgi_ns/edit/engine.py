@@ -167,6 +167,10 @@ class EditEngine:
         staged = self.recipe == "staged"
         self._start_layer(target, warm, previous, staged)
         self._set_segmentation(target, warm, same, staged, seg_steps)
+        if (self.cfg.seg_prior_start and not warm and not staged and target.changed is not None
+                and target.fraction >= MAP_START_SHARE):
+            share = min(max(float(target.fraction), 0.01), 0.99)
+            self.seg.l2.bias.fill_(float(torch.logit(torch.tensor(share))))
         self._set_heads()
         self._set_optimizer(staged)
 
