@@ -368,14 +368,14 @@ class EditEngine:
         start = 0
         if self._graphs is None:
             count = 1 if self.batches[0].sets is not None else len(self.batches)
-            loss, graphs, recorded = warm_up_and_record(lambda: self.step(0),
-                                                        [functools.partial(self.step, b) for b in range(count)],
-                                                        self.scene.device)
-            if graphs is None:
-                warnings.warn(f"edit steps run without CUDA graphs: {recorded}")
+            recording = warm_up_and_record(lambda: self.step(0),
+                                           [functools.partial(self.step, b) for b in range(count)],
+                                           self.scene.device)
+            if recording.graphs is None:
+                warnings.warn(f"edit steps run without CUDA graphs: {recording.error}")
                 self.cfg.cuda_graphs = False
-                return 1, loss
-            self._graphs, start = GraphedSteps(graphs, recorded), 1
+                return 1, recording.first
+            self._graphs, start = GraphedSteps(recording.graphs, recording.results), 1
         return n, self._graphs.replay(start, n, progress)
 
     def edit(self, timing: Optional[EditTiming] = None) -> Edit:

@@ -5,8 +5,8 @@ recorded CUDA graphs the steps replay.
   cosine to 0; :func:`segmentation_rate`: the segmentation head's multiple of it.
 - :func:`gaussian_labels`, :func:`classifier_samples`, :func:`train_classifier`: the ``staged`` recipe's first
   stage, the segmentation head trained as a classifier of the view's Gaussians.
-- :func:`warm_up_and_record`, :func:`capture`, :class:`GraphedSteps`: steps recorded once as CUDA graphs and
-  replayed.
+- :func:`warm_up_and_record` (a :class:`Recording`), :func:`capture`, :class:`GraphedSteps`: steps recorded
+  once as CUDA graphs and replayed.
 - :class:`EditTiming`, :class:`Stopwatch`: what a fit took.
 """
 
@@ -15,7 +15,7 @@ from __future__ import annotations
 import time
 import warnings
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Iterator, Optional, Sequence
 
 import torch
@@ -169,13 +169,13 @@ def train_classifier(seg: SegmentationHead, x: Tensor, y: Tensor, seg_input: Ten
     with torch.no_grad():
         done = 0
         if cfg.cuda_graphs and x.is_cuda and n > 2:
-            _, graphs, note = warm_up_and_record(step, [step], x.device)
-            if graphs is None:
-                warnings.warn(f"the segmentation classifier runs without a CUDA graph: {note}")
+            recording = warm_up_and_record(step, [step], x.device)
+            if recording.graphs is None:
+                warnings.warn(f"the segmentation classifier runs without a CUDA graph: {recording.error}")
                 done = 1
             else:  # recording ran nothing: steps 2..n are its replays
                 for _ in range(n - 1):
-                    graphs[0].replay()
+                    recording.graphs[0].replay()
                 done = n
         for _ in range(done, n):
             step()
@@ -184,13 +184,24 @@ def train_classifier(seg: SegmentationHead, x: Tensor, y: Tensor, seg_input: Ten
         return torch.sigmoid(seg.logits_of(seg_input))
 
 
+@dataclass
+class Recording:
+    """What :func:`warm_up_and_record` made: the warm-up's result (``first``), then either the graphs with each
+    recorded call's result (``results``), or, where a kernel could not be recorded, ``graphs`` None and the
+    error's first line (``error``)."""
+
+    first: object
+    graphs: Optional[list] = None
+    results: list = field(default_factory=list)
+    error: str = ""
+
+
 def warm_up_and_record(warm_up: Callable[[], object], steps: Sequence[Callable[[], object]], device: torch.device
-                       ) -> tuple[object, Optional[list], list]:
+                       ) -> Recording:
     """``warm_up`` run once eagerly on a side stream (it creates Adam's state and warms the libraries
     up), then each of ``steps`` recorded into a CUDA graph of its own, sharing one memory pool; recording
-    runs nothing. Returns (``warm_up``'s result, the graphs, each recorded call's result), or
-    (``warm_up``'s result, None, the error's first line) where a kernel cannot be recorded (a library's
-    host sync): the caller runs on eagerly."""
+    runs nothing. Where a kernel cannot be recorded (a library's host sync) the recording says why and the
+    caller runs on eagerly."""
     side = torch.cuda.Stream(device)
     side.wait_stream(torch.cuda.current_stream())
     with torch.cuda.stream(side):
@@ -205,8 +216,8 @@ def warm_up_and_record(warm_up: Callable[[], object], steps: Sequence[Callable[[
                 results.append(step())
             graphs.append(graph)
     except RuntimeError as e:
-        return first, None, str(e).splitlines()[0]
-    return first, graphs, results
+        return Recording(first, error=str(e).splitlines()[0])
+    return Recording(first, graphs, results)
 
 
 @contextmanager
@@ -260,6 +271,6 @@ class Stopwatch:
         self.seconds = time.perf_counter() - self._t0
 
 
-__all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Stopwatch",
+__all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Recording", "Stopwatch",
            "capture", "classifier_gradients", "classifier_samples", "constant_segmentation", "gaussian_labels", "schedule",
            "segmentation_rate", "sync", "train_classifier", "warm_up_and_record"]
