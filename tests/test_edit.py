@@ -583,6 +583,29 @@ def test_the_recorded_classifier_steps_give_the_eager_classifier():
     assert float(((alphas[True] > 0.5).float() - y).abs().mean()) < 0.05  # it learnt the labels
 
 
+def test_an_engine_on_another_engines_view_fits_the_edit_a_fresh_engine_fits(world):
+    """``view_of`` shares the view (contributions, features, colours, render) of an engine of the same
+    camera: its fit is the one a fresh engine makes, bit for bit, and the first engine's view is untouched.
+    An engine of another camera is refused."""
+    S = world["S"]
+    rgb, _, small = _patch_edit(world)
+    cfg = EditConfig(steps=12)
+    cam = S.cameras.index(EDIT_VIEW)
+    first = EditEngine(S.scene, cam, small, cfg=cfg, original=rgb)
+    current = first.current.clone()
+    first.fit()
+    shared = EditEngine(S.scene, cam, small, cfg=cfg, original=rgb, view_of=first)
+    fresh = EditEngine(S.scene, cam, small, cfg=cfg, original=rgb)
+    assert shared.contrib is first.contrib and fresh.contrib is not first.contrib
+    a, b = shared.fit()[0], fresh.fit()[0]
+    assert torch.equal(a.head_weight, b.head_weight) and torch.equal(a.head_bias, b.head_bias)
+    for p, q in zip(a.seg.parameters(), b.seg.parameters()):
+        assert torch.equal(p, q)
+    assert torch.equal(first.current, current)
+    with pytest.raises(ValueError, match="same scene, camera"):
+        EditEngine(S.scene, S.cameras.index(HELD_OUT[0]), None, cfg=cfg, view_of=first)
+
+
 def _patch_edit(world) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(the edit view's render, a 7x7 patch at the centre of its blue object, the render with that patch
     recoloured blue -> red): a user's edit of a small part of an object."""

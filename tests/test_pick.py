@@ -120,10 +120,13 @@ def test_a_collapsed_joint_fit_is_refitted_staged_and_recolours_the_object(world
     S = world["S"]
     session = PickSession(S.scene, S.cameras.index(EDIT_VIEW), *world["pixel"], EditStack(S.scene.fingerprint()),
                           EditConfig(seg_init_bias=-30.0))
+    joint = session.engine
     edit = session.update(parse_colour(RED), 0.2, "hue")
     info = edit.info["restaged"]
     assert info["joint_progress"] < SMALL_PROGRESS < info["staged_progress"]
     assert session.engine.recipe == "staged" and edit.info["recipe"] == "staged"
+    # the refit shares the joint engine's view: the view is not rasterized again
+    assert session.engine is not joint and session.engine.contrib is joint.contrib
     assert session.engine.changed_progress() == pytest.approx(info["staged_progress"])
     v = HELD_OUT[0]
     st = EditStack(S.scene.fingerprint())

@@ -70,7 +70,9 @@ class EditEngine:
         source: where the edit came from (recorded in the edit).
         original: [H,W,3] the image the user started from (a training photo), which tells the changed
             pixels (:func:`~virgi_ns.edit.targets.find_target`).
-        changed: [H,W] bool, the changed pixels when the caller knows them (a pick's selection)."""
+        changed: [H,W] bool, the changed pixels when the caller knows them (a pick's selection).
+        view_of: an engine of the same scene, camera and stack whose view (contributions, features,
+            colours and render, which fits only read) this one shares instead of computing it again."""
 
     def __init__(
         self,
@@ -82,6 +84,7 @@ class EditEngine:
         source: Optional[EditSource] = None,
         original: Optional[Float[Tensor, "H W 3"]] = None,
         changed: Optional[Tensor] = None,
+        view_of: Optional["EditEngine"] = None,
     ) -> None:
         self.scene = scene
         self.cfg = cfg or EditConfig()
@@ -105,7 +108,11 @@ class EditEngine:
         self._heads: Optional[FusedHeads] = None  # the written-out heads (_set_heads), else autograd
         self._progress: object = _UNMEASURED  # changed_progress() of the current heads, once asked
         with Stopwatch(scene.device) as watch:
-            self._setup_view()
+            if view_of is None:
+                self._setup_view()
+            else:
+                self._share_view(view_of)
+            self._fresh_heads()
             if edited is not None:
                 self._set_target(*self._on_device(edited, original, changed), warm=False)
         self.setup_s = watch.seconds
@@ -141,7 +148,19 @@ class EditEngine:
         self.background = sc.background.to(dev, torch.float32).reshape(3)
         # the view's render through the stack [H,W,3]: what unchanged pixels keep
         self.current = composite(torch.sigmoid(self.c_d + self.k * self.c_s), self.contrib, self.background)[0]
-        cfg = self.cfg
+
+    def _share_view(self, other: "EditEngine") -> None:
+        """The view of ``other`` (the same scene, camera and stack), shared: fits never write it."""
+        if other.scene is not self.scene or other.stack is not self.stack or not (
+                torch.equal(other.camera.viewmats, self.camera.viewmats) and torch.equal(other.camera.Ks, self.camera.Ks)):
+            raise ValueError("EditEngine: view_of must be an engine of the same scene, camera and stack")
+        for name in ("contrib", "gaussians", "feats", "h_diff", "c_s", "c_d", "k", "background", "current"):
+            setattr(self, name, getattr(other, name))
+
+    @torch.no_grad()
+    def _fresh_heads(self) -> None:
+        """A fresh segmentation head (from ``cfg.seed``) and the copied layer set to the base's."""
+        sc, dev, cfg = self.scene, self.scene.device, self.cfg
         self.seg = copy.deepcopy(fresh_segmentation(self.feats.shape[1], self.h_diff.shape[1], cfg.seg_width,
                                                     cfg.seg_init_bias, cfg.seed, torch.device(dev)))
         self.seg_input = self.seg.inputs(self.feats, self.h_diff)

@@ -532,8 +532,8 @@ class PickSession:
 
     def _restage_if_collapsed(self, edit: Edit) -> Edit:
         """``edit``, or where its fit moved the changed pixels less than :data:`SMALL_PROGRESS` of the way
-        (the joint segmentation stalled at alpha near 0), the same selection fitted from a fresh start with
-        the ``staged`` recipe, whose segmentation is a classifier of the selected Gaussians and cannot stall:
+        (the joint segmentation stalled at alpha near 0), the same selection fitted from a fresh start on the
+        same view (shared, not rasterized again) with the ``staged`` recipe, whose segmentation is a classifier of the selected Gaussians and cannot stall:
         whichever moved them further, the session going on with its engine. The staged edit's ``info``
         keeps both figures (``restaged``)."""
         joint = self.engine.changed_progress()
@@ -541,7 +541,7 @@ class PickSession:
             return edit
         old = self.engine
         staged = EditEngine(old.scene, old.camera, None, old.stack, staged_config(old.cfg, old.scene.device),
-                            old.source)
+                            old.source, view_of=old)
         staged.retarget(self.edited, self.mask)
         staged_edit, _ = staged.fit()
         progress = staged.changed_progress()
