@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -604,6 +605,9 @@ def test_an_engine_on_another_engines_view_fits_the_edit_a_fresh_engine_fits(wor
     assert torch.equal(first.current, current)
     with pytest.raises(ValueError, match="same scene, camera"):
         EditEngine(S.scene, S.cameras.index(HELD_OUT[0]), None, cfg=cfg, view_of=first)
+    larger = dataclasses.replace(cam, widths=cam.widths + 8)  # the same pose, another image size
+    with pytest.raises(ValueError, match="same scene, camera"):
+        EditEngine(S.scene, larger, None, cfg=cfg, view_of=first)
 
 
 def _patch_edit(world) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

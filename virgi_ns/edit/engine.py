@@ -151,8 +151,9 @@ class EditEngine:
 
     def _share_view(self, other: "EditEngine") -> None:
         """The view of ``other`` (the same scene, camera and stack), shared: fits never write it."""
-        if other.scene is not self.scene or other.stack is not self.stack or not (
-                torch.equal(other.camera.viewmats, self.camera.viewmats) and torch.equal(other.camera.Ks, self.camera.Ks)):
+        a, b = other.camera, self.camera
+        same_camera = all(torch.equal(getattr(a, k), getattr(b, k)) for k in ("viewmats", "Ks", "widths", "heights"))
+        if other.scene is not self.scene or other.stack is not self.stack or not same_camera:
             raise ValueError("EditEngine: view_of must be an engine of the same scene, camera and stack")
         for name in ("contrib", "gaussians", "feats", "h_diff", "c_s", "c_d", "k", "background", "current"):
             setattr(self, name, getattr(other, name))

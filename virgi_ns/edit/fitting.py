@@ -271,6 +271,6 @@ class Stopwatch:
         self.seconds = time.perf_counter() - self._t0
 
 
-__all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Recording", "Stopwatch",
-           "capture", "classifier_gradients", "classifier_samples", "constant_segmentation", "gaussian_labels", "schedule",
-           "segmentation_rate", "sync", "train_classifier", "warm_up_and_record"]
+__all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Recording",
+           "Stopwatch", "capture", "classifier_gradients", "classifier_samples", "constant_segmentation",
+           "gaussian_labels", "schedule", "segmentation_rate", "sync", "train_classifier", "warm_up_and_record"]

@@ -533,9 +533,9 @@ class PickSession:
     def _restage_if_collapsed(self, edit: Edit) -> Edit:
         """``edit``, or where its fit moved the changed pixels less than :data:`SMALL_PROGRESS` of the way
         (the joint segmentation stalled at alpha near 0), the same selection fitted from a fresh start on the
-        same view (shared, not rasterized again) with the ``staged`` recipe, whose segmentation is a classifier of the selected Gaussians and cannot stall:
-        whichever moved them further, the session going on with its engine. The staged edit's ``info``
-        keeps both figures (``restaged``)."""
+        same view (shared, not rasterized again) with the ``staged`` recipe, whose segmentation is a
+        classifier of the selected Gaussians and cannot stall: whichever moved them further, the session
+        going on with its engine. The staged edit's ``info`` keeps both figures (``restaged``)."""
         joint = self.engine.changed_progress()
         if joint is None or joint >= SMALL_PROGRESS:
             return edit
