@@ -100,6 +100,24 @@ def test_region_colour_error_against_hand_computed_figures():
                                                            torch.zeros(1, 3, dtype=torch.bool)).values())
 
 
+def test_the_chroma_weighted_hue_follows_the_colourful_pixels():
+    """By hand: a saturated pixel (chroma 0.8) at hue 100 and a near-grey one (chroma 0.02) at hue 300, against
+    both at 100. Every pixel alike, the image's mean hue is the circular mean of 100 and 300, 20 degrees, so
+    the error is -80; weighted by chroma it is atan2(0.8 sin 100 + 0.02 sin 300, 0.8 cos 100 + 0.02 cos 300),
+    about a degree from 100."""
+    from virgi_ns.bench.recolor import region_colour_error
+
+    image = hsv_to_rgb(torch.tensor([[[100.0, 0.8, 1.0], [300.0, 0.04, 0.5]]]))
+    truth = hsv_to_rgb(torch.tensor([[[100.0, 0.8, 1.0], [100.0, 0.04, 0.5]]]))
+    got = region_colour_error(image, truth, torch.ones(1, 2, dtype=torch.bool))
+    rad = math.radians
+    weighted = math.degrees(math.atan2(0.8 * math.sin(rad(100)) + 0.02 * math.sin(rad(300)),
+                                       0.8 * math.cos(rad(100)) + 0.02 * math.cos(rad(300))))
+    assert abs(got["region_chroma_hue_error_deg"] - (weighted - 100.0)) < 1e-3
+    assert abs(got["region_hue_error_deg"] + 80.0) < 1e-3
+    assert abs(got["region_chroma_hue_error_deg"]) < 2.0
+
+
 def test_edit_figures_against_hand_computed_psnr():
     """The bench's per-view figures on a hand-made case: a 4-pixel view whose left half the rule
     recolours; the edit is exact inside the mask and off by 0.1 on one pixel outside it, so the miss is

@@ -167,22 +167,33 @@ def target_figures(target: torch.Tensor, changed: Optional[torch.Tensor], truth_
 
 def region_colour_error(image: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> dict:
     """How far ``image``'s colour over ``mask`` [H,W] is from ``truth``'s, as a person reads a recolour:
-    the circular mean hue's difference in degrees (in (-180, 180]), and the mean saturation's and
-    value's differences (``image`` minus ``truth``; negative: duller, darker). NaN for an empty mask."""
+    the mean hue's difference in degrees (in (-180, 180]), and the mean saturation's and value's
+    differences (``image`` minus ``truth``; negative: duller, darker). NaN for an empty mask.
+
+    The mean hue two ways: ``region_hue_error_deg``, the circular mean of every pixel's hue alike; and
+    ``region_chroma_hue_error_deg``, each pixel's hue weighted by its chroma (``max - min`` of its RGB,
+    ``s v``), the hue of the region's mean colour in the chromatic plane. A pixel's hue turns by about
+    ``e / chroma`` radians under a colour error ``e``, so in the first a near-grey pixel moves the mean
+    as far as a saturated one under an error far smaller; in the second each pixel moves it in
+    proportion to its colour error."""
     if not bool(mask.any()):
-        return {"region_hue_error_deg": math.nan, "region_saturation_error": math.nan,
-                "region_value_error": math.nan}
+        return {"region_hue_error_deg": math.nan, "region_chroma_hue_error_deg": math.nan,
+                "region_saturation_error": math.nan, "region_value_error": math.nan}
     from virgi_ns.edit.recolor import rgb_to_hsv
 
     a, b = rgb_to_hsv(image.clamp(0, 1)[mask].double()), rgb_to_hsv(truth.clamp(0, 1)[mask].double())
 
-    def mean_hue(hsv: torch.Tensor) -> torch.Tensor:
+    def mean_hue(hsv: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
         rad = torch.deg2rad(hsv[:, 0])
-        return torch.atan2(torch.sin(rad).mean(), torch.cos(rad).mean())
+        return torch.atan2((weight * torch.sin(rad)).sum(), (weight * torch.cos(rad)).sum())
 
-    diff = torch.rad2deg(mean_hue(a) - mean_hue(b))
-    diff = float(torch.remainder(diff + 180.0, 360.0) - 180.0)
-    return {"region_hue_error_deg": diff if diff != -180.0 else 180.0,
+    def difference(weight_of) -> float:
+        diff = torch.rad2deg(mean_hue(a, weight_of(a)) - mean_hue(b, weight_of(b)))
+        diff = float(torch.remainder(diff + 180.0, 360.0) - 180.0)
+        return diff if diff != -180.0 else 180.0
+
+    return {"region_hue_error_deg": difference(lambda hsv: torch.ones_like(hsv[:, 0])),
+            "region_chroma_hue_error_deg": difference(lambda hsv: hsv[:, 1] * hsv[:, 2]),
             "region_saturation_error": float(a[:, 1].mean() - b[:, 1].mean()),
             "region_value_error": float(a[:, 2].mean() - b[:, 2].mean())}
 
