@@ -13,7 +13,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import edit_scene as es  # noqa: E402
 
-from virgi_ns.edit.engine import EditConfig, EditEngine  # noqa: E402
+from virgi_ns.edit.engine import VIEW_FIELDS, EditConfig, EditEngine  # noqa: E402
 from virgi_ns.edit.pixels import pixel_batches  # noqa: E402
 from virgi_ns.edit.recolor import RecolorRule, recolor  # noqa: E402
 from virgi_ns.edit.scene import render_view  # noqa: E402
@@ -608,6 +608,17 @@ def test_an_engine_on_another_engines_view_fits_the_edit_a_fresh_engine_fits(wor
     larger = dataclasses.replace(cam, widths=cam.widths + 8)  # the same pose, another image size
     with pytest.raises(ValueError, match="same scene, camera"):
         EditEngine(S.scene, larger, None, cfg=cfg, view_of=first)
+
+
+def test_the_shared_view_is_everything_the_view_set_up_computes(world):
+    """An engine built ``view_of`` another copies :data:`VIEW_FIELDS`; those must be exactly the attributes the
+    view's set-up writes, so that a field added to one and not the other fails here, not in a user's refit."""
+    S = world["S"]
+    bare = EditEngine.__new__(EditEngine)
+    bare.scene, bare.camera, bare.stack, bare.cfg = S.scene, S.cameras.index(EDIT_VIEW), None, EditConfig()
+    before = set(vars(bare))
+    bare._setup_view()
+    assert set(vars(bare)) - before == set(VIEW_FIELDS)
 
 
 def _patch_edit(world) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

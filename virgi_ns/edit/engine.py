@@ -49,6 +49,10 @@ from virgi_ns.raster import Cameras, Request, composite
 
 _UNMEASURED = object()  # EditEngine.changed_progress not yet computed for the current heads
 
+VIEW_FIELDS = ("contrib", "gaussians", "feats", "h_diff", "c_s", "c_d", "k", "background", "current")
+"""The engine's view: what :meth:`EditEngine._setup_view` computes for its camera and stack, fits only read,
+and an engine built ``view_of`` another shares."""
+
 SMALL_PROGRESS = 0.1
 """A fit that moved its changed pixels less than this share of the way from the render to their target
 has not taken the edit: the commands say so (:meth:`EditEngine.small_progress_note`)."""
@@ -155,7 +159,7 @@ class EditEngine:
         same_camera = all(torch.equal(getattr(a, k), getattr(b, k)) for k in ("viewmats", "Ks", "widths", "heights"))
         if other.scene is not self.scene or other.stack is not self.stack or not same_camera:
             raise ValueError("EditEngine: view_of must be an engine of the same scene, camera and stack")
-        for name in ("contrib", "gaussians", "feats", "h_diff", "c_s", "c_d", "k", "background", "current"):
+        for name in VIEW_FIELDS:
             setattr(self, name, getattr(other, name))
 
     @torch.no_grad()
@@ -461,4 +465,4 @@ def _check_images(edited: Tensor, original: Optional[Tensor], changed: Optional[
                          f"{tuple(changed.shape)}")
 
 
-__all__ = ["SMALL_PROGRESS", "EditConfig", "EditEngine", "EditTiming"]
+__all__ = ["SMALL_PROGRESS", "VIEW_FIELDS", "EditConfig", "EditEngine", "EditTiming"]
