@@ -273,8 +273,6 @@ class EditEngine:
         on_changed = torch.index_select(target.flat, 0, c.pixel.to(dev))
         label, trust = gaussian_labels(c.pair.to(dev), c.weight.detach().to(dev).float(), on_changed,
                                        self.gaussians.numel())
-        for p in self.seg.parameters():
-            p.requires_grad_(False)
         drawn = classifier_samples(label, trust, self.cfg, self.scene.means.shape[0])
         if drawn is None:  # one class: a constant alpha
             return constant_segmentation(self.seg, self.seg_input, positive=bool(float((trust * label).sum()) > 0.0))
