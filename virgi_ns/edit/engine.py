@@ -212,6 +212,13 @@ class EditEngine:
             c = self.contrib
             keep = unchanged_pixel_weights(c.pixel, c.pair, c.weight, torch.sigmoid(self.c_d), flat)
         share = STAGED_SMALL_SHARE if self.cfg.recipe == "auto" and self.recipe == "staged" else self.cfg.changed_share
+        if flat is not None and self.cfg.unchanged_band > 0:
+            B = self.cfg.unchanged_band
+            H, W = target.image.shape[:2]
+            near = torch.nn.functional.max_pool2d(flat.reshape(1, 1, H, W).float(), 2 * B + 1, stride=1,
+                                                  padding=B).reshape(-1) > 0
+            base = keep if keep is not None else (~flat).float()
+            keep = torch.where(near & ~flat, torch.zeros((), device=base.device), base)
         self.batches = pixel_batches(self.contrib, image, self.background, self.cfg.pixel_batches, self.cfg.seed,
                                      flat, share, kind, target.count, keep)
         for b in self.batches:
