@@ -78,7 +78,7 @@ class EditConfig:
     changed pixels carrying :data:`~virgi_ns.edit.targets.STAGED_SMALL_SHARE` of the loss (a frozen
     segmentation cannot stall, so the loss can weigh pixels nearer their count), ``joint`` otherwise."""
     unchanged_band: int = 0
-    """PROBE (bench/RESULTS.md, "The border band, a probe"): unchanged pixels within this many pixels
+    """Unchanged pixels within this many pixels
     (Chebyshev) of a changed one carry no loss; 0: off."""
     seg_steps: int = 300
     """``staged``: Adam steps of the segmentation classifier."""
