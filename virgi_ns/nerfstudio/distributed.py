@@ -291,13 +291,19 @@ def _free_port() -> int:
 
 
 def _gloo_worker(process: int, fn: Callable, world: int, port: int, args: tuple) -> None:
+    global _HOST_GROUP
     dist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=process, world_size=world)
     comms.LOCAL_PROCESS_GROUP = dist.new_group(list(range(world)))  # as nerfstudio's launcher sets it
     share_cpu_threads(world)
     try:
         fn(process, world, *args)
+        dist.barrier()  # no process closes its connections while another still talks over them
     finally:
         dist.destroy_process_group()
+        # drop every reference to the groups while the interpreter is alive: a group that outlives it
+        # stops its gloo threads during finalization, which can abort the process after its work is done
+        comms.LOCAL_PROCESS_GROUP = None
+        _HOST_GROUP = None
 
 
 def run_processes(fn: Callable, world: int, *args) -> None:
