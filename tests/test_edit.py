@@ -573,15 +573,25 @@ def test_the_recorded_classifier_steps_give_the_eager_classifier():
     if not torch.cuda.is_available():
         pytest.skip("needs a CUDA GPU")
     g = torch.Generator().manual_seed(0)
-    x = torch.randn(4096, 24, generator=g).cuda()
-    y = (x[:, :1] + 0.3 * x[:, 1:2] > 0).float()
-    alphas = {}
+    # the second problem replays the step recorded for the first (same shapes): its own head, samples and
+    # a fresh Adam must reach it; the third goes on warm from the second's head
+    problems = []
+    for k in range(2):
+        x = torch.randn(4096, 24, generator=g).cuda()
+        problems.append((x, ((x[:, :1] if k == 0 else -x[:, 2:3]) + 0.3 * x[:, 1:2] > 0).float()))
+    heads, alphas = {}, {}
     for graphs in (True, False):
-        torch.manual_seed(0)
-        seg = SegmentationHead(12, 12, 32).cuda()
-        alphas[graphs] = train_classifier(seg, x, y, x, EditConfig(cuda_graphs=graphs), steps=50)
-    assert float((alphas[True] - alphas[False]).abs().max()) < 1e-4
-    assert float(((alphas[True] > 0.5).float() - y).abs().mean()) < 0.05  # it learnt the labels
+        for k, (x, y) in enumerate(problems):
+            torch.manual_seed(k)
+            heads[graphs, k] = SegmentationHead(12, 12, 32).cuda()
+            alphas[graphs, k] = train_classifier(heads[graphs, k], x, y, x, EditConfig(cuda_graphs=graphs), steps=50)
+        x, y = problems[0]
+        alphas[graphs, "warm"] = train_classifier(heads[graphs, 1], x, y, x, EditConfig(cuda_graphs=graphs),
+                                                  warm=True, steps=20)
+    for k in (0, 1, "warm"):
+        assert float((alphas[True, k] - alphas[False, k]).abs().max()) < 1e-4, k
+    for k in (0, 1):
+        assert float(((alphas[True, k] > 0.5).float() - problems[k][1]).abs().mean()) < 0.05  # it learnt the labels
 
 
 def test_an_engine_on_another_engines_view_fits_the_edit_a_fresh_engine_fits(world):

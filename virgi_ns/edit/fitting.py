@@ -12,6 +12,8 @@ recorded CUDA graphs the steps replay.
 
 from __future__ import annotations
 
+import copy
+import threading
 import time
 import warnings
 from contextlib import contextmanager
@@ -109,7 +111,8 @@ def classifier_samples(label: Tensor, trust: Tensor, cfg: EditConfig, scene_size
     Args:
         label, trust: [U] from :func:`gaussian_labels`."""
     pos_w, neg_w = trust * label, trust * ~label
-    if float(pos_w.sum()) <= 0.0 or float(neg_w.sum()) <= 0.0:
+    pos, neg = torch.stack([pos_w.sum(), neg_w.sum()]).tolist()  # one read from the GPU
+    if pos <= 0.0 or neg <= 0.0:
         return None
     half = cfg.seg_samples // 2
     n_prior = int(round(half * SEG_PRIOR_SHARE))
@@ -151,37 +154,78 @@ def train_classifier(seg: SegmentationHead, x: Tensor, y: Tensor, seg_input: Ten
     [S, F+H] with labels ``y`` [S, 1] (binary cross-entropy, Adam at :data:`SEG_LR`, ``steps`` steps, default
     ``cfg.seg_steps``, on all of them every step), then frozen; returns its alpha [U, 1] on the view's
     Gaussians (``seg_input``), fixed for the layer's steps. ``warm``: on from the head's state instead of
-    its fresh output bias. On a GPU with ``cfg.cuda_graphs`` the steps after the first replay one recorded
-    CUDA graph (the same kernels without a Python round trip each); where a step cannot be recorded they
-    run eagerly."""
+    its fresh output bias. On a GPU with ``cfg.cuda_graphs`` the steps replay one recorded CUDA graph (the
+    same kernels without a Python round trip each), recorded once per device and shape
+    (:class:`RecordedClassifier`); where a step cannot be recorded they run eagerly."""
     if not warm:
         torch.nn.init.constant_(seg.l2.bias, 0.0)
     params = list(seg.parameters())
     for p in params:
         p.requires_grad_(False)
-    opt = EditAdam(params, lr=SEG_LR)
     n = cfg.seg_steps if steps is None else steps
-
-    def step() -> None:
-        classifier_gradients(seg, x, y)
-        opt.step()
-
     with torch.no_grad():
-        done = 0
-        if cfg.cuda_graphs and x.is_cuda and n > 2:
-            recording = warm_up_and_record(step, [step], x.device)
-            if recording.graphs is None:
-                warnings.warn(f"the segmentation classifier runs without a CUDA graph: {recording.error}")
-                done = 1
-            else:  # recording ran nothing: steps 2..n are its replays
-                for _ in range(n - 1):
-                    recording.graphs[0].replay()
-                done = n
-        for _ in range(done, n):
-            step()
-        for p in params:
-            p.grad = None
+        if not (cfg.cuda_graphs and x.is_cuda and n > 2 and RecordedClassifier.train(seg, x, y, n)):
+            opt = EditAdam(params, lr=SEG_LR)
+            for _ in range(n):
+                classifier_gradients(seg, x, y)
+                opt.step()
+            for p in params:
+                p.grad = None
         return torch.sigmoid(seg.logits_of(seg_input))
+
+
+class RecordedClassifier:
+    """One step of the ``staged`` classifier (:func:`classifier_gradients` and Adam at :data:`SEG_LR`)
+    recorded as a CUDA graph over tensors of its own, kept per device and shape (samples, inputs, width)
+    so that an edit replays it instead of recording it again: :meth:`train` copies a head and its samples
+    in, restarts Adam and replays the step; the head gets the trained parameters back."""
+
+    _kept: dict[tuple, "RecordedClassifier"] = {}
+    _failed: set[tuple] = set()
+    _lock = threading.Lock()
+
+    def __init__(self, seg: SegmentationHead, x: Tensor, y: Tensor) -> None:
+        self.seg = copy.deepcopy(seg)
+        self.params = list(self.seg.parameters())
+        for p in self.params:
+            p.requires_grad_(False)
+        self.x, self.y = x.clone(), y.clone()
+        self.opt = EditAdam(self.params, lr=SEG_LR)
+
+        def step() -> None:
+            classifier_gradients(self.seg, self.x, self.y)
+            self.opt.step()
+
+        recording = warm_up_and_record(step, [step], x.device)
+        self.graph = recording.graphs[0] if recording.graphs else None
+        self.error = recording.error
+
+    @classmethod
+    def train(cls, seg: SegmentationHead, x: Tensor, y: Tensor, steps: int) -> bool:
+        """``seg`` trained ``steps`` steps on ``x``, ``y`` by replays; False (nothing done) where the step
+        cannot be recorded on this device (warned once), so that the caller runs it eagerly."""
+        key = (x.device, tuple(x.shape), seg.width)
+        with cls._lock:
+            if key in cls._failed:
+                return False
+            rec = cls._kept.get(key)
+            if rec is None:
+                rec = cls(seg, x, y)
+                if rec.graph is None:
+                    cls._failed.add(key)
+                    warnings.warn(f"the segmentation classifier runs without a CUDA graph: {rec.error}")
+                    return False
+                cls._kept[key] = rec
+            for mine, theirs in zip(rec.params, seg.parameters()):
+                mine.copy_(theirs)
+            rec.x.copy_(x)
+            rec.y.copy_(y)
+            rec.opt.restart()
+            for _ in range(steps):
+                rec.graph.replay()
+            for mine, theirs in zip(rec.params, seg.parameters()):
+                theirs.copy_(mine)
+        return True
 
 
 @dataclass
@@ -272,5 +316,6 @@ class Stopwatch:
 
 
 __all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Recording",
+           "RecordedClassifier",
            "Stopwatch", "capture", "classifier_gradients", "classifier_samples", "constant_segmentation",
            "gaussian_labels", "schedule", "segmentation_rate", "sync", "train_classifier", "warm_up_and_record"]
