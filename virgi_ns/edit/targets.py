@@ -35,6 +35,9 @@ the changed pixels (:func:`logit_colour_map`: ``W' = M W``, ``b' = M b + t``), w
 many colours does not reach from ``W`` in its steps; a smaller edit starts from ``W``, so its
 segmentation stays on the painted pixels. The ``staged`` recipe always starts from the map."""
 
+STAGED_SMALL_SHARE = 0.1
+"""The changed pixels' share of the loss where the ``auto`` recipe runs ``staged`` (a small edit)."""
+
 SLOPE_RIDGE = (1.0 / 255.0) ** 2
 """Ridge of :func:`change_slope`: along a direction of colour in which the changed pixels vary by less
 than one 8-bit level the photo says little of how the change varies, so the slope there shrinks
@@ -234,10 +237,9 @@ def logit_colour_map(source: Float[Tensor, "N 3"], target: Float[Tensor, "N 3"],
     xm, ym = x.mean(0), y.mean(0)
     xc, yc = x - xm, y - ym
     cxx, cxy = xc.T @ xc / x.shape[0], xc.T @ yc / x.shape[0]
-    lam = torch.diagonal(cxx).mean() * ridge + ridge_floor  # on the device: no read back
+    lam = ridge * float(torch.diagonal(cxx).mean()) + ridge_floor
     eye = torch.eye(3, dtype=x.dtype, device=x.device)
-    # positive definite (the ridge), so no error to check: the checked solve would wait for the GPU
-    Mt = torch.linalg.solve_ex(cxx + lam * eye, cxy + lam * eye, check_errors=False).result  # M^T: y ~ x M^T
+    Mt = torch.linalg.solve(cxx + lam * eye, cxy + lam * eye)  # M^T: y ~ x M^T
     t = ym - xm @ Mt
     return torch.cat([Mt.T, t[:, None]], 1).float()  # [3, 4]
 
