@@ -21,16 +21,14 @@ config's steps, :func:`~virgi_ns.edit.pick.commit` onto a fresh stack) and is me
 view (the covered pixels the click is chosen among; :func:`mask_class`):
 
 - *one object*: the mask's largest 4-connected component holds at least :data:`ONE_OBJECT_SHARE` (80%)
-  of its pixels, on a row not declared to take several objects. The click (contiguous selection, as the viewer's default) is compared with the rule
+  of its pixels. The click (contiguous selection, as the viewer's default) is compared with the rule
   edit: it passes within :data:`WITHIN_DB` (1 dB) of the rule edit's propagation PSNR.
 - *many parts*: below 80%, on a row whose rule is declared to take many separate parts of one kind
   (``EvalScene.click`` ``parts``, or ``auto``: leaves all over a plant, the pieces of one object its
   texture cuts apart). The click runs with ``contiguous=False`` (every pixel of the view that passes
   the colour test, as ``--no-contiguous``) and is compared with the rule edit, within 1 dB.
-- *several objects*: a row whose rule is declared to take different objects (``EvalScene.click``
-  ``objects``: a cup and its shelf), whatever its largest component holds: objects that touch make one
-  component, and the issue's own example of this class (a cup and its table) is such a pair. One click
-  is meant to recolour one of them,
+- *several objects*: below 80%, on a row whose rule is declared to take different objects
+  (``EvalScene.click`` ``objects``: a cup and its shelf). One click is meant to recolour one of them,
   so it is judged by the clicked object alone: the clicked object's miss >= 30 dB and the leak outside
   the clicked object's rule pixels >= 30 dB (against the rule on the unedited render there, the render
   unchanged elsewhere).
@@ -182,15 +180,13 @@ def rule_colour(render: Tensor, x: int, y: int, rule: RecolorRule) -> tuple[floa
 
 # ------------------------------------------------------------------------------ what a click is judged against
 def mask_class(mask: Tensor, declared: str = "auto") -> tuple[str, float]:
-    """(class, the largest 4-connected component's share of ``mask``): ``several objects`` where the row
-    declares ``objects``; otherwise ``one object`` where that share is at least :data:`ONE_OBJECT_SHARE`,
-    else the class the row declares (:data:`CLASSES`). An empty mask: the declared class, share NaN."""
+    """(class, the largest 4-connected component's share of ``mask``): ``one object`` where that share is
+    at least :data:`ONE_OBJECT_SHARE`, else the class the row declares (:data:`CLASSES`). An empty mask:
+    the declared class, share NaN."""
     if declared not in CLASSES:
         raise InputError(f"click kind must be one of {', '.join(CLASSES)}, got {declared!r}")
     total = int(mask.sum())
     share = int(largest_component(mask).sum()) / total if total else float("nan")
-    if declared == "objects":
-        return CLASSES[declared], share
     return ("one object" if share >= ONE_OBJECT_SHARE else CLASSES[declared]), share
 
 

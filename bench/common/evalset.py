@@ -46,11 +46,10 @@ class EvalScene:
     rule: RecolorRule
     why: str
     click: Literal["auto", "parts", "objects"] = "auto"
-    """What the rule is meant to select, for judging a click (``bench/common/clicks.py``): ``objects``
-    (several different objects: a cup and the shelf it stands on, judged so whether or not they touch);
-    where the rule's mask on the edited view is not one object, ``parts`` (many separate parts of one
-    kind: the leaves of a plant, the pieces of one object its texture or highlights cut apart) or
-    ``auto`` (``parts``). Declared from the row's
+    """What the rule is meant to select, for judging a click (``bench/common/clicks.py``) where the rule's
+    mask on the edited view is not one object: ``parts`` (many separate parts of one kind: the leaves of
+    a plant, the pieces of one object its texture or highlights cut apart), ``objects`` (several
+    different objects: a cup and the shelf it stands on), ``auto`` (``parts``). Declared from the row's
     ``why`` (what the rule is written to take), never from a result."""
 
     @property

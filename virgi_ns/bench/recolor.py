@@ -9,6 +9,10 @@ applied to the held-out views it is the truth. Figures, per held-out view and av
 - **propagation** PSNR: edited render vs the rule applied to the model's own *unedited render*,
   which isolates the edit from reconstruction error; split into inside the rule's mask
   (**miss**: recolour not done) and outside it (**leak**: recolour where none belongs);
+- on a synthetic capture, **kept part** PSNR: the edited render vs the recoloured truth over each part the
+  truth leaves as it is (every object but the recoloured one, floor and backdrop aside), its pixels of
+  every held-out view pooled; the worst part's figure and its name (issue 41 item 1: a part of another
+  colour keeps its colour);
 - the edit's setup and step times (median over ``--repeats`` after one warm-up fit).
 
 ``accuracy-time`` sweeps the number of steps (and the pixel subsampling) and writes a JSON and a
@@ -128,6 +132,32 @@ def _masked_mean(x: torch.Tensor, mask: torch.Tensor) -> float:
     return float(x[mask].float().mean()) if bool(mask.any()) else math.nan
 
 
+MIN_PART_PIXELS = 50
+"""A kept part seen on fewer held-out pixels than this, all views together, is not judged."""
+
+
+def part_errors(image: torch.Tensor, truth: torch.Tensor, label_map: torch.Tensor, labels: tuple) -> dict:
+    """{label: (the sum of squared errors of ``image`` against ``truth`` over the label's pixels of
+    ``label_map`` [H,W], their count)} for each label index in ``labels``."""
+    d = ((image.float() - truth.float()) ** 2).sum(-1)
+    return {k: (float(d[label_map == k].sum()), int((label_map == k).sum())) for k in labels}
+
+
+def worst_part_psnr(per_view: list, names: tuple) -> tuple[float, str]:
+    """(the lowest PSNR of any label, each over its pixels of every view pooled, and that label's name)
+    from :func:`part_errors` of each view; labels under :data:`MIN_PART_PIXELS` pixels are left out;
+    (NaN, "") where none is left."""
+    worst, name = math.nan, ""
+    for k in (per_view[0] if per_view else {}):
+        sse, n = sum(v[k][0] for v in per_view), sum(v[k][1] for v in per_view)
+        if n < MIN_PART_PIXELS:
+            continue
+        value = float(-10.0 * math.log10(max(sse / (3 * n), 1e-12)))
+        if math.isnan(worst) or value < worst:
+            worst, name = value, names[k]
+    return worst, name
+
+
 def against_rule(after: torch.Tensor, truth_render: torch.Tensor, mask: torch.Tensor) -> dict:
     """``after`` against the rule on the render (``truth_render``, whose ``mask`` it recolours) over the whole
     view (propagation), inside the mask (miss) and outside it (leak)."""
@@ -237,6 +267,10 @@ class Bench:
     label_maps: Optional[list] = None
     """Per held-out view, each pixel's object label (index into ``label_names``), when known."""
     label_names: tuple = ()
+    kept_labels: tuple = ()
+    """The labels (indices into ``label_names``) of the parts the truth leaves as they are: every object
+    but the recoloured one, the floor and the backdrop (item 1 of issue 41: :meth:`measure`'s
+    ``kept_part_psnr``)."""
     # per-Gaussian-rule figures by (rule, held-out view): they depend on neither the edit nor its
     # settings, so a sweep measures them once
     _reference: dict = field(default_factory=dict, repr=False)
@@ -273,8 +307,11 @@ class Bench:
             names = [Path(ev.image_filenames[i]).name for i in idx]
             b.truths = [_read_image(capture / "truth" / n, dev) for n in names]
             if (capture / "labels").is_dir() and (capture / "scene.json").is_file():
-                b.label_names = tuple(json.loads((capture / "scene.json").read_text())["labels"])
+                info = json.loads((capture / "scene.json").read_text())
+                b.label_names = tuple(info["labels"])
                 b.label_maps = [_read_labels(capture / "labels" / n, dev) for n in names]
+                b.kept_labels = tuple(k for k, name in enumerate(b.label_names)
+                                      if name not in (info.get("target"), "floor", "backdrop"))
         return b
 
     def edited_image(self, rule: RecolorRule, source: str) -> torch.Tensor:
@@ -337,6 +374,9 @@ class Bench:
             # edit of the diffuse colour (this method's) can reach
             dif = render_view(self.scene, self.views[i], 0, diffuse_map=lambda c: recolor(c, rule)[0])["rgb"]
             dif = dif.clamp(0, 1)
+            if self.kept_labels:  # the kept parts of the rule per Gaussian, against the truth
+                self._reference[key + ("parts",)] = part_errors(ref, self.truths[i], self.label_maps[i],
+                                                                self.kept_labels)
             self._reference[key] = {**{f"per_gaussian_rule_{k}": v for k, v in against_rule(ref, truth, mask).items()},
                                     "diffuse_rule_propagation_psnr": psnr(dif, truth),
                                     "diffuse_rule_miss_psnr": psnr(dif, truth, mask),
@@ -373,7 +413,7 @@ class Bench:
         stack = EditStack(self.fingerprint)
         stack.to(self.scene.device)
         stack.add(edit)
-        rows, pics = [], []
+        rows, pics, parts = [], [], []
         for i, (cams, photo, base) in enumerate(zip(self.views, self.photos, self.base)):
             out = render_view(self.scene, cams, 0, stack)
             after = out["rgb"].clamp(0, 1)
@@ -391,11 +431,17 @@ class Bench:
                 **region_colour_error(after, truth_render, mask),
                 **self._truth_figures(i, after, out["segmentation"][..., 0]),
             })
+            if self.kept_labels:
+                parts.append(part_errors(after, self.truths[i], self.label_maps[i], self.kept_labels))
             if i < keep:
                 seg = out["segmentation"].clamp(0, 1).expand(-1, -1, 3)
                 truth = truth_render if self.truths is None else self.truths[i]
                 pics.append(torch.cat([base, after, truth, seg], dim=1).cpu())
         mean = {k: _mean([r[k] for r in rows]) for k in rows[0]} if rows else {}
+        if parts:  # each kept part against the truth, its pixels of every held-out view pooled; the worst
+            mean["kept_part_psnr"], mean["kept_part"] = worst_part_psnr(parts, self.label_names)
+            ref = [self._reference[(rule, i, "parts")] for i in range(len(parts))]
+            mean["per_gaussian_rule_kept_part_psnr"], _ = worst_part_psnr(ref, self.label_names)
         # the same figures on the edited view itself, against the rule on its render (the edit was fitted
         # to the rule on the photo): far above the held-out figures, the edit carries badly to other
         # views; close to them, the fit itself is the limit
