@@ -237,9 +237,10 @@ def logit_colour_map(source: Float[Tensor, "N 3"], target: Float[Tensor, "N 3"],
     xm, ym = x.mean(0), y.mean(0)
     xc, yc = x - xm, y - ym
     cxx, cxy = xc.T @ xc / x.shape[0], xc.T @ yc / x.shape[0]
-    lam = ridge * float(torch.diagonal(cxx).mean()) + ridge_floor
+    lam = torch.diagonal(cxx).mean() * ridge + ridge_floor  # on the device: no read back
     eye = torch.eye(3, dtype=x.dtype, device=x.device)
-    Mt = torch.linalg.solve(cxx + lam * eye, cxy + lam * eye)  # M^T: y ~ x M^T
+    # positive definite (the ridge), so no error to check: the checked solve would wait for the GPU
+    Mt = torch.linalg.solve_ex(cxx + lam * eye, cxy + lam * eye, check_errors=False).result  # M^T: y ~ x M^T
     t = ym - xm @ Mt
     return torch.cat([Mt.T, t[:, None]], 1).float()  # [3, 4]
 
