@@ -82,6 +82,9 @@ class EditConfig:
     one carry no loss (with the segmentation fixed, the border's blend of changed and unchanged Gaussians
     pulls the one copied layer back to the old colour; a joint fit learns where the edit stops from those
     pixels, so it keeps them); 0: off."""
+    seg_hard_share: float = 0.0
+    """Probe: after half the classifier's steps, this share of its negatives from the view is redrawn by
+    trust times the head's alpha (the negatives it takes), for the other half; 0: off."""
     seg_steps: int = 300
     """``staged``: Adam steps of the segmentation classifier."""
     seg_samples: int = 65536

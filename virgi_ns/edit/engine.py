@@ -285,12 +285,34 @@ class EditEngine:
         if drawn is None:  # one class: a constant alpha
             return constant_segmentation(self.seg, self.seg_input, positive=bool(float((trust * label).sum()) > 0.0))
         idx, anywhere = drawn
-        x, y = self.seg_input[idx], label[idx].float()[:, None]
+        prior = None
         if anywhere.numel() > 0:
             f, _, h2 = self.scene.gaussian_features(anywhere)
-            x = torch.cat([x, self.seg.inputs(f, h2)])
-            y = torch.cat([y, torch.zeros(anywhere.numel(), 1, device=dev)])
-        return train_classifier(self.seg, x, y, self.seg_input, self.cfg, warm=warm, steps=steps)
+            prior = self.seg.inputs(f, h2)
+
+        def samples(idx: Tensor) -> tuple[Tensor, Tensor]:
+            x, y = self.seg_input[idx], label[idx].float()[:, None]
+            if prior is not None:
+                x = torch.cat([x, prior])
+                y = torch.cat([y, torch.zeros(prior.shape[0], 1, device=dev)])
+            return x, y
+
+        share = self.cfg.seg_hard_share
+        if share > 0.0 and steps > 1:  # probe: half the steps, then part of the view's negatives redrawn
+            first = steps // 2         # where the head now puts its alpha (the negatives it gets wrong)
+            train_classifier(self.seg, *samples(idx), self.seg_input, self.cfg, warm=warm, steps=first)
+            with torch.no_grad():
+                alpha = torch.sigmoid(self.seg.logits_of(self.seg_input))[:, 0]
+            hard = trust * ~label * alpha
+            half = self.cfg.seg_samples // 2
+            k = int(round((idx.numel() - half) * share))
+            if k > 0 and float(hard.sum()) > 0.0:
+                g = torch.Generator(device=dev).manual_seed(self.cfg.seed + 1)
+                idx = idx.clone()
+                idx[half:half + k] = torch.multinomial(hard, k, replacement=True, generator=g)
+            return train_classifier(self.seg, *samples(idx), self.seg_input, self.cfg, warm=True,
+                                    steps=steps - first)
+        return train_classifier(self.seg, *samples(idx), self.seg_input, self.cfg, warm=warm, steps=steps)
 
     def _set_heads(self) -> None:
         """The written-out heads (:attr:`EditConfig.fused_heads`) where they run: the joint recipe's step
