@@ -4,7 +4,8 @@ recorded CUDA graphs the steps replay.
 - :func:`schedule`: the learning rate, ``lr`` for the first :data:`LR_HOLD` of the steps and then half a
   cosine to 0; :func:`segmentation_rate`: the segmentation head's multiple of it.
 - :func:`gaussian_labels`, :func:`classifier_samples`, :func:`train_classifier`: the ``staged`` recipe's first
-  stage, the segmentation head trained as a classifier of the view's Gaussians.
+  stage, the segmentation head trained as a classifier of the view's Gaussians; :class:`RecordedClassifier`:
+  its step recorded once per device and shape and replayed by every edit.
 - :func:`warm_up_and_record` (a :class:`Recording`), :func:`capture`, :class:`GraphedSteps`: steps recorded
   once as CUDA graphs and replayed.
 - :class:`EditTiming`, :class:`Stopwatch`: what a fit took.
