@@ -82,6 +82,8 @@ class EditConfig:
     one carry no loss (with the segmentation fixed, the border's blend of changed and unchanged Gaussians
     pulls the one copied layer back to the old colour; a joint fit learns where the edit stops from those
     pixels, so it keeps them); 0: off."""
+    seg_prior_share: float = 0.2
+    """Probe: the share of the classifier's negatives drawn from the whole scene (``SEG_PRIOR_SHARE``'s value)."""
     seg_steps: int = 300
     """``staged``: Adam steps of the segmentation classifier."""
     seg_samples: int = 65536

@@ -115,7 +115,7 @@ def classifier_samples(label: Tensor, trust: Tensor, cfg: EditConfig, scene_size
     if pos <= 0.0 or neg <= 0.0:
         return None
     half = cfg.seg_samples // 2
-    n_prior = int(round(half * SEG_PRIOR_SHARE))
+    n_prior = int(round(half * cfg.seg_prior_share))
     g = torch.Generator(device=trust.device).manual_seed(cfg.seed)
     idx = torch.cat([torch.multinomial(pos_w, half, replacement=True, generator=g),
                      torch.multinomial(neg_w, half - n_prior, replacement=True, generator=g)])
