@@ -858,12 +858,13 @@ def test_the_bench_measures_the_kept_parts_of_a_labelled_capture(pipeline):
     """With a synthetic capture's truth and pixel labels, ``Bench.measure`` reports the worst kept part's
     pooled PSNR for the edit and for the rule per Gaussian, from the same pixels as ``part_errors`` finds."""
     from virgi_ns.bench.recolor import Bench, part_errors, worst_part_psnr
+    from virgi_ns.edit.recolor import recolor
     from virgi_ns.edit.scene import render_view
     from virgi_ns.edit.stack import EditStack
 
     b = Bench.load(pipeline, 0)
     rule = BROAD.rule()
-    b.truths = [recolor_image(base, rule) for base in b.base]
+    b.truths = [recolor(base, rule)[0] for base in b.base]
     b.label_maps = [(torch.arange(base.shape[1], device=base.device) * 3 // base.shape[1]).expand(base.shape[:2])
                     for base in b.base]  # three vertical bands
     b.label_names, b.kept_labels = ("left", "middle", "right"), (0, 2)
@@ -877,9 +878,3 @@ def test_the_bench_measures_the_kept_parts_of_a_labelled_capture(pipeline):
                            b.label_names)
     assert (m["kept_part_psnr"], m["kept_part"]) == (pytest.approx(want[0], abs=1e-4), want[1])
     assert m["kept_part"] in ("left", "right") and math.isfinite(m["per_gaussian_rule_kept_part_psnr"])
-
-
-def recolor_image(image: torch.Tensor, rule) -> torch.Tensor:
-    from virgi_ns.edit.recolor import recolor
-
-    return recolor(image, rule)[0]

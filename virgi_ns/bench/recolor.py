@@ -140,7 +140,11 @@ def part_errors(image: torch.Tensor, truth: torch.Tensor, label_map: torch.Tenso
     """{label: (the sum of squared errors of ``image`` against ``truth`` over the label's pixels of
     ``label_map`` [H,W], their count)} for each label index in ``labels``."""
     d = ((image.float() - truth.float()) ** 2).sum(-1)
-    return {k: (float(d[label_map == k].sum()), int((label_map == k).sum())) for k in labels}
+    out = {}
+    for k in labels:
+        m = label_map == k
+        out[k] = (float(d[m].sum()), int(m.sum()))
+    return out
 
 
 def worst_part_psnr(per_view: list, names: tuple) -> tuple[float, str]:

@@ -3,9 +3,9 @@ recorded CUDA graphs the steps replay.
 
 - :func:`schedule`: the learning rate, ``lr`` for the first :data:`LR_HOLD` of the steps and then half a
   cosine to 0; :func:`segmentation_rate`: the segmentation head's multiple of it.
-- :func:`gaussian_labels`, :func:`classifier_samples`, :func:`train_classifier`: the ``staged`` recipe's first
-  stage, the segmentation head trained as a classifier of the view's Gaussians; :class:`RecordedClassifier`:
-  its step recorded once per device and shape and replayed by every edit.
+- :func:`gaussian_labels`, :func:`classifier_samples`, :func:`classifier_step`, :func:`train_classifier`: the
+  ``staged`` recipe's first stage, the segmentation head trained as a classifier of the view's Gaussians;
+  :class:`RecordedClassifier`: its step recorded once per device and shape and replayed by every edit.
 - :func:`warm_up_and_record` (a :class:`Recording`), :func:`capture`, :class:`GraphedSteps`: steps recorded
   once as CUDA graphs and replayed.
 - :class:`EditTiming`, :class:`Stopwatch`: what a fit took.
@@ -14,6 +14,7 @@ recorded CUDA graphs the steps replay.
 from __future__ import annotations
 
 import copy
+import functools
 import threading
 import time
 import warnings
@@ -149,6 +150,12 @@ def classifier_gradients(seg: SegmentationHead, x: Tensor, y: Tensor) -> None:
     l1.bias.grad = d_pre.sum(0)
 
 
+def classifier_step(seg: SegmentationHead, x: Tensor, y: Tensor, opt: EditAdam) -> None:
+    """One step of the classifier: its gradient (:func:`classifier_gradients`), then ``opt``'s step."""
+    classifier_gradients(seg, x, y)
+    opt.step()
+
+
 def train_classifier(seg: SegmentationHead, x: Tensor, y: Tensor, seg_input: Tensor, cfg: EditConfig,
                      warm: bool = False, steps: Optional[int] = None) -> Tensor:
     """The ``staged`` recipe's first stage: ``seg`` trained (in place) as a classifier of the inputs ``x``
@@ -168,8 +175,7 @@ def train_classifier(seg: SegmentationHead, x: Tensor, y: Tensor, seg_input: Ten
         if not (cfg.cuda_graphs and x.is_cuda and n > 2 and RecordedClassifier.train(seg, x, y, n)):
             opt = EditAdam(params, lr=SEG_LR)
             for _ in range(n):
-                classifier_gradients(seg, x, y)
-                opt.step()
+                classifier_step(seg, x, y, opt)
             for p in params:
                 p.grad = None
         return torch.sigmoid(seg.logits_of(seg_input))
@@ -192,11 +198,7 @@ class RecordedClassifier:
             p.requires_grad_(False)
         self.x, self.y = x.clone(), y.clone()
         self.opt = EditAdam(self.params, lr=SEG_LR)
-
-        def step() -> None:
-            classifier_gradients(self.seg, self.x, self.y)
-            self.opt.step()
-
+        step = functools.partial(classifier_step, self.seg, self.x, self.y, self.opt)
         recording = warm_up_and_record(step, [step], x.device)
         self.graph = recording.graphs[0] if recording.graphs else None
         self.error = recording.error
@@ -317,6 +319,6 @@ class Stopwatch:
 
 
 __all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Recording",
-           "RecordedClassifier",
-           "Stopwatch", "capture", "classifier_gradients", "classifier_samples", "constant_segmentation",
-           "gaussian_labels", "schedule", "segmentation_rate", "sync", "train_classifier", "warm_up_and_record"]
+           "RecordedClassifier", "Stopwatch", "capture", "classifier_gradients", "classifier_samples",
+           "classifier_step", "constant_segmentation", "gaussian_labels", "schedule", "segmentation_rate", "sync",
+           "train_classifier", "warm_up_and_record"]
