@@ -125,6 +125,64 @@ __global__ void __launch_bounds__(kWarps * 32) heads_backward_kernel(
   for (int i = threadIdx.x; i < n_sums; i += blockDim.x) atomicAdd(sums + i, block_sums[i]);
 }
 
+// The staged recipe's step, the segmentation fixed: the copied layer alone, alpha [U] given. Forward
+// as heads_forward_kernel without the segmentation; backward per Gaussian: grad_rows [U, 4] = the
+// gradient to cdp, then 0, and sums [4] += its sums (bd's), then 0.
+__global__ void __launch_bounds__(kWarps * 32) layer_forward_kernel(
+    const float* __restrict__ alpha, const float* __restrict__ x, int64_t U, int Dx, int hd_offset,
+    int H, const float* __restrict__ wd, const float* __restrict__ bd, const float* __restrict__ cd,
+    const float* __restrict__ cs, float k, float* __restrict__ colors, float* __restrict__ cdp) {
+  const int lane = threadIdx.x % 32;
+  const int64_t warps = static_cast<int64_t>(gridDim.x) * kWarps;
+  for (int64_t u = static_cast<int64_t>(blockIdx.x) * kWarps + threadIdx.x / 32; u < U; u += warps) {
+    const float* h = x + u * Dx + hd_offset;
+    float c[3] = {0.f, 0.f, 0.f};
+    for (int j = lane; j < H; j += 32) {
+      const float v = h[j];
+#pragma unroll
+      for (int d = 0; d < 3; ++d) c[d] += wd[d * H + j] * v;
+    }
+#pragma unroll
+    for (int d = 0; d < 3; ++d) c[d] = warp_sum(c[d]);
+    if (lane == 0) {
+      const float a = alpha[u];
+#pragma unroll
+      for (int d = 0; d < 3; ++d) {
+        const float layer = c[d] + bd[d];
+        cdp[u * 3 + d] = layer;
+        colors[u * 3 + d] = sigmoid(a * layer + (1.f - a) * cd[u * 3 + d] + k * cs[u * 3 + d]);
+      }
+    }
+  }
+}
+
+__global__ void __launch_bounds__(kWarps * 32) layer_backward_kernel(
+    const float* __restrict__ grad_colors, const float* __restrict__ colors,
+    const float* __restrict__ alpha, int64_t U, float* __restrict__ grad_rows, float* __restrict__ sums) {
+  __shared__ float block_sums[3];
+  if (threadIdx.x < 3) block_sums[threadIdx.x] = 0.f;
+  __syncthreads();
+  float g[3] = {0.f, 0.f, 0.f};
+  const int64_t stride = static_cast<int64_t>(gridDim.x) * blockDim.x;
+  for (int64_t u = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x; u < U; u += stride) {
+    const float a = alpha[u];
+#pragma unroll
+    for (int d = 0; d < 3; ++d) {
+      const float c = colors[u * 3 + d];
+      const float d_layer = a * grad_colors[u * 4 + d] * c * (1.f - c);
+      grad_rows[u * 4 + d] = d_layer;
+      g[d] += d_layer;
+    }
+    grad_rows[u * 4 + 3] = 0.f;
+  }
+#pragma unroll
+  for (int d = 0; d < 3; ++d) g[d] = warp_sum(g[d]);
+  if (threadIdx.x % 32 == 0)
+    for (int d = 0; d < 3; ++d) atomicAdd(block_sums + d, g[d]);
+  __syncthreads();
+  if (threadIdx.x < 3) atomicAdd(sums + threadIdx.x, block_sums[threadIdx.x]);
+}
+
 // One warp per Gaussian, up to `cap` blocks; past that each warp loops over its share. The backward
 // caps its blocks: each block ends with 2 S + 4 atomics on the same few addresses.
 unsigned blocks_for_warps(int64_t U, int64_t cap) {
@@ -152,6 +210,24 @@ cudaError_t launch_heads_backward(const float* grad_colors, const float* colors,
   if (U == 0) return cudaSuccess;
   heads_backward_kernel<<<blocks_for_warps(U, 2048), kWarps * 32, (2 * S + 4) * sizeof(float), stream>>>(
       grad_colors, colors, alpha, cdp, cd, pre, w2, U, S, grad_rows, sums);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_layer_forward(const float* alpha, const float* x, int64_t U, int Dx, int hd_offset, int H,
+                                 const float* wd, const float* bd, const float* cd, const float* cs, float k,
+                                 float* colors, float* cdp, cudaStream_t stream) {
+  if (U == 0) return cudaSuccess;
+  layer_forward_kernel<<<blocks_for_warps(U, 1 << 20), kWarps * 32, 0, stream>>>(alpha, x, U, Dx, hd_offset, H, wd,
+                                                                              bd, cd, cs, k, colors, cdp);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_layer_backward(const float* grad_colors, const float* colors, const float* alpha, int64_t U,
+                                  float* grad_rows, float* sums, cudaStream_t stream) {
+  if (U == 0) return cudaSuccess;
+  const int64_t want = (U + kWarps * 32 - 1) / (kWarps * 32);
+  layer_backward_kernel<<<static_cast<unsigned>(want < 2048 ? want : 2048), kWarps * 32, 0, stream>>>(
+      grad_colors, colors, alpha, U, grad_rows, sums);
   return cudaGetLastError();
 }
 

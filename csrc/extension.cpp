@@ -888,6 +888,77 @@ std::vector<torch::Tensor> edit_heads_backward(torch::Tensor grad_colors, torch:
   return {grad_rows, sums};
 }
 
+// The staged recipe's copied layer (kernels.h, launch_layer_forward): alpha [U], x [U, Dx] with h_diff
+// at columns hd_offset.., wd [3, H], bd [3], cd and cs [U, 3]. Returns {colors [U, 3], cdp [U, 3]}.
+std::vector<torch::Tensor> edit_layer_forward(torch::Tensor alpha, torch::Tensor x, torch::Tensor wd,
+                                              torch::Tensor bd, torch::Tensor cd, torch::Tensor cs, double k,
+                                              int64_t hd_offset) {
+  check_f32(alpha, "alpha");
+  check_f32(x, "x");
+  check_f32(wd, "wd");
+  check_f32(bd, "bd");
+  check_input(cd, "cd", 3);
+  check_input(cs, "cs", 3);
+  TORCH_CHECK(x.dim() == 2 && wd.dim() == 2 && wd.size(0) == 3, "x must be [U, Dx], wd [3, H]");
+  const int64_t U = x.size(0), Dx = x.size(1), H = wd.size(1);
+  TORCH_CHECK(alpha.numel() == U && cd.size(0) == U && cs.size(0) == U, "alpha, cd and cs need one row per Gaussian");
+  TORCH_CHECK(bd.numel() == 3, "bd must be [3]");
+  TORCH_CHECK(hd_offset >= 0 && hd_offset + H <= Dx, "h_diff (columns hd_offset + H) must lie inside x");
+  const OnDevice on(x);
+  auto colors = torch::empty({U, 3}, x.options());
+  auto cdp = torch::empty({U, 3}, x.options());
+  VIRGI_CUDA_CHECK(launch_layer_forward(alpha.data_ptr<float>(), x.data_ptr<float>(), U, static_cast<int>(Dx),
+                                        static_cast<int>(hd_offset), static_cast<int>(H), wd.data_ptr<float>(),
+                                        bd.data_ptr<float>(), cd.data_ptr<float>(), cs.data_ptr<float>(),
+                                        static_cast<float>(k), colors.data_ptr<float>(), cdp.data_ptr<float>(),
+                                        on.stream));
+  return {colors, cdp};
+}
+
+// The staged recipe's copied layer's backward (kernels.h, launch_layer_backward) from grad_colors
+// [U, 4] and the forward's colors, with alpha [U]. Returns {grad_rows [U, 4], sums [4]}.
+std::vector<torch::Tensor> edit_layer_backward(torch::Tensor grad_colors, torch::Tensor colors, torch::Tensor alpha) {
+  check_input(grad_colors, "grad_colors", 4);
+  check_input(colors, "colors", 3);
+  check_f32(alpha, "alpha");
+  const int64_t U = colors.size(0);
+  TORCH_CHECK(grad_colors.size(0) == U && alpha.numel() == U, "every input needs one row per Gaussian");
+  const OnDevice on(colors);
+  auto grad_rows = torch::empty({U, 4}, colors.options());
+  auto sums = torch::zeros({4}, colors.options());
+  VIRGI_CUDA_CHECK(launch_layer_backward(grad_colors.data_ptr<float>(), colors.data_ptr<float>(),
+                                         alpha.data_ptr<float>(), U, grad_rows.data_ptr<float>(),
+                                         sums.data_ptr<float>(), on.stream));
+  return {grad_rows, sums};
+}
+
+// The staged classifier's gradient (kernels.h, launch_classifier_gradients): x [S, D], y [S] (or
+// [S, 1]), w1 [W, D], b1 [W], w2 [1, W], b2 [1]. Returns grads [W D + 2 W + 1]: dW1, db1, dw2, db2.
+torch::Tensor classifier_gradients(torch::Tensor x, torch::Tensor y, torch::Tensor w1, torch::Tensor b1,
+                                   torch::Tensor w2, torch::Tensor b2) {
+  check_f32(x, "x");
+  check_f32(y, "y");
+  check_f32(w1, "w1");
+  check_f32(b1, "b1");
+  check_f32(w2, "w2");
+  check_f32(b2, "b2");
+  TORCH_CHECK(x.dim() == 2 && w1.dim() == 2 && w1.size(1) == x.size(1), "x must be [S, D] and w1 [W, D]");
+  const int64_t S = x.size(0), D = x.size(1), W = w1.size(0);
+  TORCH_CHECK(y.numel() == S && b1.numel() == W && w2.numel() == W && b2.numel() == 1,
+              "y must hold one label per sample, b1 and w2 one entry per hidden unit, b2 one");
+  TORCH_CHECK(S < (int64_t{1} << 31) && classifier_shared_bytes(static_cast<int>(D), static_cast<int>(W)) <= 48 * 1024,
+              "the classifier's head is too large for the written-out step (", W, " x ", D, ")");
+  const OnDevice on(x);
+  // every entry is written by the sum kernel, which runs wherever there is a sample
+  auto grads = S == 0 ? torch::zeros({W * D + 2 * W + 1}, x.options()) : torch::empty({W * D + 2 * W + 1}, x.options());
+  auto partials = torch::empty({classifier_partial_rows(S), W * D + 2 * W + 1}, x.options());
+  VIRGI_CUDA_CHECK(launch_classifier_gradients(
+      x.data_ptr<float>(), y.data_ptr<float>(), static_cast<int>(S), static_cast<int>(D), static_cast<int>(W),
+      w1.data_ptr<float>(), b1.data_ptr<float>(), w2.data_ptr<float>(), b2.data_ptr<float>(),
+      partials.data_ptr<float>(), grads.data_ptr<float>(), on.stream));
+  return grads;
+}
+
 }  // namespace virgi
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -911,4 +982,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("edit_heads_forward", &virgi::edit_heads_forward, "The edit heads' colours from pre = x W1^T + b1");
   m.def("edit_heads_backward", &virgi::edit_heads_backward,
         "The edit heads' gradients from the loss's gradient to the colours");
+  m.def("edit_layer_forward", &virgi::edit_layer_forward,
+        "The staged recipe's colours from the copied layer, the segmentation fixed");
+  m.def("edit_layer_backward", &virgi::edit_layer_backward,
+        "The staged recipe's gradient to the copied layer's output from the loss's gradient to the colours");
+  m.def("classifier_gradients", &virgi::classifier_gradients,
+        "The staged classifier's gradient of its mean binary cross-entropy, flat");
 }

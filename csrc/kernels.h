@@ -197,4 +197,24 @@ cudaError_t launch_heads_backward(const float* grad_colors, const float* colors,
                                   const float* w2, int64_t U, int S, float* grad_rows, float* sums,
                                   cudaStream_t stream);
 
+// The staged recipe's step (edit_heads.cu), the segmentation fixed at alpha [U]: forward as the
+// heads' without the segmentation (colors and cdp [U, 3]); backward from grad_colors [U, 4],
+// grad_rows [U, 4] = the gradient to cdp, then 0, and sums [4] (pre-zeroed) += its sums over U.
+cudaError_t launch_layer_forward(const float* alpha, const float* x, int64_t U, int Dx, int hd_offset, int H,
+                                 const float* wd, const float* bd, const float* cd, const float* cs, float k,
+                                 float* colors, float* cdp, cudaStream_t stream);
+cudaError_t launch_layer_backward(const float* grad_colors, const float* colors, const float* alpha, int64_t U,
+                                  float* grad_rows, float* sums, cudaStream_t stream);
+
+// The staged classifier's gradient (classifier.cu): over x [S, D] and labels y [S], the gradient of
+// the mean binary cross-entropy of w2 . relu(W1 x + b1) + b2 (W1 [W, D]), written to grads [W D + 2 W
+// + 1] as [dW1 | db1 | dw2 | db2], through partials [classifier_partial_rows(S), W D + 2 W + 1]. The
+// first kernel takes classifier_shared_bytes(D, W) of shared memory (at most 48 KiB without opting in).
+int64_t classifier_shared_bytes(int D, int W);
+int64_t classifier_partial_rows(int64_t S);
+cudaError_t launch_classifier_gradients(const float* x, const float* y, int S, int D, int W,
+                                        const float* w1, const float* b1, const float* w2,
+                                        const float* b2, float* partials, float* grads,
+                                        cudaStream_t stream);
+
 }  // namespace virgi

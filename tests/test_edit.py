@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import sys
@@ -594,6 +595,66 @@ def test_the_recorded_classifier_steps_give_the_eager_classifier():
         assert float(((alphas[True, k] > 0.5).float() - problems[k][1]).abs().mean()) < 0.05  # it learnt the labels
 
 
+@pytest.mark.gpu
+def test_the_classifier_kernels_give_the_float64_gradient():
+    """The staged classifier's gradient on our kernels (``written_out_gradients``) is the float64 reference's
+    (``classifier_gradients``), on the default head's shape and on odd ones (samples that do not fill the
+    last block, widths and inputs that are no multiple of a warp), and the same on every run."""
+    from virgi_ns.edit.fitting import classifier_gradients, written_out_gradients
+    from virgi_ns.edit.heads import SegmentationHead
+    from virgi_ns.raster import cuda
+
+    if not cuda.available()[0]:
+        pytest.skip("needs a CUDA GPU and the extension")
+    g = torch.Generator().manual_seed(5)
+    for S, F, H, W in ((8192, 32, 64, 64), (1000, 5, 32, 48), (33, 7, 3, 37)):
+        torch.manual_seed(S)
+        seg = SegmentationHead(F, H, W)
+        torch.nn.init.normal_(seg.l2.weight, std=0.5)
+        x = torch.randn(S, F + H, generator=g)
+        y = (torch.rand(S, 1, generator=g) > 0.4).float()
+        oracle = copy.deepcopy(seg).double()
+        for p in list(oracle.parameters()) + list(seg.parameters()):
+            p.requires_grad_(False)
+        classifier_gradients(oracle, x.double(), y.double())
+        seg = seg.cuda()
+        assert cuda.classifier_fits(F + H, W)
+        written_out_gradients(seg, x.cuda(), y.cuda())
+        first = [p.grad.clone() for p in seg.parameters()]
+        written_out_gradients(seg, x.cuda(), y.cuda())
+        for p, q, e in zip(seg.parameters(), first, oracle.parameters()):
+            assert p.grad.shape == p.shape and torch.equal(p.grad, q)
+            scale = float(e.grad.abs().max())
+            assert float((p.grad.double().cpu() - e.grad).abs().max()) <= 1e-5 * scale + 1e-9, (S, W, p.shape)
+
+
+@pytest.mark.gpu
+def test_the_classifier_on_our_kernels_trains_as_torchs():
+    """Trained on our kernels (``fused_heads``), recorded or eager, the staged classifier reaches torch's
+    head; a head too large for the kernels trains through torch."""
+    from virgi_ns.edit.fitting import train_classifier, writes_out
+    from virgi_ns.edit.heads import SegmentationHead
+    from virgi_ns.raster import cuda
+
+    if not cuda.available()[0]:
+        pytest.skip("needs a CUDA GPU and the extension")
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(4096, 96, generator=g).cuda()
+    y = (x[:, 3:4] - 0.5 * x[:, 40:41] > 0).float()
+    alphas = {}
+    for fused, graphs in ((False, False), (True, False), (True, True)):
+        torch.manual_seed(0)
+        seg = SegmentationHead(32, 64, 64).cuda()
+        cfg = EditConfig(fused_heads=fused, cuda_graphs=graphs)
+        assert writes_out(seg, x, cfg) == fused
+        alphas[fused, graphs] = train_classifier(seg, x, y, x, cfg, steps=100)
+    for k in ((True, False), (True, True)):
+        assert float((alphas[k] - alphas[False, False]).abs().max()) < 1e-3, k
+    assert float(((alphas[True, True] > 0.5).float() - y).abs().mean()) < 0.05
+    assert not writes_out(SegmentationHead(32, 64, 256).cuda(), x, EditConfig())
+    assert not cuda.classifier_fits(96, 256)
+
+
 def test_an_engine_on_another_engines_view_fits_the_edit_a_fresh_engine_fits(world):
     """``view_of`` shares the view (contributions, features, colours, render) of an engine of the same
     camera: its fit is the one a fresh engine makes, bit for bit, and the first engine's view is untouched.
@@ -803,6 +864,44 @@ def test_written_out_heads_give_the_autograd_edit(world):
     diff = float((rgb_w - rgb_a).abs().max())
     assert diff <= 2e-3, diff  # half an 8-bit level
     assert not torch.equal(e_w.head_weight, torch.as_tensor(sc.field.diffuse_head.weight).cuda())  # it trained
+
+
+@pytest.mark.gpu
+def test_the_written_out_staged_step_gives_the_autograd_edit(world):
+    """``fused_heads`` with the staged recipe (``FusedLayer``): from the same state (the same fixed
+    segmentation), a step gives the copied layer autograd's gradient, and a whole fit renders autograd's
+    edit; the layer step holds the engine's fixed alpha, which a retarget writes in place."""
+    from virgi_ns.edit.heads import FusedLayer
+    from virgi_ns.raster import cuda
+
+    if not cuda.available()[0]:
+        pytest.skip("needs our CUDA extension")
+    S = world["S"]
+    gpu = es.on_gpu(S.scene)
+    cam = S.cameras.index(EDIT_VIEW)
+    rgb = world["before"][EDIT_VIEW]["rgb"]
+    edited, _ = recolor(rgb, BLUE_TO_RED)
+    grads, fits = {}, {}
+    for written in (True, False):
+        cfg = EditConfig(steps=30, batch_composite="fused", fused_heads=written, recipe="staged", seg_steps=40,
+                         seg_samples=2048)
+        eng = EditEngine(gpu, cam, edited.cuda(), EditStack(gpu.fingerprint()), cfg, original=rgb.cuda())
+        assert isinstance(eng._heads, FusedLayer) == written
+        if written:
+            assert eng._heads.alpha is eng.alpha_fixed
+        with torch.enable_grad():
+            eng.step(0)
+        grads[written] = [eng.weight.grad.clone(), eng.bias.grad.clone()]
+        eng = EditEngine(gpu, cam, edited.cuda(), EditStack(gpu.fingerprint()), cfg, original=rgb.cuda())
+        edit, timing = eng.fit()
+        fits[written] = (eng.preview()["rgb"], timing.final_loss)
+    for i, (got, want) in enumerate(zip(grads[True], grads[False])):
+        assert got.shape == want.shape
+        diff, scale = float((got - want).abs().max()), float(want.abs().max())
+        assert scale > 0.0 and diff <= 1e-5 * scale + 1e-9, (i, diff, scale)
+    (rgb_w, loss_w), (rgb_a, loss_a) = fits[True], fits[False]
+    assert abs(loss_w - loss_a) <= 1e-3 * loss_a, (loss_w, loss_a)
+    assert float((rgb_w - rgb_a).abs().max()) <= 2e-3  # half an 8-bit level
 
 
 def test_a_fresh_segmentation_head_is_drawn_from_the_seed_and_copied_per_edit(world):

@@ -85,9 +85,10 @@ class EditConfig:
     """Initial output bias of the segmentation head: alpha starts at its sigmoid, so a fresh edit is
     close to a no-op."""
     fused_heads: bool = True
-    """With the ``fused`` kind on a GPU and the joint recipe: the heads' forward and backward as
-    written out in :mod:`virgi_ns.edit.heads` (two cuBLAS products and two kernels) instead of through
-    autograd; the same step up to float rounding."""
+    """On a GPU, the heads' steps written out on our kernels instead of through torch, the same steps up
+    to float rounding: with the ``fused`` kind and the joint recipe, the heads' forward and backward of
+    :mod:`virgi_ns.edit.heads` (two cuBLAS products and two kernels); with the ``staged`` recipe, its
+    classifier's gradient (:func:`~virgi_ns.edit.fitting.written_out_gradients`, two kernels)."""
     cuda_graphs: bool = True
     """On a GPU, record each pixel set's step once as a CUDA graph and replay it (the same kernels,
     without a Python and launch round trip per kernel). A fit of a few steps runs eagerly; where a

@@ -38,7 +38,7 @@ from virgi_ns.edit.config import EditConfig
 from virgi_ns.edit.fitting import (EditTiming, GraphedSteps, Stopwatch, classifier_samples,
                                    constant_segmentation, gaussian_labels, schedule, segmentation_rate,
                                    train_classifier, warm_up_and_record)
-from virgi_ns.edit.heads import FusedHeads, HeadsInputs, fresh_segmentation
+from virgi_ns.edit.heads import FusedHeads, FusedLayer, HeadsInputs, fresh_segmentation
 from virgi_ns.edit.optim import EditAdam
 from virgi_ns.edit.pixels import PixelBatch, pixel_batches, resolve_composite
 from virgi_ns.edit.scene import FrozenScene
@@ -109,7 +109,7 @@ class EditEngine:
         self.alpha_fixed: Optional[Tensor] = None
         self.opt: Optional[EditAdam] = None
         self._graphs: Optional[GraphedSteps] = None  # the recorded steps (_fit_graphed)
-        self._heads: Optional[FusedHeads] = None  # the written-out heads (_set_heads), else autograd
+        self._heads: Optional[FusedHeads | FusedLayer] = None  # the written-out step (_set_heads), else autograd
         self._progress: object = _UNMEASURED  # changed_progress() of the current heads, once asked
         with Stopwatch(scene.device) as watch:
             if view_of is None:
@@ -285,16 +285,24 @@ class EditEngine:
         return train_classifier(self.seg, x, y, self.seg_input, self.cfg, warm=warm, steps=steps)
 
     def _set_heads(self) -> None:
-        """The written-out heads (:attr:`EditConfig.fused_heads`) where they run: the joint recipe's step
-        on the fused kind's pixel sets on a GPU; otherwise None (autograd). A change drops the recorded
-        steps."""
+        """The written-out step (:attr:`EditConfig.fused_heads`) where it runs, on the fused kind's pixel sets
+        on a GPU: the joint recipe's heads (:class:`FusedHeads`), or the staged recipe's copied layer with
+        its segmentation fixed (:class:`FusedLayer`); otherwise None (autograd). A change drops the
+        recorded steps."""
         sets = self.batches[0].sets if self.batches else None
-        use = (self.cfg.fused_heads and self.alpha_fixed is None and sets is not None
-               and FusedHeads.runs_on(self.seg, self.h_diff.device))
-        if use == (self._heads is not None):
-            return
+        use = self.cfg.fused_heads and sets is not None and FusedHeads.runs_on(self.seg, self.h_diff.device)
+        kind = None if not use else FusedHeads if self.alpha_fixed is None else FusedLayer
+        current = self._heads
+        if type(current) is kind or (kind is None and current is None):
+            if kind is not FusedLayer or current.alpha is self.alpha_fixed:
+                return
         inputs = HeadsInputs(self.seg_input, self.feats.shape[1], self.c_d, self.c_s, self.k)
-        self._heads = FusedHeads(self.seg, self.weight, self.bias, inputs) if use else None
+        if kind is FusedHeads:
+            self._heads = FusedHeads(self.seg, self.weight, self.bias, inputs)
+        elif kind is FusedLayer:
+            self._heads = FusedLayer(self.alpha_fixed, self.weight, self.bias, inputs)
+        else:
+            self._heads = None
         self._graphs = None
 
     def _set_optimizer(self, staged: bool) -> None:
@@ -338,7 +346,7 @@ class EditEngine:
         """Step ``i`` of a fit: one Adam step on pixel set ``i % len(self.batches)`` (the ``fused`` kind
         takes the set its device counter names, which :meth:`fit` keeps equal to it)."""
         self._progress = _UNMEASURED
-        if self._heads is not None:  # the fused kind's sets and the written-out heads
+        if self._heads is not None:  # the fused kind's sets and the written-out step
             loss = self._heads.step(self.batches[0].sets)
             self.opt.step()
             return loss

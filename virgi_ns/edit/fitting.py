@@ -4,7 +4,8 @@ recorded CUDA graphs the steps replay.
 - :func:`schedule`: the learning rate, ``lr`` for the first :data:`LR_HOLD` of the steps and then half a
   cosine to 0; :func:`segmentation_rate`: the segmentation head's multiple of it.
 - :func:`gaussian_labels`, :func:`classifier_samples`, :func:`classifier_step`, :func:`train_classifier`: the
-  ``staged`` recipe's first stage, the segmentation head trained as a classifier of the view's Gaussians;
+  ``staged`` recipe's first stage, the segmentation head trained as a classifier of the view's Gaussians (its
+  gradient in torch, :func:`classifier_gradients`, or on our kernels, :func:`written_out_gradients`);
   :class:`RecordedClassifier`: its step recorded once per device and shape and replayed by every edit.
 - :func:`warm_up_and_record` (a :class:`Recording`), :func:`capture`, :class:`GraphedSteps`: steps recorded
   once as CUDA graphs and replayed.
@@ -150,9 +151,34 @@ def classifier_gradients(seg: SegmentationHead, x: Tensor, y: Tensor) -> None:
     l1.bias.grad = d_pre.sum(0)
 
 
-def classifier_step(seg: SegmentationHead, x: Tensor, y: Tensor, opt: EditAdam) -> None:
-    """One step of the classifier: its gradient (:func:`classifier_gradients`), then ``opt``'s step."""
-    classifier_gradients(seg, x, y)
+def written_out_gradients(seg: SegmentationHead, x: Tensor, y: Tensor) -> None:
+    """:func:`classifier_gradients`' result from our kernels (``csrc/classifier.cu``): two kernels where torch
+    runs a dozen, the same sums in every run. Where :func:`writes_out` says they run."""
+    from virgi_ns.raster import cuda
+
+    l1, l2 = seg.l1, seg.l2
+    W, D = l1.weight.shape
+    g = cuda.classifier_gradients(x, y, l1.weight, l1.bias, l2.weight, l2.bias)
+    l1.weight.grad = g[: W * D].view(W, D)
+    l1.bias.grad = g[W * D : W * D + W]
+    l2.weight.grad = g[W * D + W : W * D + 2 * W].view(1, W)
+    l2.bias.grad = g[W * D + 2 * W :]
+
+
+def writes_out(seg: SegmentationHead, x: Tensor, cfg: EditConfig) -> bool:
+    """Whether the classifier's gradient runs on our kernels (:func:`written_out_gradients`): with
+    ``cfg.fused_heads``, float32 samples on a GPU, the extension built, a head the kernels take."""
+    if not (cfg.fused_heads and x.is_cuda and x.dtype == torch.float32 and seg.l1.weight.dtype == torch.float32):
+        return False
+    from virgi_ns.raster import cuda
+
+    return cuda.classifier_fits(x.shape[1], seg.width) and cuda.available()[0]
+
+
+def classifier_step(seg: SegmentationHead, x: Tensor, y: Tensor, opt: EditAdam, written_out: bool = False) -> None:
+    """One step of the classifier: its gradient (:func:`written_out_gradients` where ``written_out``, else
+    :func:`classifier_gradients`), then ``opt``'s step."""
+    (written_out_gradients if written_out else classifier_gradients)(seg, x, y)
     opt.step()
 
 
@@ -162,7 +188,8 @@ def train_classifier(seg: SegmentationHead, x: Tensor, y: Tensor, seg_input: Ten
     [S, F+H] with labels ``y`` [S, 1] (binary cross-entropy, Adam at :data:`SEG_LR`, ``steps`` steps, default
     ``cfg.seg_steps``, on all of them every step), then frozen; returns its alpha [U, 1] on the view's
     Gaussians (``seg_input``), fixed for the layer's steps. ``warm``: on from the head's state instead of
-    its fresh output bias. On a GPU with ``cfg.cuda_graphs`` the steps replay one recorded CUDA graph (the
+    its fresh output bias. Its gradient runs on our kernels where :func:`writes_out` says so. On a GPU with
+    ``cfg.cuda_graphs`` the steps replay one recorded CUDA graph (the
     same kernels without a Python round trip each), recorded once per device and shape
     (:class:`RecordedClassifier`); where a step cannot be recorded they run eagerly."""
     if not warm:
@@ -171,11 +198,12 @@ def train_classifier(seg: SegmentationHead, x: Tensor, y: Tensor, seg_input: Ten
     for p in params:
         p.requires_grad_(False)
     n = cfg.seg_steps if steps is None else steps
+    written_out = writes_out(seg, x, cfg)
     with torch.no_grad():
-        if not (cfg.cuda_graphs and x.is_cuda and n > 2 and RecordedClassifier.train(seg, x, y, n)):
+        if not (cfg.cuda_graphs and x.is_cuda and n > 2 and RecordedClassifier.train(seg, x, y, n, written_out)):
             opt = EditAdam(params, lr=SEG_LR)
             for _ in range(n):
-                classifier_step(seg, x, y, opt)
+                classifier_step(seg, x, y, opt, written_out)
             for p in params:
                 p.grad = None
         return torch.sigmoid(seg.logits_of(seg_input))
@@ -191,29 +219,30 @@ class RecordedClassifier:
     _failed: set[tuple] = set()
     _lock = threading.Lock()
 
-    def __init__(self, seg: SegmentationHead, x: Tensor, y: Tensor) -> None:
+    def __init__(self, seg: SegmentationHead, x: Tensor, y: Tensor, written_out: bool) -> None:
         self.seg = copy.deepcopy(seg)
         self.params = list(self.seg.parameters())
         for p in self.params:
             p.requires_grad_(False)
         self.x, self.y = x.clone(), y.clone()
         self.opt = EditAdam(self.params, lr=SEG_LR)
-        step = functools.partial(classifier_step, self.seg, self.x, self.y, self.opt)
+        step = functools.partial(classifier_step, self.seg, self.x, self.y, self.opt, written_out)
         recording = warm_up_and_record(step, [step], x.device)
         self.graph = recording.graphs[0] if recording.graphs else None
         self.error = recording.error
 
     @classmethod
-    def train(cls, seg: SegmentationHead, x: Tensor, y: Tensor, steps: int) -> bool:
-        """``seg`` trained ``steps`` steps on ``x``, ``y`` by replays; False (nothing done) where the step
-        cannot be recorded on this device (warned once), so that the caller runs it eagerly."""
-        key = (x.device, tuple(x.shape), seg.width)
+    def train(cls, seg: SegmentationHead, x: Tensor, y: Tensor, steps: int, written_out: bool) -> bool:
+        """``seg`` trained ``steps`` steps on ``x``, ``y`` by replays (of the step with our kernels where
+        ``written_out``); False (nothing done) where the step cannot be recorded on this device (warned
+        once), so that the caller runs it eagerly."""
+        key = (x.device, tuple(x.shape), seg.width, written_out)
         with cls._lock:
             if key in cls._failed:
                 return False
             rec = cls._kept.get(key)
             if rec is None:
-                rec = cls(seg, x, y)
+                rec = cls(seg, x, y, written_out)
                 if rec.graph is None:
                     cls._failed.add(key)
                     warnings.warn(f"the segmentation classifier runs without a CUDA graph: {rec.error}")
@@ -321,4 +350,4 @@ class Stopwatch:
 __all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Recording",
            "RecordedClassifier", "Stopwatch", "capture", "classifier_gradients", "classifier_samples",
            "classifier_step", "constant_segmentation", "gaussian_labels", "schedule", "segmentation_rate", "sync",
-           "train_classifier", "warm_up_and_record"]
+           "train_classifier", "warm_up_and_record", "writes_out", "written_out_gradients"]

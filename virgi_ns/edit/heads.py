@@ -2,6 +2,8 @@
 
 - :class:`SegmentationHead`: ``alpha = sigmoid(MLP_seg([f, h_diff]))``, which Gaussians an edit
   recolours; :func:`fresh_segmentation`, a fresh one drawn from a seed.
+- :class:`FusedLayer`: one step of the staged recipe (the copied layer alone, the segmentation fixed) on
+  the GPU, two kernels of ours and one cuBLAS product.
 - :class:`FusedHeads`: one step of the joint recipe's two heads (the segmentation head and the copied
   last diffuse layer, :mod:`virgi_ns.edit.engine`) on the GPU. Through autograd a step's heads are
   dozens of small kernels; here the same step is two cuBLAS products and two kernels of ours
@@ -164,5 +166,32 @@ class FusedHeads:
         return loss[0]
 
 
-__all__ = ["GLOBAL_RNG_LOCK", "FusedHeads", "HeadsInputs", "SegmentationHead", "fresh_segmentation", "reference_backward",
+class FusedLayer:
+    """One step of the staged recipe on the GPU: the copied layer ``weight``, ``bias`` alone (trained in
+    place), the segmentation fixed at ``alpha`` [U, 1] (read at every step: a retarget writes it in place),
+    around the fused pixel loss of :class:`FusedSets`; sets the layer's ``.grad``. Two kernels of ours and
+    one cuBLAS product; no host sync."""
+
+    def __init__(self, alpha: Tensor, weight: Tensor, bias: Tensor, inp: HeadsInputs) -> None:
+        self.alpha, self.weight, self.bias, self.inp = alpha, weight, bias, inp
+        self.x = inp.x.float().contiguous()
+        self.cd = inp.cd.float().contiguous()
+        self.cs = inp.cs.float().contiguous()
+
+    def step(self, sets) -> Tensor:
+        """The loss of the set ``sets`` names (advancing its counter), and the layer's gradient in its ``.grad``."""
+        from virgi_ns.raster import cuda
+
+        H, off = self.weight.shape[1], self.inp.hd_offset
+        with torch.no_grad():
+            alpha = self.alpha.view(-1)
+            C, _ = cuda.edit_layer_forward(alpha, self.x, self.weight, self.bias, self.cd, self.cs, self.inp.k, off)
+            loss, grad_c = sets.loss_and_padded_grad(C)
+            rows, sums = cuda.edit_layer_backward(grad_c, C, alpha)
+            self.weight.grad = torch.mm(rows.t(), self.x)[:3, off : off + H].contiguous()
+            self.bias.grad = sums[:3]
+        return loss[0]
+
+
+__all__ = ["GLOBAL_RNG_LOCK", "FusedHeads", "FusedLayer", "HeadsInputs", "SegmentationHead", "fresh_segmentation", "reference_backward",
            "reference_forward"]

@@ -44,7 +44,8 @@ from virgi_ns.raster.contract import composite as _composite
 from virgi_ns.raster.contract import composite_plain as _plain_composite
 
 CSRC = Path(__file__).resolve().parents[2] / "csrc"
-SOURCES = ("extension.cpp", "raster_kernels.cu", "composite_kernels.cu", "edit_kernels.cu", "edit_heads.cu")
+SOURCES = ("extension.cpp", "raster_kernels.cu", "composite_kernels.cu", "edit_kernels.cu", "edit_heads.cu",
+           "classifier.cu")
 EXTENSION_NAME = "virgi_ns_raster"
 
 TILE_BACKWARD_MIN_PIXELS = 1 << 20  # per-entry atomics are the faster backward below ~1 Mpix
@@ -461,8 +462,41 @@ def edit_heads_backward(grad_colours: Tensor, colours: Tensor, alpha: Tensor, cd
     return rows, sums
 
 
-__all__ = ["available", "build", "composite", "cuda_home", "edit_by_gaussian", "edit_heads_backward",
-           "edit_heads_forward", "edit_l1_step", "rasterize", "CudaContributions", "DeferredCudaContributions"]
+def edit_layer_forward(alpha: Tensor, x: Tensor, wd: Tensor, bd: Tensor, cd: Tensor, cs: Tensor, k: float,
+                       hd_offset: int) -> tuple[Tensor, Tensor]:
+    """The staged recipe's forward, the segmentation fixed at ``alpha`` [U] (the other arguments as in
+    :func:`edit_heads_forward`): (colours [U, 3], the copied layer's output [U, 3])."""
+    colours, cdp = _load().edit_layer_forward(alpha, x, wd, bd, cd, cs, float(k), int(hd_offset))
+    return colours, cdp
+
+
+def edit_layer_backward(grad_colours: Tensor, colours: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
+    """The staged recipe's backward from the loss's gradient to the colours ([U, 4], the last column
+    padding): (the gradient to the layer's output, then a 0 [U, 4], its sums over the Gaussians [4],
+    the last 0)."""
+    rows, sums = _load().edit_layer_backward(grad_colours, colours, alpha)
+    return rows, sums
+
+
+CLASSIFIER_TILE = 32
+"""Samples per block of the classifier's kernel (``kTileSamples`` in ``csrc/classifier.cu``)."""
+
+
+def classifier_fits(inputs: int, width: int) -> bool:
+    """Whether :func:`classifier_gradients` takes a head of ``width`` hidden units over ``inputs`` inputs: its
+    block's shared memory (W1 transposed and one tile of samples) within the 48 KiB every GPU gives."""
+    return 4 * (inputs * (width + 1) + CLASSIFIER_TILE * (inputs + width + 1)) <= 48 * 1024
+
+
+def classifier_gradients(x: Tensor, y: Tensor, w1: Tensor, b1: Tensor, w2: Tensor, b2: Tensor) -> Tensor:
+    """The staged classifier's gradient (:func:`virgi_ns.edit.fitting.classifier_gradients` says what it
+    is) over the samples ``x`` [S, D] with labels ``y`` [S, 1], flat [W D + 2 W + 1]: W1's (row-major), b1's,
+    w2's, b2's. Two kernels, no atomics: the same sums on every run. No host sync."""
+    return _load().classifier_gradients(x, y, w1, b1, w2, b2)
+
+
+__all__ = ["available", "build", "classifier_fits", "classifier_gradients", "composite", "cuda_home", "edit_by_gaussian", "edit_heads_backward",
+           "edit_heads_forward", "edit_l1_step", "edit_layer_backward", "edit_layer_forward", "rasterize", "CudaContributions", "DeferredCudaContributions"]
 
 if __name__ == "__main__":  # pragma: no cover - manual build check: python -m virgi_ns.raster.cuda
     build(verbose=True)
