@@ -946,9 +946,12 @@ torch::Tensor classifier_gradients(torch::Tensor x, torch::Tensor y, torch::Tens
   const int64_t S = x.size(0), D = x.size(1), W = w1.size(0);
   TORCH_CHECK(y.numel() == S && b1.numel() == W && w2.numel() == W && b2.numel() == 1,
               "y must hold one label per sample, b1 and w2 one entry per hidden unit, b2 one");
-  TORCH_CHECK(S < (int64_t{1} << 31) && classifier_shared_bytes(static_cast<int>(D), static_cast<int>(W)) <= 48 * 1024,
-              "the classifier's head is too large for the written-out step (", W, " x ", D, ")");
   const OnDevice on(x);
+  int optin = 0;
+  VIRGI_CUDA_CHECK(cudaDeviceGetAttribute(&optin, cudaDevAttrMaxSharedMemoryPerBlockOptin, x.get_device()));
+  TORCH_CHECK(S < (int64_t{1} << 31) && classifier_takes(static_cast<int>(D), static_cast<int>(W)) &&
+                  classifier_shared_bytes(static_cast<int>(D), static_cast<int>(W)) <= optin,
+              "the classifier's head is too large for the written-out step (", W, " x ", D, ")");
   // every entry is written by the sum kernel, which runs wherever there is a sample
   auto grads = S == 0 ? torch::zeros({W * D + 2 * W + 1}, x.options()) : torch::empty({W * D + 2 * W + 1}, x.options());
   auto partials = torch::empty({classifier_partial_rows(S), W * D + 2 * W + 1}, x.options());

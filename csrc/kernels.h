@@ -209,8 +209,10 @@ cudaError_t launch_layer_backward(const float* grad_colors, const float* colors,
 // The staged classifier's gradient (classifier.cu): over x [S, D] and labels y [S], the gradient of
 // the mean binary cross-entropy of w2 . relu(W1 x + b1) + b2 (W1 [W, D]), written to grads [W D + 2 W
 // + 1] as [dW1 | db1 | dw2 | db2], through partials [classifier_partial_rows(S), W D + 2 W + 1]. The
-// first kernel takes classifier_shared_bytes(D, W) of shared memory (at most 48 KiB without opting in).
+// first kernel takes classifier_shared_bytes(D, W) of shared memory (opted into past 48 KiB) and
+// heads for which classifier_takes(D, W).
 int64_t classifier_shared_bytes(int D, int W);
+bool classifier_takes(int D, int W);
 int64_t classifier_partial_rows(int64_t S);
 cudaError_t launch_classifier_gradients(const float* x, const float* y, int S, int D, int W,
                                         const float* w1, const float* b1, const float* w2,

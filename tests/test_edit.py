@@ -599,7 +599,8 @@ def test_the_recorded_classifier_steps_give_the_eager_classifier():
 def test_the_classifier_kernels_give_the_float64_gradient():
     """The staged classifier's gradient on our kernels (``written_out_gradients``) is the float64 reference's
     (``classifier_gradients``), on the default head's shape and on odd ones (samples that do not fill the
-    last block, widths and inputs that are no multiple of a warp), and the same on every run."""
+    last tile, several tiles per block, a width past one pass of 64 units, widths and inputs that are no
+    multiple of the register tiles), and the same on every run."""
     from virgi_ns.edit.fitting import classifier_gradients, written_out_gradients
     from virgi_ns.edit.heads import SegmentationHead
     from virgi_ns.raster import cuda
@@ -607,7 +608,7 @@ def test_the_classifier_kernels_give_the_float64_gradient():
     if not cuda.available()[0]:
         pytest.skip("needs a CUDA GPU and the extension")
     g = torch.Generator().manual_seed(5)
-    for S, F, H, W in ((8192, 32, 64, 64), (1000, 5, 32, 48), (33, 7, 3, 37)):
+    for S, F, H, W in ((8192, 32, 64, 64), (70000, 32, 64, 64), (1000, 5, 32, 48), (3000, 16, 16, 100), (33, 7, 3, 37)):
         torch.manual_seed(S)
         seg = SegmentationHead(F, H, W)
         torch.nn.init.normal_(seg.l2.weight, std=0.5)
@@ -618,7 +619,7 @@ def test_the_classifier_kernels_give_the_float64_gradient():
             p.requires_grad_(False)
         classifier_gradients(oracle, x.double(), y.double())
         seg = seg.cuda()
-        assert cuda.classifier_fits(F + H, W)
+        assert cuda.classifier_fits(F + H, W, torch.device("cuda"))
         written_out_gradients(seg, x.cuda(), y.cuda())
         first = [p.grad.clone() for p in seg.parameters()]
         written_out_gradients(seg, x.cuda(), y.cuda())
@@ -652,7 +653,7 @@ def test_the_classifier_on_our_kernels_trains_as_torchs():
         assert float((alphas[k] - alphas[False, False]).abs().max()) < 1e-3, k
     assert float(((alphas[True, True] > 0.5).float() - y).abs().mean()) < 0.05
     assert not writes_out(SegmentationHead(32, 64, 256).cuda(), x, EditConfig())
-    assert not cuda.classifier_fits(96, 256)
+    assert not cuda.classifier_fits(96, 256, x.device) and cuda.classifier_fits(96, 64, x.device)
 
 
 def test_an_engine_on_another_engines_view_fits_the_edit_a_fresh_engine_fits(world):

@@ -172,7 +172,7 @@ def writes_out(seg: SegmentationHead, x: Tensor, cfg: EditConfig) -> bool:
         return False
     from virgi_ns.raster import cuda
 
-    return cuda.classifier_fits(x.shape[1], seg.width) and cuda.available()[0]
+    return cuda.available()[0] and cuda.classifier_fits(x.shape[1], seg.width, x.device)
 
 
 def classifier_step(seg: SegmentationHead, x: Tensor, y: Tensor, opt: EditAdam, written_out: bool = False) -> None:
