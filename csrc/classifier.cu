@@ -86,7 +86,7 @@ __global__ void __launch_bounds__(kThreadsPerBlock) classifier_partials_kernel(
 #pragma unroll
         for (int r = 0; r < kPreRows; ++r)
 #pragma unroll
-          for (int c = 0; c < kPreCols; ++c) acc[r][c] += a[r] * b[c];
+          for (int c = 0; c < kPreCols; ++c) acc[r][c] = __fmaf_rn(a[r], b[c], acc[r][c]);
       }
 #pragma unroll
       for (int r = 0; r < kPreRows; ++r)
@@ -142,7 +142,7 @@ __global__ void __launch_bounds__(kThreadsPerBlock) classifier_partials_kernel(
 #pragma unroll
         for (int r = 0; r < kGradRows; ++r)
 #pragma unroll
-          for (int c = 0; c < kGradCols; ++c) gw1[r][c] += h[r] * v[c];
+          for (int c = 0; c < kGradCols; ++c) gw1[r][c] = __fmaf_rn(h[r], v[c], gw1[r][c]);
       }
     }
   }

@@ -44,6 +44,10 @@ too. Everywhere else it steps at ``lr``, as the copied layer does."""
 SEG_LR = 1e-2
 """``staged``: learning rate of the segmentation classifier."""
 
+CLASSIFIER_GRAPH_STEPS = 10
+"""Steps of the classifier recorded in one CUDA graph: a step's work is a few small kernels, so replaying
+one graph per step would leave the GPU waiting on the host's launches."""
+
 SEG_PRIOR_SHARE = 0.2
 """``staged``: the share of the classifier's negative samples drawn from the whole scene, unlabelled
 (most of a scene is not part of an edit): keeps the segmentation off what the edited view never showed
@@ -210,10 +214,11 @@ def train_classifier(seg: SegmentationHead, x: Tensor, y: Tensor, seg_input: Ten
 
 
 class RecordedClassifier:
-    """One step of the ``staged`` classifier (:func:`classifier_gradients` and Adam at :data:`SEG_LR`)
-    recorded as a CUDA graph over tensors of its own, kept per device and shape (samples, inputs, width)
-    so that an edit replays it instead of recording it again: :meth:`train` copies a head and its samples
-    in, restarts Adam and replays the step; the head gets the trained parameters back."""
+    """The ``staged`` classifier's step (:func:`classifier_step`, Adam at :data:`SEG_LR`) recorded as CUDA
+    graphs of one step and of :data:`CLASSIFIER_GRAPH_STEPS` steps over tensors of its own, kept per device,
+    shape (samples, inputs, width) and gradient (torch's or our kernels') so that an edit replays them
+    instead of recording them again: :meth:`train` copies a head and its samples in, restarts Adam and
+    replays the steps; the head gets the trained parameters back."""
 
     _kept: dict[tuple, "RecordedClassifier"] = {}
     _failed: set[tuple] = set()
@@ -227,8 +232,13 @@ class RecordedClassifier:
         self.x, self.y = x.clone(), y.clone()
         self.opt = EditAdam(self.params, lr=SEG_LR)
         step = functools.partial(classifier_step, self.seg, self.x, self.y, self.opt, written_out)
-        recording = warm_up_and_record(step, [step], x.device)
-        self.graph = recording.graphs[0] if recording.graphs else None
+
+        def several() -> None:
+            for _ in range(CLASSIFIER_GRAPH_STEPS):
+                step()
+
+        recording = warm_up_and_record(step, [step, several], x.device)
+        self.one, self.several = recording.graphs if recording.graphs else (None, None)
         self.error = recording.error
 
     @classmethod
@@ -243,7 +253,7 @@ class RecordedClassifier:
             rec = cls._kept.get(key)
             if rec is None:
                 rec = cls(seg, x, y, written_out)
-                if rec.graph is None:
+                if rec.one is None:
                     cls._failed.add(key)
                     warnings.warn(f"the segmentation classifier runs without a CUDA graph: {rec.error}")
                     return False
@@ -253,8 +263,10 @@ class RecordedClassifier:
             rec.x.copy_(x)
             rec.y.copy_(y)
             rec.opt.restart()
-            for _ in range(steps):
-                rec.graph.replay()
+            for _ in range(steps // CLASSIFIER_GRAPH_STEPS):
+                rec.several.replay()
+            for _ in range(steps % CLASSIFIER_GRAPH_STEPS):
+                rec.one.replay()
             for mine, theirs in zip(rec.params, seg.parameters()):
                 theirs.copy_(mine)
         return True
@@ -347,7 +359,7 @@ class Stopwatch:
         self.seconds = time.perf_counter() - self._t0
 
 
-__all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Recording",
+__all__ = ["CLASSIFIER_GRAPH_STEPS", "LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Recording",
            "RecordedClassifier", "Stopwatch", "capture", "classifier_gradients", "classifier_samples",
            "classifier_step", "constant_segmentation", "gaussian_labels", "schedule", "segmentation_rate", "sync",
            "train_classifier", "warm_up_and_record", "writes_out", "written_out_gradients"]
