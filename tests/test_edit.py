@@ -962,3 +962,74 @@ def test_a_fit_that_leaves_the_changed_pixels_where_they_were_says_so(world):
     same = EditEngine(S.scene, cam, rgb, cfg=EditConfig(steps=5), changed=patch)
     same.fit()
     assert same.changed_progress() is None and same.small_progress_note() is None
+
+
+def test_the_auto_recipe_stages_a_small_edit_at_a_small_share_and_fits_a_large_one_jointly(world):
+    """``recipe="auto"``: an edit of under ``MAP_START_SHARE`` of the view runs ``staged`` with its changed pixels
+    carrying ``STAGED_SMALL_SHARE`` of each set's loss; a larger one runs ``joint`` at ``changed_share``; a
+    whole-image fit is joint. The small staged edit still recolours its object in a held-out view."""
+    from virgi_ns.edit.engine import recipe_for
+    from virgi_ns.edit.targets import MAP_START_SHARE, STAGED_SMALL_SHARE
+
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    rgb = world["before"][EDIT_VIEW]["rgb"]
+    edited, mask = recolor(rgb, BLUE_TO_RED)
+    assert float(mask.float().mean()) < MAP_START_SHARE
+    small = EditEngine(S.scene, cam, edited, cfg=EditConfig(recipe="auto", seg_steps=60, seg_samples=2048),
+                       original=rgb)
+    assert small.recipe == "staged"
+    for b in small.batches:
+        changed = mask.reshape(-1)[b.pixels]
+        assert float(b.weight[changed].sum()) == pytest.approx(STAGED_SMALL_SHARE, abs=1e-4)
+    stack = _stack(world, small.fit()[0])
+    assert stack.entries[0].edit.info["recipe"] == "staged"
+    b = world["before"][HELD_OUT[0]]["rgb"]
+    truth, m = recolor(b, BLUE_TO_RED)
+    assert float((_render(world, HELD_OUT[0], stack)["rgb"] - truth).abs()[m].mean()) < 0.1
+    top = torch.zeros_like(mask)
+    top[: mask.shape[0] // 3] = True
+    large_image = torch.where(mask[..., None], edited, torch.where(top[..., None], 1.0 - rgb, rgb))
+    large = EditEngine(S.scene, cam, large_image, cfg=EditConfig(recipe="auto"), original=rgb)
+    assert large.changed_fraction >= MAP_START_SHARE and large.recipe == "joint"
+    changed = ((large_image - rgb).abs().amax(-1) > 3.0 / 255.0).reshape(-1)[large.batches[0].pixels]
+    assert float(large.batches[0].weight[changed].sum()) == pytest.approx(0.5, abs=1e-4)
+    assert recipe_for("auto", SimpleTarget()) == "joint"
+    with pytest.raises(ValueError, match="auto"):
+        EditConfig(recipe="other")
+
+
+class SimpleTarget:
+    """A whole-image target: no changed pixels."""
+
+    changed = None
+
+
+def test_the_staged_band_frees_the_border_of_a_staged_fit_only(world):
+    """``staged_band=B``: in a staged fit the unchanged pixels within B pixels (Chebyshev) of a changed one
+    carry no loss, and every other pixel's weight is the one it has without the band; a joint fit keeps them."""
+    S = world["S"]
+    cam = S.cameras.index(EDIT_VIEW)
+    rgb = world["before"][EDIT_VIEW]["rgb"]
+    edited, mask = recolor(rgb, BLUE_TO_RED)
+    H, W = mask.shape
+    near = torch.zeros_like(mask)
+    ys, xs = torch.nonzero(mask, as_tuple=True)
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            near[(ys + dy).clamp(0, H - 1), (xs + dx).clamp(0, W - 1)] = True
+    border = (near & ~mask).reshape(-1)
+    assert int(border.sum()) > 0
+    for recipe, freed in (("staged", True), ("joint", False)):
+        cfg = dict(recipe=recipe, seg_steps=5, seg_samples=256)
+        plain = EditEngine(S.scene, cam, edited, cfg=EditConfig(**cfg), original=rgb)
+        banded = EditEngine(S.scene, cam, edited, cfg=EditConfig(**cfg, staged_band=2), original=rgb)
+        for a, b in zip(plain.batches, banded.batches):
+            assert torch.equal(a.pixels, b.pixels)
+            on_border = border[b.pixels]
+            if freed:
+                assert float(b.weight[on_border].abs().max()) == 0.0 and float(a.weight[on_border].min()) > 0.0
+                assert float(b.weight[~on_border & mask.reshape(-1)[b.pixels]].sum()) == pytest.approx(
+                    float(a.weight[~on_border & mask.reshape(-1)[b.pixels]].sum()), rel=1e-5)
+            else:
+                assert torch.equal(a.weight, b.weight)

@@ -66,14 +66,22 @@ class EditConfig:
     any other; the photo's detail the model never reproduced stays out of the edit. ``edited``: the
     edited pixels themselves (the paper's). The same for an edited render; no effect with
     ``whole_image``."""
-    recipe: Literal["joint", "staged"] = "joint"
+    recipe: Literal["joint", "staged", "auto"] = "joint"
     """How the two heads are fitted. ``joint`` (the paper's): both heads together on the pixel loss.
     ``staged``: the segmentation first, as a classifier of which Gaussians the edit changed (each
     visible Gaussian labelled by the share of its pixel weight on changed pixels, trusted in
     proportion to its weight and to how clear that share is, the two classes weighing the same), so a
     part of another colour inside a recoloured object keeps its colour; then the copied layer, from
     the colour map of the changed pixels, with the segmentation fixed. Needs the changed pixels (a
-    whole-image fit runs ``joint``)."""
+    whole-image fit runs ``joint``). ``auto``: ``staged``
+    for an edit that changes less than :data:`~virgi_ns.edit.targets.MAP_START_SHARE` of the view, its
+    changed pixels carrying :data:`~virgi_ns.edit.targets.STAGED_SMALL_SHARE` of the loss (a frozen
+    segmentation cannot stall, so the loss can weigh pixels nearer their count), ``joint`` otherwise."""
+    staged_band: int = 0
+    """``staged`` fits (``auto``'s too): unchanged pixels within this many pixels (Chebyshev) of a changed
+    one carry no loss (with the segmentation fixed, the border's blend of changed and unchanged Gaussians
+    pulls the one copied layer back to the old colour; a joint fit learns where the edit stops from those
+    pixels, so it keeps them); 0: off."""
     seg_steps: int = 300
     """``staged``: Adam steps of the segmentation classifier."""
     seg_samples: int = 65536
@@ -118,8 +126,8 @@ class EditConfig:
             raise ValueError(f"EditConfig.changed_target must be 'affine' or 'edited', got {self.changed_target!r}")
         if self.unchanged_weights not in ("count", "colour"):
             raise ValueError(f"EditConfig.unchanged_weights must be 'count' or 'colour', got {self.unchanged_weights!r}")
-        if self.recipe not in ("joint", "staged"):
-            raise ValueError(f"EditConfig.recipe must be 'joint' or 'staged', got {self.recipe!r}")
+        if self.recipe not in ("joint", "staged", "auto"):
+            raise ValueError(f"EditConfig.recipe must be 'joint', 'staged' or 'auto', got {self.recipe!r}")
         if self.seg_steps < 0 or self.seg_samples < 2:
             raise ValueError(f"EditConfig: seg_steps must be >= 0 and seg_samples >= 2 "
                              f"(got {self.seg_steps}, {self.seg_samples})")

@@ -43,7 +43,7 @@ from virgi_ns.edit.optim import EditAdam
 from virgi_ns.edit.pixels import PixelBatch, pixel_batches, resolve_composite
 from virgi_ns.edit.scene import FrozenScene
 from virgi_ns.edit.stack import Edit, EditSource, EditStack, new_edit_info
-from virgi_ns.edit.targets import MAP_START_SHARE, Target, find_target, logit_colour_map, unchanged_pixel_weights
+from virgi_ns.edit.targets import MAP_START_SHARE, STAGED_SMALL_SHARE, Target, find_target, logit_colour_map, unchanged_pixel_weights
 from virgi_ns.errors import InputError
 from virgi_ns.raster import Cameras, Request, composite
 
@@ -185,9 +185,9 @@ class EditEngine:
         start: fresh, or (``warm``) from the current fit (:meth:`retarget`)."""
         target = find_target(self.cfg, self.current, edited, original, selection)
         self._progress = _UNMEASURED
+        self.recipe = recipe_for(self.cfg.recipe, target)
         previous, same = self._set_batches(target, warm)
         self.target = target
-        self.recipe = self.cfg.recipe if target.changed is not None else "joint"
         staged = self.recipe == "staged"
         self._start_layer(target, warm, previous, staged)
         self._set_segmentation(target, warm, same, staged, seg_steps)
@@ -211,8 +211,16 @@ class EditEngine:
         if flat is not None and self.cfg.unchanged_weights == "colour":
             c = self.contrib
             keep = unchanged_pixel_weights(c.pixel, c.pair, c.weight, torch.sigmoid(self.c_d), flat)
+        share = STAGED_SMALL_SHARE if self.cfg.recipe == "auto" and self.recipe == "staged" else self.cfg.changed_share
+        if flat is not None and self.cfg.staged_band > 0 and self.recipe == "staged":
+            B = self.cfg.staged_band
+            H, W = target.image.shape[:2]
+            near = torch.nn.functional.max_pool2d(flat.reshape(1, 1, H, W).float(), 2 * B + 1, stride=1,
+                                                  padding=B).reshape(-1) > 0
+            base = keep if keep is not None else (~flat).float()
+            keep = torch.where(near & ~flat, torch.zeros((), device=base.device), base)
         self.batches = pixel_batches(self.contrib, image, self.background, self.cfg.pixel_batches, self.cfg.seed,
-                                     flat, self.cfg.changed_share, kind, target.count, keep)
+                                     flat, share, kind, target.count, keep)
         for b in self.batches:
             if b.pixels is None:  # the whole image: its own copy, which a warm retarget writes into
                 b.target = b.target.clone()
@@ -266,22 +274,17 @@ class EditEngine:
 
     def _classify(self, target: Target, warm: bool, steps: int) -> Tensor:
         """The ``staged`` recipe's segmentation: each of the view's Gaussians labelled by where its pixel
-        weight lands (:func:`~virgi_ns.edit.fitting.gaussian_labels`), the head trained as their classifier
-        with unlabelled Gaussians of the whole scene as weak negatives; returns its alpha [U, 1]."""
+        weight lands (:func:`~virgi_ns.edit.fitting.gaussian_labels`), the head trained as their classifier;
+        returns its alpha [U, 1]."""
         c, dev = self.contrib, self.h_diff.device
         # the entries' indices as they are (int32 from the kernels): a copy to int64 costs more than the sums
         on_changed = torch.index_select(target.flat, 0, c.pixel.to(dev))
         label, trust = gaussian_labels(c.pair.to(dev), c.weight.detach().to(dev).float(), on_changed,
                                        self.gaussians.numel())
-        drawn = classifier_samples(label, trust, self.cfg, self.scene.means.shape[0])
-        if drawn is None:  # one class: a constant alpha
+        idx = classifier_samples(label, trust, self.cfg)
+        if idx is None:  # one class: a constant alpha
             return constant_segmentation(self.seg, self.seg_input, positive=bool(float((trust * label).sum()) > 0.0))
-        idx, anywhere = drawn
         x, y = self.seg_input[idx], label[idx].float()[:, None]
-        if anywhere.numel() > 0:
-            f, _, h2 = self.scene.gaussian_features(anywhere)
-            x = torch.cat([x, self.seg.inputs(f, h2)])
-            y = torch.cat([y, torch.zeros(anywhere.numel(), 1, device=dev)])
         return train_classifier(self.seg, x, y, self.seg_input, self.cfg, warm=warm, steps=steps)
 
     def _set_heads(self) -> None:
@@ -447,6 +450,16 @@ class EditEngine:
         C, alpha = self.colours()
         bg = self.scene.background.to(C)
         return {"rgb": composite(C, self.contrib, bg)[0], "alpha": composite(alpha, self.contrib)[0]}
+
+
+def recipe_for(recipe: str, target: Target) -> str:
+    """The recipe a fit of ``target`` runs: ``joint`` where the changed pixels are unknown; for ``auto``,
+    ``staged`` below :data:`MAP_START_SHARE` of the view and ``joint`` from it."""
+    if target.changed is None:
+        return "joint"
+    if recipe == "auto":
+        return "staged" if target.fraction < MAP_START_SHARE else "joint"
+    return recipe
 
 
 def _check_images(edited: Tensor, original: Optional[Tensor], changed: Optional[Tensor], W: int, H: int) -> None:

@@ -43,12 +43,6 @@ too. Everywhere else it steps at ``lr``, as the copied layer does."""
 SEG_LR = 1e-2
 """``staged``: learning rate of the segmentation classifier."""
 
-SEG_PRIOR_SHARE = 0.2
-"""``staged``: the share of the classifier's negative samples drawn from the whole scene, unlabelled
-(most of a scene is not part of an edit): keeps the segmentation off what the edited view never showed
-unless it resembles what the edit changed."""
-
-
 @dataclass
 class EditTiming:
     """What a fit took: the set-up (the view, or a retarget) and the steps, in seconds, how many steps
@@ -102,13 +96,12 @@ def gaussian_labels(pair: Tensor, weight: Tensor, on_changed: Tensor, count: int
     return share > 0.5, mass * (2.0 * share - 1.0).abs()
 
 
-def classifier_samples(label: Tensor, trust: Tensor, cfg: EditConfig, scene_size: int
-                       ) -> Optional[tuple[Tensor, Tensor]]:
-    """What the ``staged`` recipe's classifier trains on: (indices [S] of the view's Gaussians, drawn by
-    ``trust``, half from each class of ``label``; indices [R] of unlabelled Gaussians of the whole scene, of
-    ``scene_size``, the :data:`SEG_PRIOR_SHARE` of the negatives that are weak negatives), ``cfg.seg_samples``
-    in all, from a generator seeded with ``cfg.seed``; None where one class is empty (a constant alpha,
-    :func:`constant_segmentation`).
+def classifier_samples(label: Tensor, trust: Tensor, cfg: EditConfig) -> Optional[Tensor]:
+    """What the ``staged`` recipe's classifier trains on: indices [S] of the view's Gaussians, drawn by
+    ``trust``, half from each class of ``label``, ``cfg.seg_samples`` in all, from a generator seeded with
+    ``cfg.seed``; None where one class is empty (a constant alpha, :func:`constant_segmentation`). Only
+    the view's Gaussians: an unlabelled Gaussian of the rest of the scene may be the recoloured object's
+    own unseen side, so none is taken as a negative.
 
     Args:
         label, trust: [U] from :func:`gaussian_labels`."""
@@ -117,12 +110,9 @@ def classifier_samples(label: Tensor, trust: Tensor, cfg: EditConfig, scene_size
     if pos <= 0.0 or neg <= 0.0:
         return None
     half = cfg.seg_samples // 2
-    n_prior = int(round(half * SEG_PRIOR_SHARE))
     g = torch.Generator(device=trust.device).manual_seed(cfg.seed)
-    idx = torch.cat([torch.multinomial(pos_w, half, replacement=True, generator=g),
-                     torch.multinomial(neg_w, half - n_prior, replacement=True, generator=g)])
-    anywhere = torch.randint(0, scene_size, (n_prior,), device=trust.device, generator=g)
-    return idx, anywhere
+    return torch.cat([torch.multinomial(pos_w, half, replacement=True, generator=g),
+                      torch.multinomial(neg_w, cfg.seg_samples - half, replacement=True, generator=g)])
 
 
 def constant_segmentation(seg: SegmentationHead, seg_input: Tensor, positive: bool) -> Tensor:
@@ -318,7 +308,7 @@ class Stopwatch:
         self.seconds = time.perf_counter() - self._t0
 
 
-__all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Recording",
+__all__ = ["LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "EditTiming", "GraphedSteps", "Recording",
            "RecordedClassifier", "Stopwatch", "capture", "classifier_gradients", "classifier_samples",
            "classifier_step", "constant_segmentation", "gaussian_labels", "schedule", "segmentation_rate", "sync",
            "train_classifier", "warm_up_and_record"]

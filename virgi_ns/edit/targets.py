@@ -35,6 +35,9 @@ the changed pixels (:func:`logit_colour_map`: ``W' = M W``, ``b' = M b + t``), w
 many colours does not reach from ``W`` in its steps; a smaller edit starts from ``W``, so its
 segmentation stays on the painted pixels. The ``staged`` recipe always starts from the map."""
 
+STAGED_SMALL_SHARE = 0.1
+"""The changed pixels' share of the loss where the ``auto`` recipe runs ``staged`` (a small edit)."""
+
 SLOPE_RIDGE = (1.0 / 255.0) ** 2
 """Ridge of :func:`change_slope`: along a direction of colour in which the changed pixels vary by less
 than one 8-bit level the photo says little of how the change varies, so the slope there shrinks
