@@ -293,9 +293,10 @@ class EditEngine:
         use = self.cfg.fused_heads and sets is not None and FusedHeads.runs_on(self.seg, self.h_diff.device)
         kind = None if not use else FusedHeads if self.alpha_fixed is None else FusedLayer
         current = self._heads
-        if type(current) is kind or (kind is None and current is None):
-            if kind is not FusedLayer or current.alpha is self.alpha_fixed:
-                return
+        if current is None and kind is None:
+            return
+        if type(current) is kind and (kind is FusedHeads or current.alpha is self.alpha_fixed):
+            return  # the same step on the same tensors: the recorded steps stand
         inputs = HeadsInputs(self.seg_input, self.feats.shape[1], self.c_d, self.c_s, self.k)
         if kind is FusedHeads:
             self._heads = FusedHeads(self.seg, self.weight, self.bias, inputs)

@@ -193,9 +193,9 @@ def train_classifier(seg: SegmentationHead, x: Tensor, y: Tensor, seg_input: Ten
     ``cfg.seg_steps``, on all of them every step), then frozen; returns its alpha [U, 1] on the view's
     Gaussians (``seg_input``), fixed for the layer's steps. ``warm``: on from the head's state instead of
     its fresh output bias. Its gradient runs on our kernels where :func:`writes_out` says so. On a GPU with
-    ``cfg.cuda_graphs`` the steps replay one recorded CUDA graph (the
-    same kernels without a Python round trip each), recorded once per device and shape
-    (:class:`RecordedClassifier`); where a step cannot be recorded they run eagerly."""
+    ``cfg.cuda_graphs`` the steps replay recorded CUDA graphs (the same kernels without a Python round trip
+    each), recorded once per device and shape (:class:`RecordedClassifier`); where a step cannot be recorded
+    they run eagerly."""
     if not warm:
         torch.nn.init.constant_(seg.l2.bias, 0.0)
     params = list(seg.parameters())
@@ -359,7 +359,8 @@ class Stopwatch:
         self.seconds = time.perf_counter() - self._t0
 
 
-__all__ = ["CLASSIFIER_GRAPH_STEPS", "LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming", "GraphedSteps", "Recording",
-           "RecordedClassifier", "Stopwatch", "capture", "classifier_gradients", "classifier_samples",
-           "classifier_step", "constant_segmentation", "gaussian_labels", "schedule", "segmentation_rate", "sync",
-           "train_classifier", "warm_up_and_record", "writes_out", "written_out_gradients"]
+__all__ = ["CLASSIFIER_GRAPH_STEPS", "LARGE_EDIT_SEG_RATE", "LR_HOLD", "SEG_LR", "SEG_PRIOR_SHARE", "EditTiming",
+           "GraphedSteps", "Recording", "RecordedClassifier", "Stopwatch", "capture", "classifier_gradients",
+           "classifier_samples", "classifier_step", "constant_segmentation", "gaussian_labels", "schedule",
+           "segmentation_rate", "sync", "train_classifier", "warm_up_and_record", "writes_out",
+           "written_out_gradients"]

@@ -193,5 +193,5 @@ class FusedLayer:
         return loss[0]
 
 
-__all__ = ["GLOBAL_RNG_LOCK", "FusedHeads", "FusedLayer", "HeadsInputs", "SegmentationHead", "fresh_segmentation", "reference_backward",
-           "reference_forward"]
+__all__ = ["GLOBAL_RNG_LOCK", "FusedHeads", "FusedLayer", "HeadsInputs", "SegmentationHead", "fresh_segmentation",
+           "reference_backward", "reference_forward"]

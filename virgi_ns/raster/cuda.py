@@ -500,8 +500,9 @@ def classifier_gradients(x: Tensor, y: Tensor, w1: Tensor, b1: Tensor, w2: Tenso
     return _load().classifier_gradients(x, y, w1, b1, w2, b2)
 
 
-__all__ = ["available", "build", "classifier_fits", "classifier_gradients", "composite", "cuda_home", "edit_by_gaussian", "edit_heads_backward",
-           "edit_heads_forward", "edit_l1_step", "edit_layer_backward", "edit_layer_forward", "rasterize", "CudaContributions", "DeferredCudaContributions"]
+__all__ = ["available", "build", "classifier_fits", "classifier_gradients", "composite", "cuda_home",
+           "edit_by_gaussian", "edit_heads_backward", "edit_heads_forward", "edit_l1_step", "edit_layer_backward",
+           "edit_layer_forward", "rasterize", "CudaContributions", "DeferredCudaContributions"]
 
 if __name__ == "__main__":  # pragma: no cover - manual build check: python -m virgi_ns.raster.cuda
     build(verbose=True)
