@@ -32,6 +32,32 @@ __device__ __forceinline__ float warp_sum(float v) {
   return v;
 }
 
+// The copied layer's product wd h over h_diff's H entries at one Gaussian, summed across the warp
+// (every lane gets it); its bias is added by write_colours.
+__device__ __forceinline__ void warp_layer(const float* __restrict__ h, int H, const float* __restrict__ wd,
+                                           int lane, float c[3]) {
+  c[0] = c[1] = c[2] = 0.f;
+  for (int j = lane; j < H; j += 32) {
+    const float v = h[j];
+#pragma unroll
+    for (int d = 0; d < 3; ++d) c[d] += wd[d * H + j] * v;
+  }
+#pragma unroll
+  for (int d = 0; d < 3; ++d) c[d] = warp_sum(c[d]);
+}
+
+// Gaussian u's layer output cdp = c + bd and its colour under alpha a, from one lane.
+__device__ __forceinline__ void write_colours(int64_t u, float a, const float c[3], const float* __restrict__ bd,
+                                              const float* __restrict__ cd, const float* __restrict__ cs, float k,
+                                              float* __restrict__ cdp, float* __restrict__ colors) {
+#pragma unroll
+  for (int d = 0; d < 3; ++d) {
+    const float layer = c[d] + bd[d];
+    cdp[u * 3 + d] = layer;
+    colors[u * 3 + d] = sigmoid(a * layer + (1.f - a) * cd[u * 3 + d] + k * cs[u * 3 + d]);
+  }
+}
+
 __global__ void __launch_bounds__(kWarps * 32) heads_forward_kernel(
     const float* __restrict__ pre, const float* __restrict__ x, int64_t U, int S, int Dx,
     int hd_offset, int H, const float* __restrict__ w2, const float* __restrict__ b2,
@@ -42,26 +68,14 @@ __global__ void __launch_bounds__(kWarps * 32) heads_forward_kernel(
   const int64_t warps = static_cast<int64_t>(gridDim.x) * kWarps;
   for (int64_t u = static_cast<int64_t>(blockIdx.x) * kWarps + threadIdx.x / 32; u < U; u += warps) {
     const float* p = pre + u * S;
-    const float* h = x + u * Dx + hd_offset;
-    float logit = 0.f, c[3] = {0.f, 0.f, 0.f};
+    float logit = 0.f, c[3];
     for (int j = lane; j < S; j += 32) logit += fmaxf(p[j], 0.f) * w2[j];
-    for (int j = lane; j < H; j += 32) {
-      const float v = h[j];
-#pragma unroll
-      for (int d = 0; d < 3; ++d) c[d] += wd[d * H + j] * v;
-    }
+    warp_layer(x + u * Dx + hd_offset, H, wd, lane, c);
     logit = warp_sum(logit);
-#pragma unroll
-    for (int d = 0; d < 3; ++d) c[d] = warp_sum(c[d]);
     if (lane == 0) {
       const float a = sigmoid(logit + b2[0]);
       alpha[u] = a;
-#pragma unroll
-      for (int d = 0; d < 3; ++d) {
-        const float layer = c[d] + bd[d];
-        cdp[u * 3 + d] = layer;
-        colors[u * 3 + d] = sigmoid(a * layer + (1.f - a) * cd[u * 3 + d] + k * cs[u * 3 + d]);
-      }
+      write_colours(u, a, c, bd, cd, cs, k, cdp, colors);
     }
   }
 }
@@ -135,24 +149,9 @@ __global__ void __launch_bounds__(kWarps * 32) layer_forward_kernel(
   const int lane = threadIdx.x % 32;
   const int64_t warps = static_cast<int64_t>(gridDim.x) * kWarps;
   for (int64_t u = static_cast<int64_t>(blockIdx.x) * kWarps + threadIdx.x / 32; u < U; u += warps) {
-    const float* h = x + u * Dx + hd_offset;
-    float c[3] = {0.f, 0.f, 0.f};
-    for (int j = lane; j < H; j += 32) {
-      const float v = h[j];
-#pragma unroll
-      for (int d = 0; d < 3; ++d) c[d] += wd[d * H + j] * v;
-    }
-#pragma unroll
-    for (int d = 0; d < 3; ++d) c[d] = warp_sum(c[d]);
-    if (lane == 0) {
-      const float a = alpha[u];
-#pragma unroll
-      for (int d = 0; d < 3; ++d) {
-        const float layer = c[d] + bd[d];
-        cdp[u * 3 + d] = layer;
-        colors[u * 3 + d] = sigmoid(a * layer + (1.f - a) * cd[u * 3 + d] + k * cs[u * 3 + d]);
-      }
-    }
+    float c[3];
+    warp_layer(x + u * Dx + hd_offset, H, wd, lane, c);
+    if (lane == 0) write_colours(u, alpha[u], c, bd, cd, cs, k, cdp, colors);
   }
 }
 

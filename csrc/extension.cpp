@@ -826,6 +826,23 @@ std::vector<torch::Tensor> edit_by_gaussian(torch::Tensor pair, torch::Tensor we
   return {t_start, t_gauss, t_row, t_w};
 }
 
+// What the copied layer's forward reads (both forwards): x [U, Dx] with h_diff at columns hd_offset..
+// hd_offset + H, wd [3, H], bd [3], cd and cs [U, 3]. Returns H.
+int64_t check_layer_inputs(const torch::Tensor& x, const torch::Tensor& wd, const torch::Tensor& bd,
+                           const torch::Tensor& cd, const torch::Tensor& cs, int64_t U, int64_t hd_offset) {
+  check_f32(x, "x");
+  check_f32(wd, "wd");
+  check_f32(bd, "bd");
+  check_input(cd, "cd", 3);
+  check_input(cs, "cs", 3);
+  TORCH_CHECK(x.dim() == 2 && wd.dim() == 2 && wd.size(0) == 3, "x must be [U, Dx], wd [3, H]");
+  TORCH_CHECK(x.size(0) == U && cd.size(0) == U && cs.size(0) == U, "x, cd and cs need one row per Gaussian");
+  TORCH_CHECK(bd.numel() == 3, "bd must be [3]");
+  const int64_t H = wd.size(1);
+  TORCH_CHECK(hd_offset >= 0 && hd_offset + H <= x.size(1), "h_diff (columns hd_offset + H) must lie inside x");
+  return H;
+}
+
 // The edit heads' forward (kernels.h, launch_heads_forward): pre [U, S] = x W1^T + b1, x [U, Dx]
 // with h_diff at columns hd_offset.., w2 [S], b2 [1], wd [3, H], bd [3], cd and cs [U, 3]. Returns
 // {colors [U, 3], alpha [U], cdp [U, 3]}.
@@ -834,19 +851,12 @@ std::vector<torch::Tensor> edit_heads_forward(torch::Tensor pre, torch::Tensor x
                                               torch::Tensor cd, torch::Tensor cs, double k,
                                               int64_t hd_offset) {
   check_f32(pre, "pre");
-  check_f32(x, "x");
   check_f32(w2, "w2");
   check_f32(b2, "b2");
-  check_f32(wd, "wd");
-  check_f32(bd, "bd");
-  check_input(cd, "cd", 3);
-  check_input(cs, "cs", 3);
-  TORCH_CHECK(pre.dim() == 2 && x.dim() == 2 && wd.dim() == 2 && wd.size(0) == 3,
-              "pre and x must be [U, S] and [U, Dx], wd [3, H]");
-  const int64_t U = pre.size(0), S = pre.size(1), Dx = x.size(1), H = wd.size(1);
-  TORCH_CHECK(x.size(0) == U && cd.size(0) == U && cs.size(0) == U, "pre, x, cd and cs need one row per Gaussian");
-  TORCH_CHECK(w2.numel() == S && b2.numel() == 1 && bd.numel() == 3, "w2 must be [S], b2 [1], bd [3]");
-  TORCH_CHECK(hd_offset >= 0 && hd_offset + H <= Dx, "h_diff (columns hd_offset + H) must lie inside x");
+  TORCH_CHECK(pre.dim() == 2, "pre must be [U, S]");
+  const int64_t U = pre.size(0), S = pre.size(1);
+  const int64_t H = check_layer_inputs(x, wd, bd, cd, cs, U, hd_offset), Dx = x.size(1);
+  TORCH_CHECK(w2.numel() == S && b2.numel() == 1, "w2 must be [S], b2 [1]");
   const OnDevice on(pre);
   auto colors = torch::empty({U, 3}, pre.options());
   auto alpha = torch::empty({U}, pre.options());
@@ -894,16 +904,9 @@ std::vector<torch::Tensor> edit_layer_forward(torch::Tensor alpha, torch::Tensor
                                               torch::Tensor bd, torch::Tensor cd, torch::Tensor cs, double k,
                                               int64_t hd_offset) {
   check_f32(alpha, "alpha");
-  check_f32(x, "x");
-  check_f32(wd, "wd");
-  check_f32(bd, "bd");
-  check_input(cd, "cd", 3);
-  check_input(cs, "cs", 3);
-  TORCH_CHECK(x.dim() == 2 && wd.dim() == 2 && wd.size(0) == 3, "x must be [U, Dx], wd [3, H]");
-  const int64_t U = x.size(0), Dx = x.size(1), H = wd.size(1);
-  TORCH_CHECK(alpha.numel() == U && cd.size(0) == U && cs.size(0) == U, "alpha, cd and cs need one row per Gaussian");
-  TORCH_CHECK(bd.numel() == 3, "bd must be [3]");
-  TORCH_CHECK(hd_offset >= 0 && hd_offset + H <= Dx, "h_diff (columns hd_offset + H) must lie inside x");
+  const int64_t U = alpha.numel();
+  const int64_t H = check_layer_inputs(x, wd, bd, cd, cs, U, hd_offset);
+  const int64_t Dx = x.size(1);
   const OnDevice on(x);
   auto colors = torch::empty({U, 3}, x.options());
   auto cdp = torch::empty({U, 3}, x.options());

@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from virgi_ns.edit.config import EditConfig
-from virgi_ns.edit.heads import SegmentationHead
+from virgi_ns.edit.heads import FusedHeads, SegmentationHead
 from virgi_ns.edit.optim import EditAdam
 
 LR_HOLD = 0.5
@@ -172,11 +172,12 @@ def written_out_gradients(seg: SegmentationHead, x: Tensor, y: Tensor) -> None:
 def writes_out(seg: SegmentationHead, x: Tensor, cfg: EditConfig) -> bool:
     """Whether the classifier's gradient runs on our kernels (:func:`written_out_gradients`): with
     ``cfg.fused_heads``, float32 samples on a GPU, the extension built, a head the kernels take."""
-    if not (cfg.fused_heads and x.is_cuda and x.dtype == torch.float32 and seg.l1.weight.dtype == torch.float32):
+    if not (cfg.fused_heads and x.dtype == torch.float32 and seg.l1.weight.dtype == torch.float32
+            and FusedHeads.runs_on(seg, x.device)):
         return False
     from virgi_ns.raster import cuda
 
-    return cuda.available()[0] and cuda.classifier_fits(x.shape[1], seg.width, x.device)
+    return cuda.classifier_fits(x.shape[1], seg.width, x.device)
 
 
 def classifier_step(seg: SegmentationHead, x: Tensor, y: Tensor, opt: EditAdam, written_out: bool = False) -> None:
