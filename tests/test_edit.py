@@ -934,14 +934,16 @@ def test_a_fresh_segmentation_head_is_drawn_from_the_seed_and_copied_per_edit(wo
 def test_fit_loss_is_the_weighted_l1_of_the_preview_against_the_target(world, pixel_batches, composite):
     """``EditEngine.fit_loss`` (a fit's loss on every pixel set at once) against the same loss computed
     on the whole preview: the changed pixels carry ``changed_share`` of it, the rest the remainder,
-    each group's |preview - target| averaged over its pixels and channels. The sets split each group
+    each group's |preview - target| averaged over its pixels and channels (the ``count`` weights, named
+    so the test holds whichever weights are the default). The sets split each group
     evenly, so their mean equals the whole view's up to one pixel's share of a set."""
     S = world["S"]
     render = world["before"][EDIT_VIEW]["rgb"]
     g = torch.Generator().manual_seed(5)
     photo = (render + 0.1 * (torch.rand(render.shape, generator=g) - 0.5)).clamp(0, 1)
     edited, _ = recolor(photo, BLUE_TO_RED)
-    cfg = EditConfig(steps=15, pixel_batches=pixel_batches, changed_share=0.7, batch_composite=composite)
+    cfg = EditConfig(steps=15, pixel_batches=pixel_batches, changed_share=0.7, batch_composite=composite,
+                     unchanged_weights="count")
     eng = EditEngine(S.scene, S.cameras.index(EDIT_VIEW), edited, cfg=cfg, original=photo)
     eng.fit()
     err = (eng.preview()["rgb"] - eng.target.image).abs().mean(-1).reshape(-1)
