@@ -94,6 +94,10 @@ class HeadsInputs:
     cs: Tensor
     k: float
 
+    def for_kernels(self) -> tuple[Tensor, Tensor, Tensor]:
+        """``x``, ``cd`` and ``cs`` as the kernels read them: float32 and contiguous."""
+        return self.x.float().contiguous(), self.cd.float().contiguous(), self.cs.float().contiguous()
+
 
 def reference_forward(seg: SegmentationHead, weight: Tensor, bias: Tensor, inp: HeadsInputs) -> dict[str, Tensor]:
     """The heads' forward in torch: ``pre``, ``alpha`` [U], ``cdp`` and the colours ``C`` [U, 3]."""
@@ -129,9 +133,7 @@ class FusedHeads:
 
     def __init__(self, seg: SegmentationHead, weight: Tensor, bias: Tensor, inp: HeadsInputs) -> None:
         self.seg, self.weight, self.bias, self.inp = seg, weight, bias, inp
-        self.x = inp.x.float().contiguous()
-        self.cd = inp.cd.float().contiguous()
-        self.cs = inp.cs.float().contiguous()
+        self.x, self.cd, self.cs = inp.for_kernels()
 
     @staticmethod
     def runs_on(seg: SegmentationHead, colours_device: torch.device) -> bool:
@@ -174,9 +176,7 @@ class FusedLayer:
 
     def __init__(self, alpha: Tensor, weight: Tensor, bias: Tensor, inp: HeadsInputs) -> None:
         self.alpha, self.weight, self.bias, self.inp = alpha, weight, bias, inp
-        self.x = inp.x.float().contiguous()
-        self.cd = inp.cd.float().contiguous()
-        self.cs = inp.cs.float().contiguous()
+        self.x, self.cd, self.cs = inp.for_kernels()
 
     def step(self, sets) -> Tensor:
         """The loss of the set ``sets`` names (advancing its counter), and the layer's gradient in its ``.grad``."""
