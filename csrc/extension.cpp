@@ -935,6 +935,16 @@ std::vector<torch::Tensor> edit_layer_backward(torch::Tensor grad_colors, torch:
   return {grad_rows, sums};
 }
 
+// Whether classifier_gradients takes a head of W hidden units over D inputs on the device: the kernel
+// takes its shape and a block's shared memory fits the device's opt-in limit.
+bool classifier_fits(int64_t D, int64_t W, int64_t device) {
+  if (D <= 0 || W <= 0 || D > (int64_t{1} << 20) || W > (int64_t{1} << 20)) return false;
+  if (!classifier_takes(static_cast<int>(D), static_cast<int>(W))) return false;
+  int optin = 0;
+  VIRGI_CUDA_CHECK(cudaDeviceGetAttribute(&optin, cudaDevAttrMaxSharedMemoryPerBlockOptin, static_cast<int>(device)));
+  return classifier_shared_bytes(static_cast<int>(D), static_cast<int>(W)) <= optin;
+}
+
 // The staged classifier's gradient (kernels.h, launch_classifier_gradients): x [S, D], y [S] (or
 // [S, 1]), w1 [W, D], b1 [W], w2 [1, W], b2 [1]. Returns grads [W D + 2 W + 1]: dW1, db1, dw2, db2.
 torch::Tensor classifier_gradients(torch::Tensor x, torch::Tensor y, torch::Tensor w1, torch::Tensor b1,
@@ -950,10 +960,7 @@ torch::Tensor classifier_gradients(torch::Tensor x, torch::Tensor y, torch::Tens
   TORCH_CHECK(y.numel() == S && b1.numel() == W && w2.numel() == W && b2.numel() == 1,
               "y must hold one label per sample, b1 and w2 one entry per hidden unit, b2 one");
   const OnDevice on(x);
-  int optin = 0;
-  VIRGI_CUDA_CHECK(cudaDeviceGetAttribute(&optin, cudaDevAttrMaxSharedMemoryPerBlockOptin, x.get_device()));
-  TORCH_CHECK(S < (int64_t{1} << 31) && classifier_takes(static_cast<int>(D), static_cast<int>(W)) &&
-                  classifier_shared_bytes(static_cast<int>(D), static_cast<int>(W)) <= optin,
+  TORCH_CHECK(S < (int64_t{1} << 31) && classifier_fits(D, W, x.get_device()),
               "the classifier's head is too large for the written-out step (", W, " x ", D, ")");
   // every entry is written by the sum kernel, which runs wherever there is a sample
   auto grads = S == 0 ? torch::zeros({W * D + 2 * W + 1}, x.options()) : torch::empty({W * D + 2 * W + 1}, x.options());
@@ -992,6 +999,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "The staged recipe's colours from the copied layer, the segmentation fixed");
   m.def("edit_layer_backward", &virgi::edit_layer_backward,
         "The staged recipe's gradient to the copied layer's output from the loss's gradient to the colours");
+  m.def("classifier_fits", &virgi::classifier_fits,
+        "Whether classifier_gradients takes a head of W hidden units over D inputs on a device");
   m.def("classifier_gradients", &virgi::classifier_gradients,
         "The staged classifier's gradient of its mean binary cross-entropy, flat");
 }

@@ -478,19 +478,11 @@ def edit_layer_backward(grad_colours: Tensor, colours: Tensor, alpha: Tensor) ->
     return rows, sums
 
 
-CLASSIFIER_TILE = 64
-"""Samples per tile of the classifier's kernel (``kTileSamples`` in ``csrc/classifier.cu``)."""
-
-
 def classifier_fits(inputs: int, width: int, device: torch.device) -> bool:
     """Whether :func:`classifier_gradients` takes a head of ``width`` hidden units over ``inputs`` inputs on
-    ``device``: each thread of a block holds at most one register tile (4 units x 8 inputs) of W1's gradient,
-    and a block's shared memory (W1 transposed and one tile of samples, rows padded by one) fits the
-    device's."""
-    owners = -(-width // 4) * -(-inputs // 8)
-    shared = 4 * (inputs * (width + 1) + CLASSIFIER_TILE * (inputs + width + 2))
-    limit = torch.cuda.get_device_properties(device).shared_memory_per_block_optin
-    return 0 < width <= 256 and owners <= 256 and shared <= limit
+    ``device``: the kernel's own shape and shared-memory check."""
+    index = device.index if device.index is not None else torch.cuda.current_device()
+    return bool(_load().classifier_fits(inputs, width, index))
 
 
 def classifier_gradients(x: Tensor, y: Tensor, w1: Tensor, b1: Tensor, w2: Tensor, b2: Tensor) -> Tensor:
