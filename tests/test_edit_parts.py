@@ -142,6 +142,15 @@ def test_unchanged_pixel_weights_give_half_to_the_colours_shown_only_unchanged()
     # no colour shown only unchanged: every unchanged pixel the same
     w = unchanged_pixel_weights(pixel, torch.zeros_like(gaussian), weight, colours, changed)
     torch.testing.assert_close(w, torch.tensor([0.0, 0.0, 0.25, 0.25, 0.25, 0.25]))
+    # a tie for the heaviest entry of a pixel: the larger index's colour decides, as if it weighed more
+    tied = weight.clone()
+    tied[3] = tied[4] = 0.5
+    ahead_red, ahead_yellow = tied.clone(), tied.clone()
+    ahead_red[3] += 1e-3
+    ahead_yellow[4] += 1e-3
+    w = unchanged_pixel_weights(pixel, gaussian, tied, colours, changed)
+    torch.testing.assert_close(w, unchanged_pixel_weights(pixel, gaussian, ahead_red, colours, changed))
+    assert not torch.allclose(w, unchanged_pixel_weights(pixel, gaussian, ahead_yellow, colours, changed))
 
 
 def test_small_parts_packed_among_the_recoloured_bodys_gaussians_keep_their_colour():

@@ -181,9 +181,9 @@ def unchanged_pixel_weights(pixel: Tensor, gaussian: Tensor, weight: Tensor, col
     P, dev = changed.numel(), changed.device
     pixel, gaussian, weight = pixel.to(dev).long(), gaussian.to(dev).long(), weight.detach().to(dev).float()
     best = torch.zeros(P, device=dev).scatter_reduce_(0, pixel, weight, "amax")
-    top = weight >= best[pixel]
-    dominant = torch.full((P,), -1, dtype=torch.long, device=dev).scatter_reduce_(
-        0, pixel[top], gaussian[top], "amax")
+    # the largest index among each pixel's heaviest entries (a mask would wait for the device to count them)
+    heaviest = torch.where(weight >= best[pixel], gaussian, torch.full_like(gaussian, -1))
+    dominant = torch.full((P,), -1, dtype=torch.long, device=dev).scatter_reduce_(0, pixel, heaviest, "amax")
     n = KEEP_COLOUR_BINS
     q = (colours.detach().float().clamp(0.0, 1.0) * n).long().clamp_max(n - 1)
     key_of = (q[:, 0] * n + q[:, 1]) * n + q[:, 2]
