@@ -164,52 +164,41 @@ a part's Gaussian dominates but the rule caught through a blend with its neighbo
 part's colour a changed one)."""
 
 
-def heaviest_gaussian(pixel: Tensor, gaussian: Tensor, weight: Tensor, P: int,
-                      offsets: Optional[Tensor] = None) -> Tensor:
-    """[P] each pixel's Gaussian of largest weight (among equals the largest index; -1 where none):
-    with ``offsets`` [P+1] (the entries grouped by pixel, pixel ``p``'s at ``offsets[p]:offsets[p+1]``)
-    reduced over each pixel's range, else scattered onto the pixels. The same answer either way; the
-    ranges avoid the many writes to one pixel that the scatter makes. No host sync."""
+def heaviest_gaussian(pixel: Tensor, gaussian: Tensor, weight: Tensor, P: int) -> Tensor:
+    """[P] each pixel's Gaussian of largest weight (among equals the largest index; -1 where none), from
+    the entries ``pixel``, ``gaussian``, ``weight`` [E] in any order. Waits for the device (its mask)."""
     dev = weight.device
-    weight = weight.detach().float()
-    if offsets is not None:
-        offsets = offsets.to(dev).long()
-        best = torch.segment_reduce(weight, "max", offsets=offsets, initial=0.0)
-        index = torch.where(weight >= best[pixel], gaussian.to(dev).double(), -1.0)  # float64: exact indices
-        return torch.segment_reduce(index, "max", offsets=offsets, initial=-1.0).long()
-    pixel, gaussian = pixel.to(dev).long(), gaussian.to(dev).long()
+    pixel, gaussian, weight = pixel.to(dev).long(), gaussian.to(dev).long(), weight.detach().float()
     best = torch.zeros(P, device=dev).scatter_reduce_(0, pixel, weight, "amax")
-    heaviest = torch.where(weight >= best[pixel], gaussian, torch.full_like(gaussian, -1))
-    return torch.full((P,), -1, dtype=torch.long, device=dev).scatter_reduce_(0, pixel, heaviest, "amax")
+    top = weight >= best[pixel]
+    return torch.full((P,), -1, dtype=torch.long, device=dev).scatter_reduce_(0, pixel[top], gaussian[top], "amax")
 
 
 def unchanged_pixel_weights(pixel: Tensor, gaussian: Tensor, weight: Tensor, colours: Float[Tensor, "U 3"],
-                            changed: Tensor, offsets: Optional[Tensor] = None) -> Tensor:
+                            changed: Tensor) -> Tensor:
     """Relative loss weights [P] of the unchanged pixels (``changed`` [P] bool; changed pixels get 0) for
     :attr:`EditConfig.unchanged_weights` ``colour``: half as if every unchanged pixel weighed the same,
     half split equally over the colour bins that the image shows only unchanged (at most
     :data:`KEEP_COLOUR_CHANGED_MAX` of their pixels changed) and within a bin equally over its pixels. A
     pixel's bin is that of the colour ``colours`` [U, 3] (in [0, 1]) of the Gaussian with the largest
     weight in it (:func:`heaviest_gaussian`), :data:`KEEP_COLOUR_BINS` levels per channel; a pixel no
-    Gaussian reaches has no bin. Where no bin qualifies, every unchanged pixel weighs the same. Runs on
-    the device without a host sync.
+    Gaussian reaches has no bin. Where no bin qualifies, every unchanged pixel weighs the same. Waits for
+    the device (its masks and counts): a set-up step, never recorded.
 
     Args:
         pixel: [E] each contribution entry's pixel (of P = ``changed.numel()``).
         gaussian: [E] its Gaussian (a row of ``colours``).
-        weight: [E] its weight.
-        offsets: [P+1] each pixel's range of entries, where they are grouped by pixel."""
+        weight: [E] its weight."""
     P, dev = changed.numel(), changed.device
-    dominant = heaviest_gaussian(pixel.to(dev), gaussian, weight.to(dev), P, offsets)
+    dominant = heaviest_gaussian(pixel.to(dev), gaussian, weight.to(dev), P)
     n = KEEP_COLOUR_BINS
     q = (colours.detach().float().clamp(0.0, 1.0) * n).long().clamp_max(n - 1)
     key_of = (q[:, 0] * n + q[:, 1]) * n + q[:, 2]
     none = n**3  # the bin of pixels no Gaussian reaches
     key = torch.where(dominant >= 0, key_of[dominant.clamp_min(0)], torch.full_like(dominant, none))
     unchanged = ~changed.reshape(-1)
-    # counted by adds, not bincount or a mask, which wait for the device
-    n_u = torch.zeros(none + 1, dtype=torch.long, device=dev).index_add_(0, key, unchanged.long()).float()
-    n_c = torch.zeros(none + 1, dtype=torch.long, device=dev).index_add_(0, key, (~unchanged).long()).float()
+    n_u = torch.bincount(key[unchanged], minlength=none + 1).float()
+    n_c = torch.bincount(key[~unchanged], minlength=none + 1).float()
     kept = (n_u > 0) & (n_c <= KEEP_COLOUR_CHANGED_MAX * (n_u + n_c))
     kept[none] = False
     n_kept = kept.sum()
