@@ -1,6 +1,7 @@
 #!/bin/bash
 # The GPU benchmarks (raster / train / several GPUs / export / edit / demo geometry) in calls on the GPU machine.
-# Run from the repo root with .whl (../shared/device/wheels.sh) and .data/beercan carried;
+# Run from the repo root with .whl (../shared/device/wheels.sh) and .data/beercan carried, or with .data filled by
+# bench/device_data.sh (the wheels and the captures packed to fit the 64 MiB a call carries);
 # STAGE picks the work: "suite" (the GPU suite and the splat path's wall), "raster" (the rasterizer's GPU tests, then bench/raster.py), "train" (bench/train.py),
 # "multi" (bench/multi_gpu.py), "rest" (export, edit, demo geometry), or any single one of export|edit|demo. Runs go under /tmp/runs (kept while the machine is warm);
 # tables, JSON, pictures and logs are packed into $OUT. Environment knobs: STEPS, COLOUR_STEPS,
@@ -18,7 +19,11 @@ t0=$(date +%s)
 el() { echo "[$(( $(date +%s) - t0 )) s] $*"; }
 
 if [ ! -f /tmp/site/.installed ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+  if [ -f .data/site.txz ]; then  # the wheels' files, packed by bench/device_data.sh to fit the carry
+    mkdir -p /tmp/site && tar xJf .data/site.txz -C /tmp/site || exit 1
+  else
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+  fi
   # a carried build cache (.extcache/ext.tgz.*) is reused when the sources look older than it
   if [ -f .extcache/ext.tgz.aa ] && [ ! -d $TORCH_EXTENSIONS_DIR ]; then
     # gsplat's build only (it never changes); ours always rebuilds from the working tree (~25 s)
@@ -28,6 +33,10 @@ if [ ! -f /tmp/site/.installed ]; then
     (cd /tmp/torch_ext && ls)
   fi
   touch /tmp/site/.installed
+fi
+rm -f .data/site.txz
+if [ -f .data/sparse.txz ]; then  # COLMAP folders packed by bench/device_data.sh
+  tar xJf .data/sparse.txz -C .data && rm .data/sparse.txz || exit 1
 fi
 (nvidia-smi --query-gpu=name,driver_version --format=csv; nvidia-smi topo -m) > $OUT/gpu.txt 2>&1
 
