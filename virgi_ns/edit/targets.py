@@ -190,7 +190,7 @@ def unchanged_pixel_weights(pixel: Tensor, gaussian: Tensor, weight: Tensor, col
         gaussian: [E] its Gaussian (a row of ``colours``).
         weight: [E] its weight."""
     P, dev = changed.numel(), changed.device
-    dominant = heaviest_gaussian(pixel.to(dev), gaussian, weight.to(dev), P)
+    dominant = heaviest_gaussian(pixel, gaussian, weight.to(dev), P)  # it moves the entries to weight's device
     n = KEEP_COLOUR_BINS
     q = (colours.detach().float().clamp(0.0, 1.0) * n).long().clamp_max(n - 1)
     key_of = (q[:, 0] * n + q[:, 1]) * n + q[:, 2]
