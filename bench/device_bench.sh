@@ -7,7 +7,7 @@
 # tables, JSON, pictures and logs are packed into $OUT. Environment knobs: STEPS, COLOUR_STEPS,
 # DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE, EDIT_SCENES (rows of the evaluation set), SEED (one
 # run set, or several side by side: "69 70"),
-# EDIT_TIMEOUT, EDIT_COLOUR_STEPS, EDIT_ARGS (more bench/edit.py flags, e.g. --variants), TRAIN_ARGS (more bench/train.py
+# EDIT_TIMEOUT (default: what CALL_BUDGET leaves after the build, less the merge), EDIT_COLOUR_STEPS, EDIT_ARGS (more bench/edit.py flags, e.g. --variants), TRAIN_ARGS (more bench/train.py
 # flags), TRAIN_TIMEOUT, RASTER_TESTS, PYTEST_ARGS, RASTER_ARGS (more bench/raster.py flags). With several GPUs the edit rows run side by side, one process per GPU (a log each); the
 # edit results come back as edit_results_s<SEED>.tgz, their logs as edit_logs.tgz.
 set -o pipefail
@@ -124,7 +124,7 @@ if stage edit; then
   edit_rows() {  # GPU, run set seed, output folder, rows... (none: the whole set)
     local gpu=$1 seed=$2 out=$3; shift 3
     # each run set trains under its own folder: two run sets must not write one synthetic capture at once
-    CUDA_VISIBLE_DEVICES=$gpu OMP_NUM_THREADS=$(( $(nproc) / NG > 0 ? $(nproc) / NG : 1 )) timeout ${EDIT_TIMEOUT:-560} python3 bench/edit.py \
+    CUDA_VISIBLE_DEVICES=$gpu OMP_NUM_THREADS=$(( $(nproc) / NG > 0 ? $(nproc) / NG : 1 )) timeout ${EDIT_TIMEOUT:-$(( ${CALL_BUDGET:-585} - 25 - $(date +%s) + t0 ))} python3 bench/edit.py \
       --data $PWD/.data ${1:+--scenes} "$@" --train-out $RUNS/edit_runs_s$seed --seed $seed --geometry-steps $STEPS \
       --colour-steps ${EDIT_COLOUR_STEPS:-1000} --out $out ${EDIT_ARGS:-}
   }
