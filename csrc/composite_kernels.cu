@@ -133,6 +133,25 @@ __global__ void __launch_bounds__(kTile* kTile)
   }
 }
 
+// Each pixel's pair of largest weight, among equals the largest pair index; -1 where no entry has a
+// weight >= 0. One thread per pixel over its entries (no atomics).
+__global__ void heaviest_pair_kernel(int64_t P, const int* __restrict__ pair, const float* __restrict__ weight,
+                                     const int64_t* __restrict__ offsets, int64_t* __restrict__ out) {
+  const int64_t p = static_cast<int64_t>(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (p >= P) return;
+  float best = 0.f;
+  int64_t arg = -1;
+  for (int64_t e = offsets[p]; e < offsets[p + 1]; ++e) {
+    const float w = weight[e];
+    const int64_t u = pair[e];
+    if (w > best || (w == best && u > arg)) {
+      best = w;
+      arg = u;
+    }
+  }
+  out[p] = arg;
+}
+
 }  // namespace
 
 cudaError_t launch_composite_forward(int64_t P, int D, const float* colors, const int* pair,
@@ -172,6 +191,11 @@ cudaError_t launch_composite_backward_tiles(int num_units, int D, const int* uni
                         items, views, item_w, item_h, ranges, list_pair, offsets, pair, weight, grad,
                         grad_colors);
   });
+}
+
+cudaError_t launch_heaviest_pair(int64_t P, const int* pair, const float* weight, const int64_t* offsets,
+                                  int64_t* out, cudaStream_t stream) {
+  return launch_elements(heaviest_pair_kernel, P, stream, P, pair, weight, offsets, out);
 }
 
 }  // namespace virgi

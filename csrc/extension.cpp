@@ -569,6 +569,21 @@ std::vector<torch::Tensor> rasterize_contributions(
           none_i,   none_i,   none_f, none_f,        none_i, none_i,  none_i};
 }
 
+// Each pixel's pair of largest weight [P] (int64; among equals the largest pair, -1 where none).
+torch::Tensor heaviest_pair(torch::Tensor pair, torch::Tensor weight, torch::Tensor pixel_offsets) {
+  check_i32(pair, "pair");
+  check_f32(weight, "weight");
+  check_i64(pixel_offsets, "pixel_offsets");
+  TORCH_CHECK(pixel_offsets.dim() == 1 && pixel_offsets.numel() >= 1, "pixel_offsets must hold P + 1 entries");
+  TORCH_CHECK(pair.numel() == weight.numel(), "pair and weight must hold one value per entry");
+  const OnDevice on(weight);
+  const int64_t P = pixel_offsets.numel() - 1;
+  auto out = torch::empty({P}, pixel_offsets.options());
+  VIRGI_CUDA_CHECK(launch_heaviest_pair(P, pair.data_ptr<int>(), weight.data_ptr<float>(),
+                                        pixel_offsets.data_ptr<int64_t>(), out.data_ptr<int64_t>(), on.stream));
+  return out;
+}
+
 // Images [P, D] = sum over each pixel's entries of weight * colors[pair] (+ T * background).
 torch::Tensor composite_forward(torch::Tensor colors, torch::Tensor pair, torch::Tensor weight,
                                 torch::Tensor pixel_offsets, torch::Tensor transmittance,
@@ -979,6 +994,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("rasterize_contributions", &virgi::rasterize_contributions,
         "Contribution lists of N Gaussians for a request of equally sized items");
   m.def("composite_forward", &virgi::composite_forward, "Segmented sum of weighted pair colours");
+  m.def("heaviest_pair", &virgi::heaviest_pair, "Each pixel's pair of largest weight");
   m.def("composite_backward", &virgi::composite_backward, "Gradient of composite_forward to colours");
   m.def("composite_backward_tiles", &virgi::composite_backward_tiles,
         "Gradient of composite_forward to colours, per tile from the tile lists");

@@ -98,6 +98,9 @@ cudaError_t launch_split(int64_t M, const int2* entry, const int* rank_incl, int
                          float* weight, cudaStream_t stream);
 cudaError_t launch_pixel_fill(int64_t P, const int64_t* offsets, int* pixel, cudaStream_t stream);
 
+// out[P] = each pixel's pair of largest weight (among equals the largest index), -1 where none.
+cudaError_t launch_heaviest_pair(int64_t P, const int* pair, const float* weight, const int64_t* offsets,
+                                  int64_t* out, cudaStream_t stream);
 // images[P, D] = sum over each pixel's entries of weight * colors[pair] (+ T * background).
 cudaError_t launch_composite_forward(int64_t P, int D, const float* colors, const int* pair,
                                      const float* weight, const int64_t* offsets,

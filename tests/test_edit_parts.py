@@ -171,6 +171,29 @@ def test_the_heaviest_gaussian_is_the_one_a_loop_over_the_entries_finds():
     assert torch.equal(heaviest_gaussian(pixel, gaussian, weight, P), expected)
 
 
+@pytest.mark.gpu
+def test_the_heaviest_pair_kernel_finds_what_the_scatters_find():
+    """On a GPU, one pass per pixel over its range of entries finds each pixel's heaviest Gaussian as the
+    torch scatters do, ties, zero weights and empty pixels included."""
+    from virgi_ns.raster import cuda
+
+    if not cuda.available()[0]:
+        pytest.skip("needs a CUDA GPU and the extension")
+    g = torch.Generator().manual_seed(4)
+    for P, U, most in ((1, 3, 1), (500, 40, 6), (100_000, 5000, 60)):
+        counts = torch.randint(0, most + 1, (P,), generator=g)
+        counts[0] = 0
+        pixel = torch.repeat_interleave(torch.arange(P), counts)
+        gaussian = torch.randint(0, U, (len(pixel),), generator=g)
+        weight = torch.randint(0, 5, (len(pixel),), generator=g).float() / 8  # ties and zeros
+        offsets = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])
+        expected = heaviest_gaussian(pixel, gaussian, weight, P)
+        found = cuda.heaviest_pair(gaussian.int().cuda(), weight.cuda(), offsets.cuda())
+        assert found.dtype == torch.long and torch.equal(found.cpu(), expected), P
+        assert torch.equal(heaviest_gaussian(pixel.cuda(), gaussian.cuda(), weight.cuda(), P, offsets.cuda()).cpu(),
+                           expected)
+
+
 def test_small_parts_packed_among_the_recoloured_bodys_gaussians_keep_their_colour():
     """The box's yellow turns blue; its red and grey studs, unchanged in the edited photo and a small share
     of its unchanged pixels, keep their colours in held-out views that see other sides of the box (with

@@ -210,7 +210,8 @@ class EditEngine:
         keep = None
         if flat is not None and self.cfg.unchanged_weights == "colour":
             c = self.contrib
-            keep = unchanged_pixel_weights(c.pixel, c.pair, c.weight, torch.sigmoid(self.c_d), flat)
+            keep = unchanged_pixel_weights(c.pixel, c.pair, c.weight, torch.sigmoid(self.c_d), flat,
+                                           getattr(c, "pixel_offsets", None))
         self.batches = pixel_batches(self.contrib, image, self.background, self.cfg.pixel_batches, self.cfg.seed,
                                      flat, self.cfg.changed_share, kind, target.count, keep)
         for b in self.batches:

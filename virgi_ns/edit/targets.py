@@ -164,10 +164,19 @@ a part's Gaussian dominates but the rule caught through a blend with its neighbo
 part's colour a changed one)."""
 
 
-def heaviest_gaussian(pixel: Tensor, gaussian: Tensor, weight: Tensor, P: int) -> Tensor:
+def heaviest_gaussian(pixel: Tensor, gaussian: Tensor, weight: Tensor, P: int,
+                      offsets: Optional[Tensor] = None) -> Tensor:
     """[P] each pixel's Gaussian of largest weight (among equals the largest index; -1 where none), from
-    the entries ``pixel``, ``gaussian``, ``weight`` [E] in any order. Waits for the device (its mask)."""
+    the entries ``pixel``, ``gaussian``, ``weight`` [E] in any order. With ``offsets`` [P+1] (the entries
+    grouped by pixel) on a GPU with the extension: one pass per pixel (:func:`virgi_ns.raster.cuda.heaviest_pair`),
+    no wait; else scatters and a mask, which wait for the device."""
     dev = weight.device
+    if offsets is not None and weight.is_cuda:
+        from virgi_ns.raster import cuda
+
+        if cuda.available()[0]:
+            return cuda.heaviest_pair(gaussian.int().contiguous(), weight.detach().float().contiguous(),
+                                      offsets.long().contiguous())
     pixel, gaussian, weight = pixel.to(dev).long(), gaussian.to(dev).long(), weight.detach().float()
     best = torch.zeros(P, device=dev).scatter_reduce_(0, pixel, weight, "amax")
     top = weight >= best[pixel]
@@ -175,7 +184,7 @@ def heaviest_gaussian(pixel: Tensor, gaussian: Tensor, weight: Tensor, P: int) -
 
 
 def unchanged_pixel_weights(pixel: Tensor, gaussian: Tensor, weight: Tensor, colours: Float[Tensor, "U 3"],
-                            changed: Tensor) -> Tensor:
+                            changed: Tensor, offsets: Optional[Tensor] = None) -> Tensor:
     """Relative loss weights [P] of the unchanged pixels (``changed`` [P] bool; changed pixels get 0) for
     :attr:`EditConfig.unchanged_weights` ``colour``: half as if every unchanged pixel weighed the same,
     half split equally over the colour bins that the image shows only unchanged (at most
@@ -188,9 +197,10 @@ def unchanged_pixel_weights(pixel: Tensor, gaussian: Tensor, weight: Tensor, col
     Args:
         pixel: [E] each contribution entry's pixel (of P = ``changed.numel()``).
         gaussian: [E] its Gaussian (a row of ``colours``).
-        weight: [E] its weight."""
+        weight: [E] its weight.
+        offsets: [P+1] each pixel's range of entries, where they are grouped by pixel."""
     P, dev = changed.numel(), changed.device
-    dominant = heaviest_gaussian(pixel, gaussian, weight.to(dev), P)  # it moves the entries to weight's device
+    dominant = heaviest_gaussian(pixel, gaussian, weight.to(dev), P, offsets)  # it moves the entries to weight's device
     n = KEEP_COLOUR_BINS
     q = (colours.detach().float().clamp(0.0, 1.0) * n).long().clamp_max(n - 1)
     key_of = (q[:, 0] * n + q[:, 1]) * n + q[:, 2]

@@ -478,6 +478,13 @@ def edit_layer_backward(grad_colours: Tensor, colours: Tensor, alpha: Tensor) ->
     return rows, sums
 
 
+def heaviest_pair(pair: Tensor, weight: Tensor, pixel_offsets: Tensor) -> Tensor:
+    """[P] each pixel's pair of largest weight (among equals the largest index; -1 where none) over its
+    entries ``pixel_offsets[p]:pixel_offsets[p+1]`` of ``pair`` (int32) and ``weight`` (float32): what
+    :func:`virgi_ns.edit.targets.heaviest_gaussian` finds, one thread per pixel. No host sync."""
+    return _load().heaviest_pair(pair, weight, pixel_offsets)
+
+
 def classifier_fits(inputs: int, width: int, device: torch.device) -> bool:
     """Whether :func:`classifier_gradients` takes a head of ``width`` hidden units over ``inputs`` inputs on
     ``device``: the kernel's own shape and shared-memory check."""
@@ -494,7 +501,7 @@ def classifier_gradients(x: Tensor, y: Tensor, w1: Tensor, b1: Tensor, w2: Tenso
 
 __all__ = ["available", "build", "classifier_fits", "classifier_gradients", "composite", "cuda_home",
            "edit_by_gaussian", "edit_heads_backward", "edit_heads_forward", "edit_l1_step", "edit_layer_backward",
-           "edit_layer_forward", "rasterize", "CudaContributions", "DeferredCudaContributions"]
+           "edit_layer_forward", "heaviest_pair", "rasterize", "CudaContributions", "DeferredCudaContributions"]
 
 if __name__ == "__main__":  # pragma: no cover - manual build check: python -m virgi_ns.raster.cuda
     build(verbose=True)
