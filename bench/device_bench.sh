@@ -3,7 +3,8 @@
 # Run from the repo root with .whl (../shared/device/wheels.sh) and .data/beercan carried, or with .data filled by
 # bench/device_data.sh (the wheels and the captures packed to fit the 64 MiB a call carries);
 # STAGE picks the work: "suite" (the GPU suite and the splat path's wall), "raster" (the rasterizer's GPU tests, then bench/raster.py), "train" (bench/train.py),
-# "multi" (bench/multi_gpu.py), "rest" (export, edit, demo geometry), or any single one of export|edit|demo. Runs go under /tmp/runs (kept while the machine is warm);
+# "multi" (bench/multi_gpu.py), "rest" (export, edit, demo geometry), any single one of export|edit|demo, or "none"
+# (install and build only, for a command of its own after it). Runs go under /tmp/runs (kept while the machine is warm);
 # tables, JSON, pictures and logs are packed into $OUT. Environment knobs: STEPS, COLOUR_STEPS,
 # DEMO_STEPS, DEMO_VARIANTS ("downscale:cap ..."), DEMO_FINETUNE, EDIT_SCENES (rows of the evaluation set), SEED (one
 # run set, or several side by side: "69 70"),
