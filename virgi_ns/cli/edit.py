@@ -73,7 +73,7 @@ class Apply:
     """``joint``: the segmentation and the new colour are fitted together (the paper's recipe);
     ``staged``: the segmentation first, from which Gaussians your change covers, so parts of another
     colour inside a recoloured object keep theirs."""
-    unchanged_weights: Literal["count", "colour"] = "count"
+    unchanged_weights: Literal["count", "colour"] = "colour"
     """How the pixels your edit left unchanged share their part of the fit: ``count``, each the same;
     ``colour``, half of it spread equally over the colours the image shows only unchanged, so a small
     part of another colour on a recoloured object (studs, spots, a beak) keeps its colour."""
@@ -121,7 +121,7 @@ class Pick:
     keeping their ratio to it: the clicked one (the default), or the selection's median one."""
     steps: Optional[int] = None
     """Optimisation steps (default: the engine's)."""
-    unchanged_weights: Literal["count", "colour"] = "count"
+    unchanged_weights: Literal["count", "colour"] = "colour"
     """How the pixels outside the selection share their part of the fit: ``count``, each the same;
     ``colour``, half of it spread equally over the colours the view shows only outside the selection, so
     a small part of another colour on the picked object keeps its colour."""

@@ -48,7 +48,7 @@ class EditConfig:
     """With the changed pixels known: the share of the loss they carry (the unchanged ones carry the
     rest), whatever their numbers, so a small edit is not outvoted by the many pixels asking for no
     change."""
-    unchanged_weights: Literal["count", "colour"] = "count"
+    unchanged_weights: Literal["count", "colour"] = "colour"
     """How the unchanged pixels split their share of the loss. ``count``: each the same. ``colour``: half of
     it as ``count``, the other half split equally over the colours that the edited image shows only
     unchanged (:func:`~virgi_ns.edit.targets.unchanged_pixel_weights`: each pixel keyed by the binned
