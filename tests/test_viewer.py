@@ -267,6 +267,41 @@ def test_panel_pick_live_commit_replace_undo(run, tmp_path):
     panel.set_pick_mode(False)
 
 
+def test_panel_fit_settings_reach_the_applied_edit_and_the_pick(run, tmp_path):
+    """**Fit** and **Keep other colours** reach what Apply fits and what a click starts: each edit
+    records the recipe and the unchanged pixels' weights it was fitted with; the defaults are the
+    engine's."""
+    _, pipeline = run
+    model = pipeline.model
+    model.set_edit_stack(None)
+    panel = VirgiPanel(model, run_dir=tmp_path)
+    assert (panel.recipe.value, panel.unchanged_weights) == ("joint", "count")
+    cam = pipeline.datamanager.train_dataset.cameras[1:2]
+    saved = np.asarray(Image.open(panel.save_view(cam).png), dtype=np.float32) / 255.0
+    edited = saved.copy()
+    edited[np.abs(saved - saved[0, 0]).max(-1) > 0.05] = (0.1, 0.8, 0.15)
+    for recipe, keep, weights in (("staged", True, "colour"), ("joint", False, "count")):
+        panel.recipe.value, panel.keep_colours.value = recipe, keep
+        panel.upload("view_001 edited.png", png(edited))
+        panel.apply_edit(wait=True, steps=10)
+        assert not panel.status_is_error, panel.status
+        info = model.edit_stack.entries[-1].edit.info
+        assert (info["recipe"], info["unchanged_weights"]) == (recipe, weights)
+
+    panel.reset()
+    cam = pipeline.datamanager.train_dataset.cameras[0:1]
+    out = model.get_outputs_for_camera(cam)
+    rgb, acc = out["rgb"].detach().cpu().numpy(), out["accumulation"][..., 0].detach().cpu().numpy()
+    ys, xs = np.nonzero((acc > 0.95) & (rgb[..., 0] > rgb[..., 2] + 0.2))
+    k = int(((ys - ys.mean()) ** 2 + (xs - xs.mean()) ** 2).argmin())
+    panel.keep_colours.value = True
+    panel.commit_after_s = 600.0
+    panel.pick_at(cam, int(xs[k]), int(ys[k]), wait=True)
+    assert not panel.status_is_error, panel.status
+    assert model.live_edit is not None and model.live_edit.info["unchanged_weights"] == "colour"
+    panel.set_pick_mode(False)
+
+
 # --------------------------------------------------------------------------------------------------
 # The panel inside nerfstudio's viewer on a real viser server, driven by a websocket client that
 # speaks viser's protocol as the browser does (tests/viser_client.py): the viewer finds the panel on

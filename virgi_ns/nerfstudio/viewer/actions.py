@@ -191,7 +191,8 @@ class PanelActions:
         original = torch.from_numpy(np.ascontiguousarray(view.image[..., :3], dtype=np.float32)) \
             if view.image is not None and tuple(view.image.shape[:2]) == tuple(image.shape[:2]) else None
         # the rate's schedule spans the config's steps, so other steps are set there, not only run
-        cfg = EditConfig() if steps is None else EditConfig(steps=int(steps))
+        cfg = EditConfig(recipe=str(self.recipe.value), unchanged_weights=self.unchanged_weights,
+                         **({} if steps is None else {"steps": int(steps)}))
         engine = EditEngine(scene, cams, torch.from_numpy(image), stack, cfg, source=source, original=original)
         edit, timing = engine.fit(progress=progress)
         with self._lock():

@@ -9,13 +9,16 @@ lock, the run directory and the output selector). It holds, top to bottom:
 - a status line (progress and errors; a failed action never stops the server);
 - **Display** (rgb, diffuse, specular, segmentation of the selected edit): sets the viewer's
   output type; **Specular strength** ``k``;
+- **Keep other colours**: the colours an edit or a pick leaves unchanged get their own share of its
+  fit (``virgi-edit --unchanged-weights colour``), so small parts of another colour on a recoloured
+  object keep theirs;
 - **Pick mode**, **New colour**, **Tolerance**, **Recolour mode** (hue or colour): a click on the
   render selects what it shows and recolours it live; a pause commits it (:mod:`.picking`);
 - **Save this view**: renders the client's view (longest side **Save size**), writes
   ``<run>/views/view_NNN.png`` and its camera ``view_NNN.json`` (``virgi-render``'s CAM.json, in
   the capture's original frame, as the exported splat) and sends both to the browser;
-- **Upload edited image** (:class:`ViewerUpload`, over viser's upload button) and **Apply edit**:
-  fits an edit (:class:`virgi_ns.edit.engine.EditEngine`) for the saved view the image came from (its
+- **Upload edited image** (:class:`ViewerUpload`, over viser's upload button), **Fit** (``joint``, the
+  paper's recipe, or ``staged``: ``virgi-edit apply --recipe``) and **Apply edit**: fits an edit (:class:`virgi_ns.edit.engine.EditEngine`) for the saved view the image came from (its
   name holds ``view_NNN``; otherwise the last saved view), in a background thread with progress;
 - the edits with enable toggles, the edit whose segmentation is shown, **Undo**, **Reset**;
 - **Export**: bakes the edited scene to a splat file (:mod:`virgi_ns.nerfstudio.export`).
@@ -90,11 +93,19 @@ class VirgiPanel(PanelActions, PickActions, ViewerElement[None], ViewerControl):
         self.specular = ViewerSlider("Specular strength", 1.0, 0.0, 2.0, 0.05,
                                      cb_hook=lambda e: self.set_specular_strength(float(e.value)),
                                      hint="k in sigmoid(c_d'' + k c_s): 0 removes highlights")
+        self.keep_colours = ViewerCheckbox("Keep other colours", False,
+                                           hint="The colours your edit or pick leaves unchanged get their own share "
+                                                "of the fit, so small parts of another colour on a recoloured object "
+                                                "keep theirs (a pick takes it from its next click)")
         self.save_size = ViewerNumber("Save size (px)", self._default_save_size(),
                                       hint="Longest side of a saved view")
         self.save_button = ViewerButton("Save this view", cb_hook=lambda e: None)
         self.upload_element = ViewerUpload("Upload edited image", cb_hook=lambda e: self._on_upload(e),
                                            mime_type="image/*", hint="The saved view, recoloured in any editor")
+        self.recipe = ViewerDropdown("Fit", "joint", ["joint", "staged"],
+                                     hint="joint: the segmentation and the new colour together (the paper's recipe); "
+                                          "staged: the segmentation first, so parts of another colour inside a "
+                                          "recoloured object keep theirs")
         self.apply_button = ViewerButton("Apply edit", cb_hook=lambda e: self._guard(self.apply_edit))
         self.selected = ViewerDropdown("Segmentation of", ALL_EDITS, [ALL_EDITS],
                                        cb_hook=lambda e: self._guard(lambda: self.select_edit(e.value)))
@@ -130,9 +141,9 @@ class VirgiPanel(PanelActions, PickActions, ViewerElement[None], ViewerControl):
         with self.gui_handle:  # type: ignore[union-attr]
             self._status_md = viser_server.gui.add_markdown(self._status_text())
             self._progress_bar = viser_server.gui.add_progress_bar(0.0, visible=False)
-            for e in (self.display, self.specular, self.pick_mode, self.pick_colour, self.tolerance, self.contiguous,
-                      self.pick_recolour, self.save_size, self.save_button, self.upload_element, self.apply_button,
-                      self.selected):
+            for e in (self.display, self.specular, self.keep_colours, self.pick_mode, self.pick_colour, self.tolerance,
+                      self.contiguous, self.pick_recolour, self.save_size, self.save_button, self.upload_element,
+                      self.recipe, self.apply_button, self.selected):
                 e.install(viser_server)
             self._edits_folder = viser_server.gui.add_folder("Edits")
             for e in (self.undo_button, self.reset_button, self.export_button):
@@ -167,6 +178,11 @@ class VirgiPanel(PanelActions, PickActions, ViewerElement[None], ViewerControl):
         if self._run_dir is None:
             self._run_dir = Path(tempfile.mkdtemp(prefix="virgi_viewer_"))
         return self._run_dir
+
+    @property
+    def unchanged_weights(self) -> str:
+        """:attr:`~virgi_ns.edit.config.EditConfig.unchanged_weights` as **Keep other colours** sets it."""
+        return "colour" if bool(self.keep_colours.value) else "count"
 
     def _lock(self):
         lock = getattr(self.viewer, "train_lock", None)

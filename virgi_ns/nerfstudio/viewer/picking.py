@@ -10,7 +10,7 @@ How it runs (mixed into :class:`~virgi_ns.nerfstudio.viewer.panel.VirgiPanel`):
   the pick worker; colour, tolerance, contiguity and mode changes only bump a counter. Callbacks never wait
   for a fit or the render lock;
 - one worker thread does the work, always on the newest request: a click starts a
-  :class:`~virgi_ns.edit.pick.PickSession` and fits it; a change refits it warm in a few steps
+  :class:`~virgi_ns.edit.pick.PickSession` (with the panel's **Keep other colours** as it stands then) and fits it; a change refits it warm in a few steps
   (:data:`LIVE_STEPS`) and shows the result through the model's live-edit slot (rendered over the
   stack, nothing written);
 - **the fit tops up while nothing changes**: once the newest change is shown, the worker runs the
@@ -220,7 +220,9 @@ class PickActions:
         cams = raster_cameras(camera.reshape((1,)) if len(camera.shape) == 0 else camera[0:1]).to(m.device)
         W, H = int(cams.widths[0]), int(cams.heights[0])
         source = EditSource("", cams.Ks[0].cpu(), cams.viewmats[0].cpu(), W, H, f"viewer pick at {x} {y}")
-        self._pick_session = PickSession(scene, cams, x, y, stack, pick_config(m.device), source)
+        cfg = pick_config(m.device)
+        cfg.unchanged_weights = self.unchanged_weights
+        self._pick_session = PickSession(scene, cams, x, y, stack, cfg, source)
         self._live_pick(version, first=True)
 
     def _live_pick(self, version: int, first: bool = False) -> None:
