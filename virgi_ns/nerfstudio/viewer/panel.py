@@ -18,8 +18,9 @@ lock, the run directory and the output selector). It holds, top to bottom:
   ``<run>/views/view_NNN.png`` and its camera ``view_NNN.json`` (``virgi-render``'s CAM.json, in
   the capture's original frame, as the exported splat) and sends both to the browser;
 - **Upload edited image** (:class:`ViewerUpload`, over viser's upload button), **Fit** (``joint``, the
-  paper's recipe, or ``staged``: ``virgi-edit apply --recipe``) and **Apply edit**: fits an edit (:class:`virgi_ns.edit.engine.EditEngine`) for the saved view the image came from (its
-  name holds ``view_NNN``; otherwise the last saved view), in a background thread with progress;
+  paper's recipe, or ``staged``: ``virgi-edit apply --recipe``) and **Apply edit**: fits an edit
+  (:class:`virgi_ns.edit.engine.EditEngine`) for the saved view the image came from (its name holds
+  ``view_NNN``; otherwise the last saved view), in a background thread with progress;
 - the edits with enable toggles, the edit whose segmentation is shown, **Undo**, **Reset**;
 - **Export**: bakes the edited scene to a splat file (:mod:`virgi_ns.nerfstudio.export`).
 

@@ -10,9 +10,9 @@ How it runs (mixed into :class:`~virgi_ns.nerfstudio.viewer.panel.VirgiPanel`):
   the pick worker; colour, tolerance, contiguity and mode changes only bump a counter. Callbacks never wait
   for a fit or the render lock;
 - one worker thread does the work, always on the newest request: a click starts a
-  :class:`~virgi_ns.edit.pick.PickSession` (with the panel's **Keep other colours** as it stands then) and fits it; a change refits it warm in a few steps
-  (:data:`LIVE_STEPS`) and shows the result through the model's live-edit slot (rendered over the
-  stack, nothing written);
+  :class:`~virgi_ns.edit.pick.PickSession` (with the panel's **Keep other colours** as it stands then)
+  and fits it; a change refits it warm in a few steps (:data:`LIVE_STEPS`) and shows the result
+  through the model's live-edit slot (rendered over the stack, nothing written);
 - **the fit tops up while nothing changes**: once the newest change is shown, the worker runs the
   rest of the config's steps in chunks of :data:`LIVE_STEPS` (a new change or click goes first) and
   shows the finished fit;
